@@ -1,0 +1,386 @@
+//! The reliable link under deterministic scenarios and under random loss, duplication,
+//! reordering and byte corruption: every message is delivered exactly once, in order.
+
+use std::collections::VecDeque;
+
+use lightrig_protocol::event::Event;
+use lightrig_protocol::frame::FrameError;
+use lightrig_protocol::link::{Delivery, FrameKind, Header, Link, LinkConfig, LinkState, Role};
+use lightrig_protocol::{link, Command, DeviceMsg, HostMsg, MAX_FRAME};
+use proptest::prelude::*;
+
+type HostLink = Link<HostMsg, DeviceMsg, 8>;
+type DevLink = Link<DeviceMsg, HostMsg, 8>;
+
+const RTO: u64 = 50;
+
+fn host_link() -> HostLink {
+    Link::new(Role::Initiator, LinkConfig { rto: RTO, rx_reserve: 0 })
+}
+
+fn dev_link() -> DevLink {
+    Link::new(Role::Responder, LinkConfig { rto: RTO, rx_reserve: 0 })
+}
+
+fn req(id: u16) -> HostMsg {
+    HostMsg { id, command: Command::GetClock }
+}
+
+fn ev(index: u32) -> DeviceMsg {
+    DeviceMsg::Event { index, event: Event::LaserReady { channel: 0, tick: u64::from(index) * 1000 } }
+}
+
+/// Everything `link` wants to send at `now`, as separate frames.
+fn drain<T: lightrig_protocol::message::Message, R: lightrig_protocol::message::Message>(
+    link: &mut Link<T, R, 8>,
+    now: u64,
+) -> Vec<Vec<u8>> {
+    let mut out = [0u8; MAX_FRAME];
+    let mut frames = Vec::new();
+    while let Some(n) = link.poll_transmit(now, &mut out) {
+        frames.push(out[..n].to_vec());
+        assert!(frames.len() < 1000, "poll_transmit must run dry");
+    }
+    frames
+}
+
+fn feed<T: lightrig_protocol::message::Message, R: lightrig_protocol::message::Message>(
+    link: &mut Link<T, R, 8>,
+    frames: &[Vec<u8>],
+    now: u64,
+) -> Vec<Delivery<R>> {
+    let mut got = Vec::new();
+    for f in frames {
+        link.receive_all(f, now, |d| got.push(d));
+    }
+    got
+}
+
+fn kind_of(frame: &[u8]) -> FrameKind {
+    let mut dec = lightrig_protocol::frame::FrameDecoder::new();
+    let mut kind = None;
+    dec.feed(frame, |p| kind = Some(postcard::take_from_bytes::<Header>(p.unwrap()).unwrap().0.kind));
+    kind.unwrap()
+}
+
+/// Host and device connected in epoch 1.
+fn connected() -> (HostLink, DevLink) {
+    let (mut h, mut d) = (host_link(), dev_link());
+    h.connect(1, 0);
+    let sync = drain(&mut h, 0);
+    assert_eq!(sync.len(), 1);
+    assert_eq!(kind_of(&sync[0]), FrameKind::Sync);
+    assert_eq!(feed(&mut d, &sync, 0), vec![Delivery::Connected { epoch: 1 }]);
+    let ack = drain(&mut d, 0);
+    assert_eq!(ack.iter().map(|f| kind_of(f)).collect::<Vec<_>>(), vec![FrameKind::SyncAck]);
+    assert_eq!(feed(&mut h, &ack, 0), vec![Delivery::Connected { epoch: 1 }]);
+    assert_eq!((h.state(), d.state()), (LinkState::Up, LinkState::Up));
+    (h, d)
+}
+
+#[test]
+fn sync_is_repeated_every_rto_until_answered() {
+    let mut h = host_link();
+    h.connect(9, 1000);
+    assert_eq!(drain(&mut h, 1000).len(), 1);
+    assert_eq!(h.next_deadline(), Some(1000 + RTO));
+    assert!(drain(&mut h, 1000 + RTO - 1).is_empty());
+    assert_eq!(drain(&mut h, 1000 + RTO).len(), 1);
+    assert_eq!(h.state(), LinkState::Syncing);
+}
+
+#[test]
+fn request_is_acked_and_delivered_once() {
+    let (mut h, mut d) = connected();
+    h.send(req(1)).unwrap();
+    let f = drain(&mut h, 10);
+    assert_eq!(f.len(), 1);
+    assert_eq!(feed(&mut d, &f, 11), vec![Delivery::Message(req(1))]);
+    // The same frame again (a duplicate on the wire) is dropped and re-acknowledged.
+    assert_eq!(feed(&mut d, &f, 12), vec![]);
+    assert_eq!(d.stats().duplicates, 1);
+    let acks = drain(&mut d, 12);
+    assert_eq!(acks.iter().map(|f| kind_of(f)).collect::<Vec<_>>(), vec![FrameKind::Ack]);
+    assert_eq!(h.unacked(), 1);
+    feed(&mut h, &acks, 13);
+    assert_eq!(h.unacked(), 0);
+    assert_eq!(h.next_deadline(), None);
+}
+
+#[test]
+fn lost_frame_is_resent_exactly_at_the_timeout() {
+    let (mut h, mut d) = connected();
+    h.send(req(1)).unwrap();
+    h.send(req(2)).unwrap();
+    let lost = drain(&mut h, 100);
+    assert_eq!(lost.len(), 2);
+    assert_eq!(h.next_deadline(), Some(100 + RTO));
+    assert!(drain(&mut h, 100 + RTO - 1).is_empty(), "nothing before the deadline");
+    let again = drain(&mut h, 100 + RTO);
+    assert_eq!(again, lost, "go-back-N resends both, byte for byte");
+    assert_eq!((h.stats().timeouts, h.stats().retransmits), (1, 2));
+    assert_eq!(feed(&mut d, &again, 151), vec![Delivery::Message(req(1)), Delivery::Message(req(2))]);
+}
+
+#[test]
+fn out_of_order_frame_is_dropped_then_delivered_in_order() {
+    let (mut h, mut d) = connected();
+    h.send(req(1)).unwrap();
+    h.send(req(2)).unwrap();
+    let f = drain(&mut h, 0);
+    assert_eq!(feed(&mut d, &f[1..], 1), vec![]);
+    assert_eq!(d.stats().out_of_order, 1);
+    // The device re-acks (ack = 0) so the host learns nothing new and resends on timeout.
+    feed(&mut h, &drain(&mut d, 1), 2);
+    assert_eq!(h.unacked(), 2);
+    let again = drain(&mut h, RTO);
+    assert_eq!(feed(&mut d, &again, RTO), vec![Delivery::Message(req(1)), Delivery::Message(req(2))]);
+}
+
+#[test]
+fn damaged_frame_is_naked_and_resent_at_once() {
+    let (mut h, mut d) = connected();
+    h.send(req(7)).unwrap();
+    let mut f = drain(&mut h, 0);
+    let mid = f[0].len() / 2;
+    f[0][mid] = if f[0][mid] == 0xff { 0x01 } else { f[0][mid] + 1 }; // damaged, still no 0x00
+    assert_eq!(feed(&mut d, &f, 1), vec![]);
+    assert_eq!(d.stats().rejected(), 1);
+    let nak = drain(&mut d, 1);
+    assert_eq!(nak.iter().map(|f| kind_of(f)).collect::<Vec<_>>(), vec![FrameKind::Nak]);
+    feed(&mut h, &nak, 2);
+    assert_eq!(h.stats().naks_received, 1);
+    let again = drain(&mut h, 2); // well before the timeout
+    assert_eq!(feed(&mut d, &again, 3), vec![Delivery::Message(req(7))]);
+}
+
+#[test]
+fn events_flow_device_to_host_with_acks_too() {
+    let (mut h, mut d) = connected();
+    for i in 0..8 {
+        d.send(ev(i)).unwrap();
+    }
+    assert!(matches!(d.send(ev(8)), Err(link::SendError::WindowFull(_))));
+    let f = drain(&mut d, 5);
+    let got = feed(&mut h, &f, 6);
+    assert_eq!(got, (0..8).map(|i| Delivery::Message(ev(i))).collect::<Vec<_>>());
+    feed(&mut d, &drain(&mut h, 6), 7);
+    assert_eq!(d.unacked(), 0);
+    assert!(d.send(ev(8)).is_ok());
+}
+
+#[test]
+fn device_restart_triggers_resync_and_nothing_is_lost() {
+    let (mut h, d) = connected();
+    drop(d);
+    let mut d = dev_link(); // the device reset: it knows no epoch
+    h.send(req(1)).unwrap();
+    let f = drain(&mut h, 10);
+    assert_eq!(feed(&mut d, &f, 10), vec![]);
+    assert_eq!(d.stats().stale_epoch, 1);
+    let resync = drain(&mut d, 10);
+    assert_eq!(resync.iter().map(|f| kind_of(f)).collect::<Vec<_>>(), vec![FrameKind::Resync]);
+    feed(&mut h, &resync, 11);
+    assert_eq!((h.state(), h.epoch()), (LinkState::Syncing, 2));
+    let sync = drain(&mut h, 11);
+    assert_eq!(feed(&mut d, &sync, 12), vec![Delivery::Connected { epoch: 2 }]);
+    assert_eq!(feed(&mut h, &drain(&mut d, 12), 12), vec![Delivery::Connected { epoch: 2 }]);
+    // The request queued before the reset goes out again, renumbered from 0.
+    assert_eq!(feed(&mut d, &drain(&mut h, 13), 13), vec![Delivery::Message(req(1))]);
+}
+
+#[test]
+fn repeated_sync_of_the_current_epoch_does_not_reset_the_stream() {
+    let (mut h, mut d) = connected();
+    h.send(req(1)).unwrap();
+    feed(&mut d, &drain(&mut h, 0), 0);
+    // A late duplicate of the Sync frame arrives.
+    let mut h2 = host_link();
+    h2.connect(1, 0);
+    let old_sync = drain(&mut h2, 0);
+    assert_eq!(feed(&mut d, &old_sync, 1), vec![]);
+    // The device re-sends SyncAck but keeps its receive state: req 1 is not taken again.
+    h.send(req(2)).unwrap();
+    feed(&mut h, &drain(&mut d, 1), 1);
+    let f = drain(&mut h, 2);
+    assert_eq!(feed(&mut d, &f, 2), vec![Delivery::Message(req(2))]);
+}
+
+#[test]
+fn intact_frame_with_undecodable_body_is_acked_and_reported() {
+    let (mut h, mut d) = connected();
+    // Command variant 200 does not exist: a valid CRC reaches the parser.
+    let header = Header { kind: FrameKind::Data, epoch: 1, seq: 0, ack: 0 };
+    let mut out = [0u8; MAX_FRAME];
+    let n = link::write(&header, Some(&(5u16, 200u8)), &mut out);
+    let got = feed(&mut d, &[out[..n].to_vec()], 1);
+    assert_eq!(got, vec![Delivery::Rejected { seq: 0, reason: FrameError::UnknownType }]);
+    assert_eq!(d.stats().unknown_type, 1);
+    // Seq 0 is consumed, so the host's real seq 0 is now a "duplicate" — in practice the host
+    // never forges frames; here we check that the next sequence number is taken normally.
+    let n = link::write(&Header { seq: 1, ..header }, Some(&req(3)), &mut out);
+    assert_eq!(feed(&mut d, &[out[..n].to_vec()], 2), vec![Delivery::Message(req(3))]);
+    let _ = &mut h;
+}
+
+#[test]
+fn trailing_bytes_after_a_message_are_a_bad_payload() {
+    let (_, mut d) = connected();
+    let header = Header { kind: FrameKind::Data, epoch: 1, seq: 0, ack: 0 };
+    let mut out = [0u8; MAX_FRAME];
+    let n = link::write(&header, Some(&(req(1), 0xEEu8)), &mut out);
+    let got = feed(&mut d, &[out[..n].to_vec()], 1);
+    assert_eq!(got, vec![Delivery::Rejected { seq: 0, reason: FrameError::BadPayload }]);
+}
+
+#[test]
+fn reserve_defers_requests_that_could_not_be_answered() {
+    let mut h = host_link();
+    let mut d: DevLink = Link::new(Role::Responder, LinkConfig { rto: RTO, rx_reserve: 1 });
+    h.connect(1, 0);
+    feed(&mut d, &drain(&mut h, 0), 0);
+    feed(&mut h, &drain(&mut d, 0), 0);
+    for i in 0..8 {
+        d.send(ev(i)).unwrap(); // the device's window is full of unacknowledged events
+    }
+    let events = drain(&mut d, 1);
+    h.send(req(1)).unwrap();
+    assert_eq!(feed(&mut d, &drain(&mut h, 1), 1), vec![]);
+    assert_eq!(d.stats().deferred, 1);
+    // Once the host acknowledges the events, the retransmitted request is accepted.
+    feed(&mut h, &events, 2);
+    feed(&mut d, &drain(&mut h, 2), 2);
+    assert_eq!(d.unacked(), 0);
+    assert_eq!(feed(&mut d, &drain(&mut h, 1 + RTO), 1 + RTO), vec![Delivery::Message(req(1))]);
+}
+
+#[test]
+fn sequence_numbers_wrap() {
+    let (mut h, mut d) = connected();
+    let mut delivered = 0u32;
+    let mut now = 0;
+    for id in 0..70_000u32 {
+        h.send(req(id as u16)).unwrap();
+        now += 1;
+        for dl in feed(&mut d, &drain(&mut h, now), now) {
+            assert_eq!(dl, Delivery::Message(req(id as u16)));
+            delivered += 1;
+        }
+        feed(&mut h, &drain(&mut d, now), now);
+    }
+    assert_eq!(delivered, 70_000);
+    assert_eq!(h.stats().retransmits, 0);
+}
+
+/// A deterministic PRNG (splitmix64) so failures replay from the proptest seed.
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+    fn chance(&mut self, per_mille: u32) -> bool {
+        (self.next() % 1000) < u64::from(per_mille)
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Faults {
+    drop: u32,
+    duplicate: u32,
+    reorder: u32,
+    corrupt: u32,
+}
+
+/// A lossy wire: frames may be dropped, duplicated, reordered or have a byte damaged.
+fn impair(rng: &mut Rng, faults: Faults, frames: Vec<Vec<u8>>, wire: &mut VecDeque<Vec<u8>>) {
+    for mut f in frames {
+        if rng.chance(faults.drop) {
+            continue;
+        }
+        if rng.chance(faults.corrupt) {
+            let i = (rng.next() as usize) % f.len();
+            f[i] ^= 1 << (rng.next() % 8);
+        }
+        if rng.chance(faults.duplicate) {
+            wire.push_back(f.clone());
+        }
+        if rng.chance(faults.reorder) && !wire.is_empty() {
+            let i = (rng.next() as usize) % wire.len();
+            wire.insert(i, f);
+        } else {
+            wire.push_back(f);
+        }
+    }
+}
+
+/// Runs both directions to completion; returns (delivered to device, delivered to host).
+fn run_lossy(seed: u64, faults: Faults, n_host: u32, n_dev: u32) -> (Vec<HostMsg>, Vec<DeviceMsg>) {
+    let mut rng = Rng(seed);
+    let (mut h, mut d) = (host_link(), dev_link());
+    let (mut h2d, mut d2h) = (VecDeque::new(), VecDeque::new());
+    let (mut to_dev, mut to_host) = (Vec::new(), Vec::new());
+    let (mut sent_h, mut sent_d) = (0u32, 0u32);
+    h.connect(1, 0);
+    for now in 0..200_000u64 {
+        while sent_h < n_host && h.free() > 0 {
+            h.send(req(sent_h as u16)).unwrap();
+            sent_h += 1;
+        }
+        while sent_d < n_dev && d.free() > 0 && d.state() == LinkState::Up {
+            d.send(ev(sent_d)).unwrap();
+            sent_d += 1;
+        }
+        impair(&mut rng, faults, drain(&mut h, now), &mut h2d);
+        impair(&mut rng, faults, drain(&mut d, now), &mut d2h);
+        // Deliver a few frames per step so queues build up and reordering matters.
+        for _ in 0..3 {
+            if let Some(f) = h2d.pop_front() {
+                d.receive_all(&f, now, |x| match x {
+                    Delivery::Message(m) => to_dev.push(m),
+                    Delivery::Connected { epoch } => assert_eq!(epoch, 1, "one epoch only"),
+                    other => panic!("device got {other:?}"),
+                });
+            }
+            if let Some(f) = d2h.pop_front() {
+                h.receive_all(&f, now, |x| match x {
+                    Delivery::Message(m) => to_host.push(m),
+                    Delivery::Connected { .. } => {}
+                    other => panic!("host got {other:?}"),
+                });
+            }
+        }
+        let done = sent_h == n_host && sent_d == n_dev && h.unacked() == 0 && d.unacked() == 0;
+        if done && to_dev.len() == n_host as usize && to_host.len() == n_dev as usize {
+            return (to_dev, to_host);
+        }
+    }
+    panic!(
+        "did not converge: host sent {sent_h}, device got {}; device sent {sent_d}, host got {}",
+        to_dev.len(),
+        to_host.len()
+    );
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, .. ProptestConfig::default() })]
+
+    #[test]
+    fn exactly_once_in_order_under_loss_duplication_reordering_and_corruption(
+        seed in any::<u64>(),
+        drop in 0u32..300,
+        duplicate in 0u32..300,
+        reorder in 0u32..300,
+        corrupt in 0u32..200,
+        n_host in 0u32..60,
+        n_dev in 0u32..60,
+    ) {
+        let faults = Faults { drop, duplicate, reorder, corrupt };
+        let (to_dev, to_host) = run_lossy(seed, faults, n_host, n_dev);
+        prop_assert_eq!(to_dev, (0..n_host).map(|i| req(i as u16)).collect::<Vec<_>>());
+        prop_assert_eq!(to_host, (0..n_dev).map(ev).collect::<Vec<_>>());
+    }
+}
