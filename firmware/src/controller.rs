@@ -76,6 +76,11 @@ impl<C: Clock> Controller<C> {
                 Some(Delivery::Rejected { seq, reason }) => {
                     self.answer(DeviceMsg::Rejected { seq, reason });
                 }
+                Some(Delivery::Incompatible { seq, .. }) => {
+                    // Host messages have no handshake prefix; treat it as undecodable.
+                    let reason = lightrig_protocol::frame::FrameError::BadPayload;
+                    self.answer(DeviceMsg::Rejected { seq, reason });
+                }
                 Some(Delivery::Connected { .. }) => {
                     // A new host session must say Hello again.
                     self.state = DeviceState::AwaitingHello;

@@ -72,6 +72,7 @@ pub fn virtual_device_info() -> DeviceInfo {
         serial: 0,
         tick_hz: 1_000_000,
         reset_cause: ResetCause::PowerOn,
+        boot_id: 0,
         capabilities: Capabilities {
             galvos: 1,
             lasers: 3,
@@ -199,7 +200,7 @@ impl Bench {
 /// Runs the self-check.
 pub fn run(opts: Options) -> Result<Report> {
     let mut b = Bench::new(opts);
-    b.host.connect(1, 0);
+    b.host.connect(1, opts.seed as u32, 0);
 
     // Before Hello, the device refuses everything else.
     let early = b.request(Command::GetClock).context("request before the handshake")?;

@@ -336,7 +336,7 @@ impl ConfigField {
     pub const fn name(self) -> &'static str {
         use ConfigField::*;
         match self {
-            GalvoIndex => "galvo.index",
+            GalvoIndex => "galvo.galvo",
             GalvoXMinCode => "galvo.x.min_code",
             GalvoXMaxCode => "galvo.x.max_code",
             GalvoXZeroCode => "galvo.x.zero_code",

@@ -5,7 +5,6 @@ use serde::{Deserialize, Serialize};
 
 use crate::config::ConfigError;
 use crate::event::{DeviceState, FaultCause};
-use crate::frame::FrameError;
 
 /// A kind of peripheral, for errors that name one.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Schema)]
@@ -98,6 +97,4 @@ pub enum Error {
     },
     /// The firmware does not implement this command on this board.
     Unsupported,
-    /// An intact frame whose message could not be decoded (see `DeviceMsg::Rejected`).
-    Malformed(FrameError),
 }

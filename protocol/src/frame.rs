@@ -24,7 +24,8 @@ pub enum FrameError {
     BadCobs,
     /// The CRC does not match: the frame was damaged.
     BadCrc,
-    /// More than [`crate::MAX_FRAME`] bytes without a delimiter; skipped to the next one.
+    /// More than [`crate::MAX_ENCODED`] bytes without a delimiter (skipped to the next one),
+    /// or a packet longer than [`crate::MAX_PACKET`].
     TooLong,
     /// Too short to hold a header and a CRC.
     TooShort,
@@ -119,6 +120,9 @@ impl FrameDecoder {
 /// COBS-decodes a frame in place and checks its CRC; returns the packet length.
 fn check(frame: &mut [u8]) -> Result<usize, FrameError> {
     let n = cobs::decode_in_place(frame).map_err(|_| FrameError::BadCobs)?;
+    if n > MAX_PACKET {
+        return Err(FrameError::TooLong);
+    }
     if n < crate::link::HEADER_MIN + CRC_LEN {
         return Err(FrameError::TooShort);
     }

@@ -1,7 +1,9 @@
-//! The reliable link: exactly-once, in-order delivery over a lossy byte stream, both ways.
+//! The reliable link: exactly-once, in-order delivery over a lossy byte stream, both ways,
+//! within a link epoch (across a reconnection, unacknowledged messages are sent again, so
+//! delivery is at-least-once there: requests carry ids and events indices for that).
 //!
-//! Each packet starts with a [`Header`]. Sequenced `Data` frames carry one message; every
-//! frame carries a cumulative `ack` (the next sequence number its sender expects). The sender
+//! Each packet starts with a [`Header`]. Sequenced `Data` frames carry one message; `Data`,
+//! `Ack` and `Nak` frames carry a cumulative `ack` (the next sequence number its sender expects). The sender
 //! keeps up to `W` unacknowledged messages and resends all of them (go-back-N) when the oldest
 //! has waited `rto` without an ack, or at once when the peer reports a damaged frame (`Nak`).
 //! The receiver accepts only the next expected sequence number, so duplicates and reordered
@@ -37,9 +39,9 @@ pub enum FrameKind {
     Ack,
     /// "I received a damaged frame": resend unacknowledged data now. Body: [`FrameError`].
     Nak,
-    /// Initiator: start epoch `epoch`.
+    /// Initiator: start epoch `epoch`. Body: the session nonce (`u32`).
     Sync,
-    /// Responder: epoch `epoch` started.
+    /// Responder: epoch `epoch` started. Body: the nonce of the `Sync` it answers.
     SyncAck,
     /// Responder: "I do not know epoch `epoch`", asking the initiator to sync again.
     Resync,
@@ -61,6 +63,9 @@ pub struct Header {
     /// Next sequence number the sender expects from the peer (all before it are received).
     pub ack: u16,
 }
+
+/// Number of [`FrameKind`]s; a kind byte at or above it is an unknown frame type.
+pub const FRAME_KIND_COUNT: u32 = crate::message::variant_count(FrameKind::SCHEMA);
 
 /// Smallest encoded header: four one-byte fields.
 pub const HEADER_MIN: usize = 4;
@@ -126,7 +131,9 @@ impl LinkStats {
 
     /// Frames rejected for any reason.
     pub fn rejected(&self) -> u32 {
-        self.bad_cobs + self.bad_crc + self.too_long + self.too_short + self.unknown_type + self.bad_payload
+        [self.bad_cobs, self.bad_crc, self.too_long, self.too_short, self.unknown_type, self.bad_payload]
+            .into_iter()
+            .fold(0u32, u32::wrapping_add)
     }
 }
 
@@ -176,6 +183,16 @@ pub enum Delivery<R> {
         /// Why.
         reason: FrameError,
     },
+    /// An intact sequenced frame that this build cannot decode but that starts like an answer
+    /// to `Hello`: the peer speaks another protocol version or schema. It was acknowledged.
+    Incompatible {
+        /// Its sequence number.
+        seq: u16,
+        /// The peer's protocol version.
+        protocol_version: u16,
+        /// The peer's schema hash.
+        schema_hash: u64,
+    },
     /// A new epoch started: the peer (re)connected. Unacknowledged outgoing messages will be
     /// sent again in it.
     Connected {
@@ -208,6 +225,7 @@ pub struct Link<T: Message, R: Message, const W: usize> {
     config: LinkConfig,
     state: LinkState,
     epoch: u8,
+    nonce: u32,
     // Transmit side. `queue[i]` has sequence number `base + i`, `base = next_seq - len`.
     queue: Deque<T, W>,
     next_seq: u16,
@@ -242,6 +260,7 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
             config,
             state: LinkState::Down,
             epoch: 0,
+            nonce: 0,
             queue: Deque::new(),
             next_seq: 0,
             unsent_from: 0,
@@ -293,8 +312,13 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
 
     /// Initiator: start epoch `epoch` (pick one that differs from the last, e.g. +1). Queued
     /// messages are kept and sent in the new epoch once the responder confirms.
-    pub fn connect(&mut self, epoch: u8, now: u64) {
+    ///
+    /// `nonce` identifies this host session: pick it at random when the host program starts,
+    /// so that a restarted host is told apart from a repeated `Sync` even if it reuses the
+    /// epoch number.
+    pub fn connect(&mut self, epoch: u8, nonce: u32, now: u64) {
         self.epoch = epoch;
+        self.nonce = nonce;
         self.state = LinkState::Syncing;
         self.sync_deadline = Some(now);
         self.decoder.reset();
@@ -384,18 +408,27 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
     fn on_packet(&mut self, packet: &[u8], now: u64) -> Option<Delivery<R>> {
         let (header, body) = match postcard::take_from_bytes::<Header>(packet) {
             Ok(v) => v,
-            Err(e) => {
-                let unknown = matches!(e, postcard::Error::DeserializeBadEnum);
-                self.reject(if unknown { FrameError::UnknownType } else { FrameError::BadPayload });
+            Err(_) => {
+                // postcard does not say which field failed: look at the kind byte ourselves.
+                let known = packet.first().is_some_and(|&k| u32::from(k) < FRAME_KIND_COUNT);
+                self.reject(if known { FrameError::BadPayload } else { FrameError::UnknownType });
                 return None;
             }
         };
-        let no_body =
-            matches!(header.kind, FrameKind::Ack | FrameKind::Sync | FrameKind::SyncAck | FrameKind::Resync);
-        if no_body && !body.is_empty() {
-            self.reject(FrameError::BadPayload);
-            return None;
-        }
+        let nonce = match header.kind {
+            FrameKind::Sync | FrameKind::SyncAck => match postcard::from_bytes::<u32>(body) {
+                Ok(n) if postcard::experimental::serialized_size(&n).ok() == Some(body.len()) => n,
+                _ => {
+                    self.reject(FrameError::BadPayload);
+                    return None;
+                }
+            },
+            FrameKind::Ack | FrameKind::Resync if !body.is_empty() => {
+                self.reject(FrameError::BadPayload);
+                return None;
+            }
+            _ => 0,
+        };
         self.stats.frames_received = self.stats.frames_received.wrapping_add(1);
         self.last_rx = Some(now);
 
@@ -406,13 +439,17 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
             },
             (FrameKind::Sync, Role::Responder) => {
                 self.send_sync_ack = true;
-                if self.state != LinkState::Up || header.epoch != self.epoch {
+                // A repeated Sync of the current session (same epoch and nonce) must not reset
+                // the stream; a restarted host that happens to pick the same epoch has
+                // another nonce.
+                if self.state != LinkState::Up || header.epoch != self.epoch || nonce != self.nonce {
+                    self.nonce = nonce;
                     self.start_epoch(header.epoch);
                     return Some(Delivery::Connected { epoch: header.epoch });
                 }
             }
             (FrameKind::SyncAck, Role::Initiator)
-                if self.state == LinkState::Syncing && header.epoch == self.epoch =>
+                if self.state == LinkState::Syncing && header.epoch == self.epoch && nonce == self.nonce =>
             {
                 self.start_epoch(header.epoch);
                 return Some(Delivery::Connected { epoch: header.epoch });
@@ -420,7 +457,7 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
             (FrameKind::Resync, Role::Initiator)
                 if self.state == LinkState::Up && header.epoch == self.epoch =>
             {
-                self.connect(self.epoch.wrapping_add(1), now);
+                self.connect(self.epoch.wrapping_add(1), self.nonce.wrapping_add(1), now);
             }
             (FrameKind::Data | FrameKind::Ack | FrameKind::Nak, _) => {
                 if header.epoch != self.epoch || self.state == LinkState::Down {
@@ -431,9 +468,11 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
                     return None;
                 }
                 if self.state == LinkState::Syncing {
-                    // The responder already sends in our epoch: its SyncAck was lost. (No
-                    // `Connected` here: this frame's own delivery takes the slot.)
+                    // The responder already sends in our epoch: its SyncAck was lost. Report
+                    // the connection first; this frame is dropped unacknowledged and comes
+                    // again, so `Connected` always precedes the epoch's first message.
                     self.start_epoch(header.epoch);
+                    return Some(Delivery::Connected { epoch: header.epoch });
                 }
                 self.on_ack(header.ack, now);
                 match header.kind {
@@ -506,16 +545,18 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
             Ok(msg) => Delivery::Message(msg),
             Err(reason) => {
                 self.stats.count_rejected(reason);
-                Delivery::Rejected { seq, reason }
+                match R::handshake_prefix(body) {
+                    Some((protocol_version, schema_hash)) => {
+                        Delivery::Incompatible { seq, protocol_version, schema_hash }
+                    }
+                    None => Delivery::Rejected { seq, reason },
+                }
             }
         })
     }
 
     fn go_back(&mut self) {
-        if self.unsent_from > 0 {
-            self.stats.retransmits = self.stats.retransmits.wrapping_add(self.unsent_from as u32);
-            self.unsent_from = 0;
-        }
+        self.unsent_from = 0;
     }
 
     /// Writes the next frame due into `out` and returns its length, or `None` if nothing is
@@ -531,10 +572,10 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
         let header = |kind, seq, ack| Header { kind, epoch, seq, ack };
         if self.state == LinkState::Syncing && self.sync_deadline.is_some_and(|d| now >= d) {
             self.sync_deadline = Some(now + self.config.rto);
-            return Some(write::<T>(&header(FrameKind::Sync, 0, 0), None, out));
+            return Some(write(&header(FrameKind::Sync, 0, 0), Some(&self.nonce), out));
         }
         if core::mem::take(&mut self.send_sync_ack) {
-            return Some(write::<T>(&header(FrameKind::SyncAck, 0, 0), None, out));
+            return Some(write(&header(FrameKind::SyncAck, 0, 0), Some(&self.nonce), out));
         }
         if let Some(epoch) = self.send_resync.take() {
             let h = Header { kind: FrameKind::Resync, epoch, seq: 0, ack: 0 };
@@ -558,6 +599,9 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
         if let Some(msg) = self.queue.iter().nth(self.unsent_from) {
             let seq = self.base().wrapping_add(self.unsent_from as u16);
             let n = write(&header(FrameKind::Data, seq, self.expected), Some(msg), out);
+            if self.unsent_from < self.sent_max {
+                self.stats.retransmits = self.stats.retransmits.wrapping_add(1);
+            }
             self.unsent_from += 1;
             self.sent_max = self.sent_max.max(self.unsent_from);
             self.need_ack = false;

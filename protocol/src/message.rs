@@ -3,9 +3,13 @@
 //! The host sends requests, each with an id; the device answers each with exactly one
 //! `Response` carrying the same id and a `Result<Reply, Error>`. Events flow independently.
 //!
-//! Variant order is wire format (postcard encodes the variant index). `Command::Hello`,
-//! `Reply::Hello` and `DeviceMsg::Response` are variant 0 and must stay so: the handshake has
-//! to be readable by a peer of any version.
+//! Variant order is wire format (postcard encodes the variant index). The handshake must stay
+//! readable by a peer of any version, so these are frozen: the frame format and link header,
+//! `HostMsg.id` first, `Command::Hello` as variant 0 with its two fields, `DeviceMsg::Response`
+//! as variant 0 with `id` then `result`, `Ok` = 0, `Reply::Hello` as variant 0, and
+//! `DeviceInfo` starting with `protocol_version` and `schema_hash`. A host that cannot decode
+//! the answer still reads those two fields (`Delivery::Incompatible`) and can say what to
+//! update.
 
 use postcard_schema::Schema;
 use serde::{Deserialize, Serialize};
@@ -155,6 +159,24 @@ pub trait Message: Serialize + for<'de> Deserialize<'de> + Schema + Clone + core
     /// Whether the encoded message starts with a type tag this build knows. Used to tell an
     /// unknown message type (a newer peer) from a damaged payload.
     fn known_tag(bytes: &[u8]) -> bool;
+
+    /// If an undecodable message starts like the answer to `Hello`, the peer's protocol
+    /// version and schema hash, read from the frozen prefix (see the module docs).
+    fn handshake_prefix(_bytes: &[u8]) -> Option<(u16, u64)> {
+        None
+    }
+}
+
+/// The frozen start of `Response { id, result: Ok(Reply::Hello(DeviceInfo { protocol_version,
+/// schema_hash, .. })) }`, readable whatever follows.
+#[derive(Deserialize)]
+struct HelloAnswerPrefix {
+    variant: u32,
+    _id: u16,
+    ok: u32,
+    reply: u32,
+    protocol_version: u16,
+    schema_hash: u64,
 }
 
 /// Reads one postcard varint from the front of `bytes`: (value, bytes used).
@@ -170,7 +192,7 @@ pub(crate) fn read_varint(bytes: &[u8]) -> Option<(u32, usize)> {
 }
 
 /// Number of variants of an enum schema (0 for anything else).
-const fn variant_count(ty: &postcard_schema::schema::NamedType) -> u32 {
+pub(crate) const fn variant_count(ty: &postcard_schema::schema::NamedType) -> u32 {
     match ty.ty {
         postcard_schema::schema::DataModelType::Enum(v) => v.len() as u32,
         _ => 0,
@@ -195,5 +217,10 @@ impl Message for HostMsg {
 impl Message for DeviceMsg {
     fn known_tag(bytes: &[u8]) -> bool {
         matches!(read_varint(bytes), Some((tag, _)) if tag < DEVICE_MSG_COUNT)
+    }
+
+    fn handshake_prefix(bytes: &[u8]) -> Option<(u16, u64)> {
+        let (p, _) = postcard::take_from_bytes::<HelloAnswerPrefix>(bytes).ok()?;
+        (p.variant == 0 && p.ok == 0 && p.reply == 0).then_some((p.protocol_version, p.schema_hash))
     }
 }

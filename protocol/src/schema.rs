@@ -2,7 +2,7 @@
 //!
 //! It covers the structure of [`HostMsg`], [`DeviceMsg`] and the link [`Header`] (every field
 //! and variant name, order and type, via `postcard-schema`), plus the protocol constants that
-//! bound their sizes. Renaming a field, reordering variants, changing a type or a capacity all
+//! bound their sizes and values. Renaming a field, reordering variants, changing a type or a capacity all
 //! change it; comments and code outside the types do not. Host and device exchange it in the
 //! handshake and refuse to talk on a mismatch.
 
@@ -32,8 +32,9 @@ const fn fold_u32(state: u64, value: u32) -> u64 {
     fnv1a(state, &value.to_le_bytes())
 }
 
-/// Sizes that change what a peer accepts even when the type structure does not.
-const LIMITS: [usize; 13] = [
+/// Sizes and validation limits that change what a peer accepts even when the type structure
+/// does not.
+const LIMITS: [usize; 22] = [
     crate::MAX_PACKET,
     crate::MAX_GALVOS,
     crate::MAX_LASERS,
@@ -47,6 +48,15 @@ const LIMITS: [usize; 13] = [
     crate::LOG_TEXT_LEN,
     crate::link::SEQ_WINDOW_MAX as usize,
     crate::PROTOCOL_VERSION as usize,
+    crate::config::MAX_STEP_RATE as usize,
+    crate::config::SAMPLE_RATE_RANGE.0 as usize,
+    crate::config::SAMPLE_RATE_RANGE.1 as usize,
+    crate::config::WAVELENGTH_RANGE.0 as usize,
+    crate::config::WAVELENGTH_RANGE.1 as usize,
+    crate::config::HEARTBEAT_RANGE_MS.0 as usize,
+    crate::config::HEARTBEAT_RANGE_MS.1 as usize,
+    crate::config::DacKind::McuDac.max_code() as usize,
+    crate::config::DacKind::Dac8563.max_code() as usize,
 ];
 
 const fn compute() -> u64 {

@@ -96,6 +96,9 @@ pub struct DeviceInfo {
     pub tick_hz: u32,
     /// Why the device last started.
     pub reset_cause: ResetCause,
+    /// Differs at every start (random or a persistent counter). With `DeviceMsg::Event::index`,
+    /// which restarts at 0, it identifies an event uniquely across device restarts.
+    pub boot_id: u32,
     /// What the device drives.
     pub capabilities: Capabilities,
 }

@@ -26,6 +26,7 @@ enum Body {
     Host(HostMsg),
     Device(DeviceMsg),
     Nak(FrameError),
+    Nonce(u32),
 }
 
 struct Vector {
@@ -64,6 +65,7 @@ pub fn device_info() -> DeviceInfo {
         serial: 0x1234_5678_9abc_def0,
         tick_hz: 1_000_000,
         reset_cause: ResetCause::PowerOn,
+        boot_id: 0x5eed_0001,
         capabilities: Capabilities {
             galvos: 1,
             lasers: 3,
@@ -83,6 +85,11 @@ pub fn device_info() -> DeviceInfo {
 fn vectors() -> Vec<Vector> {
     let ctl =
         |name, kind, seq, ack| Vector { name, header: Header { kind, epoch: 1, seq, ack }, body: Body::None };
+    let sync = |name, kind| Vector {
+        name,
+        header: Header { kind, epoch: 1, seq: 0, ack: 0 },
+        body: Body::Nonce(0xC0FF_EE42),
+    };
     let galvo = GalvoConfig {
         galvo: 0,
         dac: DacKind::Dac8563,
@@ -146,8 +153,8 @@ fn vectors() -> Vec<Vector> {
         lasers: 0b001,
     };
     vec![
-        ctl("link.sync", FrameKind::Sync, 0, 0),
-        ctl("link.sync_ack", FrameKind::SyncAck, 0, 0),
+        sync("link.sync", FrameKind::Sync),
+        sync("link.sync_ack", FrameKind::SyncAck),
         ctl("link.ack", FrameKind::Ack, 0, 5),
         ctl("link.resync", FrameKind::Resync, 0, 0),
         Vector {
@@ -431,6 +438,7 @@ fn encode(v: &Vector) -> Vec<u8> {
         Body::Host(m) => link::write(&v.header, Some(m), &mut out),
         Body::Device(m) => link::write(&v.header, Some(m), &mut out),
         Body::Nak(e) => link::write(&v.header, Some(e), &mut out),
+        Body::Nonce(n) => link::write(&v.header, Some(n), &mut out),
     };
     out[..n].to_vec()
 }
@@ -441,6 +449,7 @@ fn describe(v: &Vector) -> String {
         Body::Host(m) => format!(" {m:?}"),
         Body::Device(m) => format!(" {m:?}"),
         Body::Nak(e) => format!(" {e:?}"),
+        Body::Nonce(n) => format!(" nonce 0x{n:08x}"),
     };
     format!("{:?}{body}", v.header)
 }
@@ -481,6 +490,7 @@ fn decode(frame: &[u8], like: &Body) -> (Header, Body) {
         Body::Host(_) => Body::Host(link::decode(body).expect("host message")),
         Body::Device(_) => Body::Device(link::decode(body).expect("device message")),
         Body::Nak(_) => Body::Nak(postcard::from_bytes(body).expect("nak reason")),
+        Body::Nonce(_) => Body::Nonce(postcard::from_bytes(body).expect("nonce")),
     };
     (header, body)
 }
@@ -523,19 +533,16 @@ fn every_golden_frame_fits_and_sample_config_is_valid() {
 
 #[test]
 fn exact_bytes_of_a_sync_frame() {
-    // Header {Sync=3, epoch 1, seq 0, ack 0} = 03 01 00 00, then CRC-32 LE, COBS, 00.
-    let packet = [0x03, 0x01, 0x00, 0x00];
-    let crc = lightrig_protocol::frame::CRC32.checksum(&packet).to_le_bytes();
-    let mut raw = packet.to_vec();
+    // Header {Sync=3, epoch 1, seq 0, ack 0} = 03 01 00 00, nonce 0xC0FFEE42 as a varint,
+    // then CRC-32 LE, COBS, 00 — built by hand here, independently of the encoder.
+    let mut raw = vec![0x03, 0x01, 0x00, 0x00, 0xc2, 0xdc, 0xff, 0x87, 0x0c];
+    let crc = lightrig_protocol::frame::CRC32.checksum(&raw).to_le_bytes();
     raw.extend_from_slice(&crc);
-    let v = &vectors()[0];
-    let frame = encode(v);
-    // COBS by hand: split raw at zeros.
     let mut cobs = Vec::new();
     for block in raw.split(|&b| b == 0) {
         cobs.push(block.len() as u8 + 1);
         cobs.extend_from_slice(block);
     }
     cobs.push(0);
-    assert_eq!(frame, cobs);
+    assert_eq!(encode(&vectors()[0]), cobs);
 }

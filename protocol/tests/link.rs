@@ -66,7 +66,7 @@ fn kind_of(frame: &[u8]) -> FrameKind {
 /// Host and device connected in epoch 1.
 fn connected() -> (HostLink, DevLink) {
     let (mut h, mut d) = (host_link(), dev_link());
-    h.connect(1, 0);
+    h.connect(1, 0xC0FFEE, 0);
     let sync = drain(&mut h, 0);
     assert_eq!(sync.len(), 1);
     assert_eq!(kind_of(&sync[0]), FrameKind::Sync);
@@ -81,7 +81,7 @@ fn connected() -> (HostLink, DevLink) {
 #[test]
 fn sync_is_repeated_every_rto_until_answered() {
     let mut h = host_link();
-    h.connect(9, 1000);
+    h.connect(9, 0xC0FFEE, 1000);
     assert_eq!(drain(&mut h, 1000).len(), 1);
     assert_eq!(h.next_deadline(), Some(1000 + RTO));
     assert!(drain(&mut h, 1000 + RTO - 1).is_empty());
@@ -119,6 +119,7 @@ fn lost_frame_is_resent_exactly_at_the_timeout() {
     let again = drain(&mut h, 100 + RTO);
     assert_eq!(again, lost, "go-back-N resends both, byte for byte");
     assert_eq!((h.stats().timeouts, h.stats().retransmits), (1, 2));
+    assert!(drain(&mut h, 100 + RTO).is_empty());
     assert_eq!(feed(&mut d, &again, 151), vec![Delivery::Message(req(1)), Delivery::Message(req(2))]);
 }
 
@@ -194,9 +195,9 @@ fn repeated_sync_of_the_current_epoch_does_not_reset_the_stream() {
     let (mut h, mut d) = connected();
     h.send(req(1)).unwrap();
     feed(&mut d, &drain(&mut h, 0), 0);
-    // A late duplicate of the Sync frame arrives.
+    // A late duplicate of the Sync frame (same epoch, same nonce) arrives.
     let mut h2 = host_link();
-    h2.connect(1, 0);
+    h2.connect(1, 0xC0FFEE, 0);
     let old_sync = drain(&mut h2, 0);
     assert_eq!(feed(&mut d, &old_sync, 1), vec![]);
     // The device re-sends SyncAck but keeps its receive state: req 1 is not taken again.
@@ -204,6 +205,59 @@ fn repeated_sync_of_the_current_epoch_does_not_reset_the_stream() {
     feed(&mut h, &drain(&mut d, 1), 1);
     let f = drain(&mut h, 2);
     assert_eq!(feed(&mut d, &f, 2), vec![Delivery::Message(req(2))]);
+}
+
+#[test]
+fn restarted_host_reusing_the_epoch_is_told_apart_by_its_nonce() {
+    let (mut h, mut d) = connected();
+    h.send(req(1)).unwrap();
+    feed(&mut d, &drain(&mut h, 0), 0);
+    // The host program restarts and picks epoch 1 again, with a fresh nonce.
+    let mut h = host_link();
+    h.connect(1, 0xBEEF, 10);
+    assert_eq!(feed(&mut d, &drain(&mut h, 10), 10), vec![Delivery::Connected { epoch: 1 }]);
+    feed(&mut h, &drain(&mut d, 10), 10);
+    h.send(req(2)).unwrap();
+    assert_eq!(feed(&mut d, &drain(&mut h, 11), 11), vec![Delivery::Message(req(2))]);
+}
+
+#[test]
+fn stale_sync_ack_of_another_nonce_is_ignored() {
+    let mut h = host_link();
+    let mut d = dev_link();
+    let mut old = host_link();
+    old.connect(1, 111, 0);
+    feed(&mut d, &drain(&mut old, 0), 0);
+    let stale_ack = drain(&mut d, 0);
+    h.connect(1, 222, 1);
+    assert_eq!(feed(&mut h, &stale_ack, 1), vec![]);
+    assert_eq!(h.state(), LinkState::Syncing);
+}
+
+#[test]
+fn lost_sync_ack_is_implied_by_data_and_connected_comes_first() {
+    let (mut h, mut d) = (host_link(), dev_link());
+    h.connect(1, 5, 0);
+    feed(&mut d, &drain(&mut h, 0), 0);
+    let _lost_sync_ack = drain(&mut d, 0);
+    d.send(ev(0)).unwrap();
+    let data = drain(&mut d, 1);
+    assert_eq!(feed(&mut h, &data, 1), vec![Delivery::Connected { epoch: 1 }]);
+    assert_eq!(h.state(), LinkState::Up);
+    // The data frame was not acknowledged; the device resends it and it is delivered.
+    let again = drain(&mut d, 1 + RTO);
+    assert_eq!(feed(&mut h, &again, 1 + RTO), vec![Delivery::Message(ev(0))]);
+}
+
+#[test]
+fn unknown_frame_kind_is_counted_as_unknown_type() {
+    let (_, mut d) = connected();
+    let mut buf = [0u8; lightrig_protocol::MAX_PACKET];
+    buf[..4].copy_from_slice(&[0x20, 1, 0, 0]); // kind 32 does not exist
+    let mut out = [0u8; MAX_FRAME];
+    let n = lightrig_protocol::frame::seal(&mut buf, 4, &mut out);
+    feed(&mut d, &[out[..n].to_vec()], 1);
+    assert_eq!((d.stats().unknown_type, d.stats().bad_payload), (1, 0));
 }
 
 #[test]
@@ -237,7 +291,7 @@ fn trailing_bytes_after_a_message_are_a_bad_payload() {
 fn reserve_defers_requests_that_could_not_be_answered() {
     let mut h = host_link();
     let mut d: DevLink = Link::new(Role::Responder, LinkConfig { rto: RTO, rx_reserve: 1 });
-    h.connect(1, 0);
+    h.connect(1, 0xC0FFEE, 0);
     feed(&mut d, &drain(&mut h, 0), 0);
     feed(&mut h, &drain(&mut d, 0), 0);
     for i in 0..8 {
@@ -324,7 +378,7 @@ fn run_lossy(seed: u64, faults: Faults, n_host: u32, n_dev: u32) -> (Vec<HostMsg
     let (mut h2d, mut d2h) = (VecDeque::new(), VecDeque::new());
     let (mut to_dev, mut to_host) = (Vec::new(), Vec::new());
     let (mut sent_h, mut sent_d) = (0u32, 0u32);
-    h.connect(1, 0);
+    h.connect(1, 0xC0FFEE, 0);
     for now in 0..200_000u64 {
         while sent_h < n_host && h.free() > 0 {
             h.send(req(sent_h as u16)).unwrap();

@@ -61,6 +61,7 @@ fn info() -> DeviceInfo {
         serial: 1,
         tick_hz: 1_000_000,
         reset_cause: ResetCause::PowerOn,
+        boot_id: 7,
         capabilities: Capabilities {
             galvos: 1,
             lasers: 3,
@@ -239,6 +240,38 @@ fn handshake_prefix_is_frozen() {
             schema_hash: SCHEMA_HASH
         }
     );
+}
+
+#[test]
+fn an_incompatible_hello_answer_still_yields_version_and_hash() {
+    use lightrig_protocol::link::{Delivery, Link, LinkConfig, Role};
+    use lightrig_protocol::message::Message;
+    // A future device whose DeviceInfo grew a field: this build cannot decode the answer.
+    let mut body = postcard::to_allocvec(&DeviceMsg::Response {
+        id: 1,
+        result: Ok(Reply::Hello(DeviceInfo { protocol_version: 2, schema_hash: 0xfeed, ..info() })),
+    })
+    .unwrap();
+    body.push(0x2a);
+    assert_eq!(link::decode::<DeviceMsg>(&body), Err(FrameError::BadPayload));
+    assert_eq!(DeviceMsg::handshake_prefix(&body), Some((2, 0xfeed)));
+    // Through the link, the host gets `Incompatible` rather than a bare rejection.
+    let mut host: Link<HostMsg, DeviceMsg, 8> =
+        Link::new(Role::Initiator, LinkConfig { rto: 10, rx_reserve: 0 });
+    host.connect(1, 9, 0);
+    let mut out = [0u8; MAX_FRAME];
+    let n =
+        link::write(&Header { kind: FrameKind::SyncAck, epoch: 1, seq: 0, ack: 0 }, Some(&9u32), &mut out);
+    host.receive_all(&out[..n], 0, |_| {});
+    let mut packet = [0u8; MAX_PACKET];
+    let hdr = postcard::to_slice(&Header { kind: FrameKind::Data, epoch: 1, seq: 0, ack: 0 }, &mut packet)
+        .unwrap()
+        .len();
+    packet[hdr..hdr + body.len()].copy_from_slice(&body);
+    let n = lightrig_protocol::frame::seal(&mut packet, hdr + body.len(), &mut out);
+    let mut got = Vec::new();
+    host.receive_all(&out[..n], 1, |d| got.push(d));
+    assert_eq!(got, vec![Delivery::Incompatible { seq: 0, protocol_version: 2, schema_hash: 0xfeed }]);
 }
 
 #[test]

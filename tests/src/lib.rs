@@ -27,7 +27,7 @@ impl Pair {
         let clock = SimClock::default();
         let device = Controller::new(clock.clone(), virtual_device_info(), RTO);
         let mut host = Link::new(Role::Initiator, LinkConfig { rto: RTO, rx_reserve: 0 });
-        host.connect(1, 0);
+        host.connect(1, 0x1157, 0);
         Self { clock, host, device }
     }
 

@@ -58,7 +58,7 @@ fn forged_frame_with_valid_crc_is_answered_with_rejected_and_the_device_keeps_wo
     assert_eq!(p.device.link().stats().rejected(), 3);
     // The host's own seq 1 collides with the forged one and is dropped as a duplicate; its
     // retransmission never succeeds. A real host never forges, so resynchronise instead:
-    p.host.connect(2, 0);
+    p.host.connect(2, 0x2157, 0);
     p.run(5);
     let got = p.request(2, hello(), 10);
     assert!(matches!(got[..], [DeviceMsg::Response { id: 2, result: Ok(Reply::Hello(_)) }]));
