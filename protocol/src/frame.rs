@@ -36,9 +36,11 @@ pub enum FrameError {
 }
 
 /// Appends the CRC to `buf[..len]` and COBS-encodes it with its delimiter into `out`.
-/// Returns the frame length. `buf` must have `CRC_LEN` spare bytes after `len`.
+/// Returns the frame length, or 0 (nothing written) if `len + CRC_LEN` exceeds `MAX_PACKET`.
 pub fn seal(buf: &mut [u8; MAX_PACKET], len: usize, out: &mut [u8; crate::MAX_FRAME]) -> usize {
-    debug_assert!(len + CRC_LEN <= MAX_PACKET);
+    if len > MAX_PACKET - CRC_LEN {
+        return 0;
+    }
     let crc = CRC32.checksum(&buf[..len]);
     buf[len..len + CRC_LEN].copy_from_slice(&crc.to_le_bytes());
     // Cannot fail: `out` holds the largest encoding of a MAX_PACKET input plus the delimiter.
@@ -210,6 +212,13 @@ mod tests {
         }
         assert_eq!(got, frames(&stream));
         assert_eq!(got, std::vec![Ok(std::vec![9; 300]), Ok(std::vec![0; 17])]);
+    }
+
+    #[test]
+    fn seal_refuses_an_oversized_packet() {
+        let mut buf = [0u8; MAX_PACKET];
+        let mut out = [0u8; crate::MAX_FRAME];
+        assert_eq!(seal(&mut buf, MAX_PACKET - CRC_LEN + 1, &mut out), 0);
     }
 
     #[test]
