@@ -1,7 +1,7 @@
 //! The device endpoint: link, handshake gate, request dispatch.
 
 use heapless::Deque;
-use lightrig_protocol::event::DeviceState;
+use lightrig_protocol::event::{DeviceState, FaultCause};
 use lightrig_protocol::link::{Delivery, Link, LinkConfig, Role};
 use lightrig_protocol::message::Status;
 use lightrig_protocol::session::DeviceInfo;
@@ -25,8 +25,21 @@ pub struct Controller<C: Clock> {
     link: Link<DeviceMsg, HostMsg, LINK_WINDOW>,
     /// Answers produced but not yet accepted by the link (its window was full).
     outbox: Deque<DeviceMsg, 4>,
-    state: DeviceState,
+    session: Session,
+    /// A latched fault; survives reconnections until `ClearFault`.
+    fault: Option<FaultCause>,
     last_heartbeat: u64,
+}
+
+/// Where the host session stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Session {
+    /// No Hello since the link (re)connected.
+    AwaitingHello,
+    /// The last Hello did not match; commands are refused with this error.
+    Refused(Error),
+    /// Handshake done.
+    Open,
 }
 
 impl<C: Clock> Controller<C> {
@@ -39,12 +52,24 @@ impl<C: Clock> Controller<C> {
         // Keep one send slot free per request in flight so every request can be answered.
         let link = Link::new(Role::Responder, LinkConfig { rto, rx_reserve: 1 });
         let last_heartbeat = clock.now();
-        Self { clock, info, link, outbox: Deque::new(), state: DeviceState::AwaitingHello, last_heartbeat }
+        Self {
+            clock,
+            info,
+            link,
+            outbox: Deque::new(),
+            session: Session::AwaitingHello,
+            fault: None,
+            last_heartbeat,
+        }
     }
 
-    /// Current state.
+    /// Current state: a latched fault first, then the session.
     pub fn state(&self) -> DeviceState {
-        self.state
+        match (self.fault, self.session) {
+            (Some(cause), _) => DeviceState::Faulted(cause),
+            (None, Session::Open) => DeviceState::Ready,
+            (None, _) => DeviceState::AwaitingHello,
+        }
     }
 
     /// Tick of the last command from the host.
@@ -82,8 +107,8 @@ impl<C: Clock> Controller<C> {
                     self.answer(DeviceMsg::Rejected { seq, reason });
                 }
                 Some(Delivery::Connected { .. }) => {
-                    // A new host session must say Hello again.
-                    self.state = DeviceState::AwaitingHello;
+                    // A new host session must say Hello again (a latched fault stays).
+                    self.session = Session::AwaitingHello;
                 }
                 None => {}
             }
@@ -120,41 +145,58 @@ impl<C: Clock> Controller<C> {
 
     fn handle(&mut self, command: &Command) -> Result<Reply, Error> {
         let now = self.clock.now();
-        if let Command::Hello { protocol_version, schema_hash } = *command {
-            // Always describe ourselves, so the host can explain a mismatch; open the session
-            // only when both sides speak the same protocol.
-            if protocol_version != PROTOCOL_VERSION {
-                self.state = DeviceState::AwaitingHello;
-                return Err(Error::VersionMismatch { device: PROTOCOL_VERSION, host: protocol_version });
+        match *command {
+            Command::Hello { protocol_version, schema_hash } => {
+                // Always describe ourselves (the answer's prefix is frozen, so a host of any
+                // version can read it and explain a mismatch); open the session only when
+                // both sides speak the same protocol.
+                self.session = if protocol_version != PROTOCOL_VERSION {
+                    Session::Refused(Error::VersionMismatch {
+                        device: PROTOCOL_VERSION,
+                        host: protocol_version,
+                    })
+                } else if schema_hash != SCHEMA_HASH {
+                    Session::Refused(Error::SchemaMismatch { device: SCHEMA_HASH, host: schema_hash })
+                } else {
+                    Session::Open
+                };
+                self.last_heartbeat = now;
+                return Ok(Reply::Hello(self.info));
             }
-            if schema_hash != SCHEMA_HASH {
-                self.state = DeviceState::AwaitingHello;
-                return Err(Error::SchemaMismatch { device: SCHEMA_HASH, host: schema_hash });
+            // Safety commands act whatever the session state.
+            Command::EmergencyStop => {
+                self.fault = Some(FaultCause::EmergencyStop);
+                return Ok(Reply::Done);
             }
-            self.state = DeviceState::Ready;
-            self.last_heartbeat = now;
-            return Ok(Reply::Hello(self.info));
+            _ => {}
         }
-        if self.state == DeviceState::AwaitingHello {
-            return Err(Error::HandshakeRequired);
+        match self.session {
+            Session::AwaitingHello => return Err(Error::HandshakeRequired),
+            Session::Refused(e) => return Err(e),
+            Session::Open => {}
         }
         self.last_heartbeat = now;
         match command {
             Command::GetClock => Ok(Reply::Clock { tick: now }),
             Command::Heartbeat => Ok(Reply::Done),
             Command::GetStatus => Ok(Reply::Status(Status {
-                state: self.state,
+                state: self.state(),
                 armed: 0,
                 lasers_on: 0,
                 tick: now,
                 buffer: None,
-                events_pending: self.link.unacked() as u16,
+                unacked: self.link.unacked() as u16,
                 link: *self.link.stats(),
             })),
+            Command::ClearFault => {
+                self.fault = None;
+                Ok(Reply::Done)
+            }
             Command::Configure(item) => {
                 item.validate(&self.info).map_err(Error::InvalidConfig)?;
                 Err(Error::Unsupported)
             }
+            _ if self.fault.is_some() => Err(Error::Faulted(self.fault.unwrap_or(FaultCause::EmergencyStop))),
             _ => Err(Error::Unsupported),
         }
     }

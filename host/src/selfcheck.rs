@@ -206,9 +206,12 @@ pub fn run(opts: Options) -> Result<Report> {
     let early = b.request(Command::GetClock).context("request before the handshake")?;
     ensure!(early == Err(Error::HandshakeRequired), "expected HandshakeRequired before Hello, got {early:?}");
 
-    // A Hello with the wrong schema is refused with both hashes.
+    // A Hello with the wrong schema: the device describes itself, then refuses to work,
+    // naming both hashes.
     let wrong = SCHEMA_HASH ^ 1;
     let r = b.request(Command::Hello { protocol_version: PROTOCOL_VERSION, schema_hash: wrong })?;
+    ensure!(matches!(r, Ok(Reply::Hello(ref i)) if i.schema_hash == SCHEMA_HASH), "Hello answer: {r:?}");
+    let r = b.request(Command::GetClock)?;
     ensure!(
         r == Err(Error::SchemaMismatch { device: SCHEMA_HASH, host: wrong }),
         "expected SchemaMismatch, got {r:?}"

@@ -120,8 +120,8 @@ pub struct Status {
     pub tick: u64,
     /// Sequence buffer, if a sequence is loaded.
     pub buffer: Option<BufferStatus>,
-    /// Events waiting for the host's acknowledgement.
-    pub events_pending: u16,
+    /// Messages (responses and events) the device holds until the host acknowledges them.
+    pub unacked: u16,
     /// The device's link counters (frames received, rejected by reason, retransmitted).
     pub link: LinkStats,
 }

@@ -271,7 +271,7 @@ fn vectors() -> Vec<Vector> {
                     lasers_on: 0,
                     tick: 5_000_000,
                     buffer: None,
-                    events_pending: 0,
+                    unacked: 0,
                     link: LinkStats {
                         frames_sent: 10,
                         frames_received: 12,

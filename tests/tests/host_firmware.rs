@@ -12,19 +12,48 @@ fn hello() -> Command {
 #[test]
 fn version_mismatch_is_refused_with_both_versions() {
     let mut p = Pair::new();
+    // The device still describes itself, so the host can explain the mismatch ...
     let got = p.request(1, Command::Hello { protocol_version: 99, schema_hash: SCHEMA_HASH }, 10);
+    assert!(matches!(
+        &got[..],
+        [DeviceMsg::Response { id: 1, result: Ok(Reply::Hello(i)) }] if i.protocol_version == PROTOCOL_VERSION
+    ));
+    // ... but refuses to work, naming both versions.
+    let refused = Err(Error::VersionMismatch { device: PROTOCOL_VERSION, host: 99 });
+    assert_eq!(p.request(2, Command::Heartbeat, 10), vec![DeviceMsg::Response { id: 2, result: refused }]);
+    // A matching Hello opens the session.
+    p.request(3, hello(), 10);
+    assert_eq!(
+        p.request(4, Command::Heartbeat, 10),
+        vec![DeviceMsg::Response { id: 4, result: Ok(Reply::Done) }]
+    );
+}
+
+#[test]
+fn emergency_stop_acts_before_the_handshake_and_stays_latched_across_reconnection() {
+    use lightrig_protocol::event::{DeviceState, FaultCause};
+    let mut p = Pair::new();
+    p.run(3);
+    // As a datagram (no answer) before any Hello.
+    let mut out = [0u8; MAX_FRAME];
+    let h = Header { kind: FrameKind::Datagram, epoch: 1, seq: 0, ack: 0 };
+    let estop = lightrig_protocol::HostMsg { id: 1, command: Command::EmergencyStop };
+    let n = link::write(&h, Some(&estop), &mut out);
+    p.device.receive(&out[..n]);
+    assert_eq!(p.device.state(), DeviceState::Faulted(FaultCause::EmergencyStop));
+    assert_eq!(p.messages(5), vec![]);
+    // The host reconnects: the fault is still latched.
+    p.host.connect(2, 0x3157, 0);
+    p.run(5);
+    p.request(2, hello(), 10);
+    assert_eq!(p.device.state(), DeviceState::Faulted(FaultCause::EmergencyStop));
+    let got = p.request(3, Command::Arm { lasers: 1 }, 10);
     assert_eq!(
         got,
-        vec![DeviceMsg::Response {
-            id: 1,
-            result: Err(Error::VersionMismatch { device: PROTOCOL_VERSION, host: 99 })
-        }]
+        vec![DeviceMsg::Response { id: 3, result: Err(Error::Faulted(FaultCause::EmergencyStop)) }]
     );
-    // Still closed.
-    assert_eq!(
-        p.request(2, Command::Heartbeat, 10),
-        vec![DeviceMsg::Response { id: 2, result: Err(Error::HandshakeRequired) }]
-    );
+    p.request(4, Command::ClearFault, 10);
+    assert_eq!(p.device.state(), DeviceState::Ready);
 }
 
 #[test]
@@ -68,29 +97,28 @@ fn forged_frame_with_valid_crc_is_answered_with_rejected_and_the_device_keeps_wo
 fn every_command_gets_exactly_one_typed_answer() {
     let mut p = Pair::new();
     p.request(1, hello(), 10);
-    let commands = [
-        Command::GetClock,
-        Command::GetStatus,
-        Command::Heartbeat,
-        Command::Arm { lasers: 1 },
-        Command::Disarm,
-        Command::ClearFault,
-        Command::SequenceAbort { sequence: 1 },
+    let unsupported = || Err(Error::Unsupported);
+    // Peripheral commands are not implemented by this firmware slice yet: they must say so
+    // rather than pretend.
+    let cases: [(Command, Option<Result<Reply, Error>>); 7] = [
+        (Command::GetClock, None),
+        (Command::GetStatus, None),
+        (Command::Heartbeat, Some(Ok(Reply::Done))),
+        (Command::ClearFault, Some(Ok(Reply::Done))),
+        (Command::Arm { lasers: 1 }, Some(unsupported())),
+        (Command::Disarm, Some(unsupported())),
+        (Command::SequenceAbort { sequence: 1 }, Some(unsupported())),
     ];
-    for (i, c) in commands.into_iter().enumerate() {
+    for (i, (c, want)) in cases.into_iter().enumerate() {
         let id = 10 + i as u16;
         let got = p.request(id, c.clone(), 10);
-        assert_eq!(got.len(), 1, "{c:?}");
-        match &got[0] {
-            DeviceMsg::Response { id: got_id, result } => {
-                assert_eq!(*got_id, id);
-                // Peripheral commands are not implemented by this firmware slice yet; they
-                // must say so rather than pretend.
-                if !matches!(c, Command::GetClock | Command::GetStatus | Command::Heartbeat) {
-                    assert_eq!(*result, Err(Error::Unsupported), "{c:?}");
-                }
-            }
-            other => panic!("{other:?}"),
+        let [DeviceMsg::Response { id: got_id, result }] = &got[..] else { panic!("{c:?}: {got:?}") };
+        assert_eq!(*got_id, id);
+        match (&c, want) {
+            (Command::GetClock, _) => assert!(matches!(result, Ok(Reply::Clock { .. }))),
+            (Command::GetStatus, _) => assert!(matches!(result, Ok(Reply::Status(_)))),
+            (_, Some(want)) => assert_eq!(*result, want, "{c:?}"),
+            (_, None) => unreachable!(),
         }
     }
 }
