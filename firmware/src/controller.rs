@@ -49,8 +49,9 @@ impl<C: Clock> Controller<C> {
         info.protocol_version = PROTOCOL_VERSION;
         info.schema_hash = SCHEMA_HASH;
         info.capabilities.link_window = LINK_WINDOW as u8;
-        // Keep one send slot free per request in flight so every request can be answered.
-        let link = Link::new(Role::Responder, LinkConfig { rto, rx_reserve: 1 });
+        // Keep one send slot free per request in flight so every request can be answered. The
+        // boot id doubles as the link's boot nonce: it must differ at every start.
+        let link = Link::new(Role::Responder, LinkConfig { rto, rx_reserve: 1, boot_nonce: info.boot_id });
         let last_heartbeat = clock.now();
         Self {
             clock,

@@ -125,7 +125,7 @@ impl Bench {
     fn new(opts: Options) -> Self {
         let clock = SimClock::default();
         let device = Controller::new(clock.clone(), virtual_device_info(), RTO_TICKS);
-        let host = Link::new(Role::Initiator, LinkConfig { rto: RTO_TICKS, rx_reserve: 0 });
+        let host = Link::new(Role::Initiator, LinkConfig { rto: RTO_TICKS, rx_reserve: 0, boot_nonce: 0 });
         Self {
             clock,
             host,

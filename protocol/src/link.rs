@@ -9,11 +9,14 @@
 //! The receiver accepts only the next expected sequence number, so duplicates and reordered
 //! frames are dropped (and re-acknowledged), never delivered twice.
 //!
-//! A link runs in an *epoch* chosen by the initiator (the host) with `Sync`/`SyncAck`. On a new
-//! epoch both directions restart at sequence 0 and messages still unacknowledged are sent
-//! again, renumbered: nothing queued is lost across a reconnection. A responder that receives
-//! frames of an epoch it does not know (it restarted) answers `Resync`, and the initiator
-//! starts a new epoch.
+//! A link runs in an *epoch* chosen by the initiator (the host) with a three-way handshake:
+//! `Sync(epoch, nonce)` → `SyncAck(nonce, boot nonce)` → `Confirm(boot nonce)`. On a new epoch
+//! both directions restart at sequence 0 and messages still unacknowledged are sent again,
+//! renumbered: nothing queued is lost across a reconnection. The responder sends data only
+//! after `Confirm`, so a stale `Sync` reaching a device that just restarted cannot start a
+//! stream the host does not know about; the host notices the new boot nonce in the `SyncAck`
+//! and starts a new epoch. A responder that receives frames of an epoch it does not know (it
+//! restarted) answers `Resync`, and the initiator starts a new epoch too.
 //!
 //! The link is a plain state machine: bytes in through [`Link::receive`], bytes out through
 //! [`Link::poll_transmit`], time passed in as a `u64` in any unit the caller likes (device
@@ -39,14 +42,29 @@ pub enum FrameKind {
     Ack,
     /// "I received a damaged frame": resend unacknowledged data now. Body: [`FrameError`].
     Nak,
-    /// Initiator: start epoch `epoch`. Body: the session nonce (`u32`).
+    /// Initiator: start epoch `epoch`. Body: the initiator's session nonce (`u32`).
     Sync,
-    /// Responder: epoch `epoch` started. Body: the nonce of the `Sync` it answers.
+    /// Responder: ready to start epoch `epoch`. Body: [`SyncAckBody`] (the `Sync`'s nonce and
+    /// the responder's boot nonce).
     SyncAck,
     /// Responder: "I do not know epoch `epoch`", asking the initiator to sync again.
     Resync,
     /// Unsequenced message, delivered on arrival, never acknowledged or repeated.
     Datagram,
+    /// Initiator: epoch `epoch` confirmed. Body: the responder's boot nonce from its `SyncAck`
+    /// (`u32`). The responder sends no data in an epoch before this arrives.
+    Confirm,
+}
+
+/// Body of a `SyncAck` frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Schema)]
+#[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
+pub struct SyncAckBody {
+    /// The nonce of the `Sync` this answers.
+    pub nonce: u32,
+    /// The responder's boot nonce: differs at every device start, so an initiator that sees
+    /// a new one knows the device restarted (and answered a stale `Sync`).
+    pub boot_nonce: u32,
 }
 
 /// The link header at the start of every packet (postcard: kind and epoch one byte each,
@@ -150,11 +168,15 @@ pub enum Role {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LinkConfig {
     /// Retransmission timeout: resend unacknowledged data this long after the last progress.
+    /// At least 1 (0 is taken as 1).
     pub rto: u64,
     /// Accept a new data frame only while at least this many send slots are free, so that
     /// every accepted request can be answered (the device uses 1 or more; the host 0).
     /// A frame refused for lack of room is left unacknowledged and the peer sends it again.
     pub rx_reserve: usize,
+    /// Responder: identifies this boot of the device (random, or a persistent counter); sent
+    /// in every `SyncAck`. Initiator: unused (its nonce is given to [`Link::connect`]).
+    pub boot_nonce: u32,
 }
 
 /// Where the link is.
@@ -162,7 +184,7 @@ pub struct LinkConfig {
 pub enum LinkState {
     /// No epoch yet (responder before the first `Sync`, initiator before `connect`).
     Down,
-    /// Initiator waiting for `SyncAck`.
+    /// Initiator: waiting for `SyncAck`. Responder: `SyncAck` sent, waiting for `Confirm`.
     Syncing,
     /// Exchanging data.
     Up,
@@ -225,7 +247,10 @@ pub struct Link<T: Message, R: Message, const W: usize> {
     config: LinkConfig,
     state: LinkState,
     epoch: u8,
+    /// The initiator's session nonce of the current epoch.
     nonce: u32,
+    /// Initiator: the responder's boot nonce learnt from its `SyncAck`.
+    peer_boot: u32,
     // Transmit side. `queue[i]` has sequence number `base + i`, `base = next_seq - len`.
     queue: Deque<T, W>,
     next_seq: u16,
@@ -237,6 +262,7 @@ pub struct Link<T: Message, R: Message, const W: usize> {
     sync_deadline: Option<u64>,
     datagrams: Deque<T, 2>,
     send_sync_ack: bool,
+    send_confirm: bool,
     send_resync: Option<u8>,
     send_nak: Option<FrameError>,
     // Receive side.
@@ -255,12 +281,14 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
     pub fn new(role: Role, config: LinkConfig) -> Self {
         #[allow(clippy::let_unit_value)]
         let () = Self::WINDOW_OK;
+        let config = LinkConfig { rto: config.rto.max(1), ..config };
         Self {
             role,
             config,
             state: LinkState::Down,
             epoch: 0,
             nonce: 0,
+            peer_boot: 0,
             queue: Deque::new(),
             next_seq: 0,
             unsent_from: 0,
@@ -269,6 +297,7 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
             sync_deadline: None,
             datagrams: Deque::new(),
             send_sync_ack: false,
+            send_confirm: false,
             send_resync: None,
             send_nak: None,
             expected: 0,
@@ -415,22 +444,24 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
                 return None;
             }
         };
-        let nonce = match header.kind {
-            FrameKind::Sync | FrameKind::SyncAck => match postcard::from_bytes::<u32>(body) {
-                Ok(n) if postcard::experimental::serialized_size(&n).ok() == Some(body.len()) => n,
-                _ => {
-                    self.reject(FrameError::BadPayload);
-                    return None;
-                }
-            },
-            FrameKind::Ack | FrameKind::Resync if !body.is_empty() => {
-                self.reject(FrameError::BadPayload);
-                return None;
+        // Control frames carry exactly one canonical body; Ack and Resync none.
+        let control = match header.kind {
+            FrameKind::Sync | FrameKind::Confirm => {
+                exact::<u32>(body).map(|n| SyncAckBody { nonce: n, boot_nonce: n })
             }
-            _ => 0,
+            FrameKind::SyncAck => exact::<SyncAckBody>(body),
+            FrameKind::Ack | FrameKind::Resync => {
+                body.is_empty().then_some(SyncAckBody { nonce: 0, boot_nonce: 0 })
+            }
+            _ => Some(SyncAckBody { nonce: 0, boot_nonce: 0 }),
+        };
+        let Some(control) = control else {
+            self.reject(FrameError::BadPayload);
+            return None;
         };
         self.stats.frames_received = self.stats.frames_received.wrapping_add(1);
         self.last_rx = Some(now);
+        let this_epoch = header.epoch == self.epoch;
 
         match (header.kind, self.role) {
             (FrameKind::Datagram, _) => match decode::<R>(body) {
@@ -438,41 +469,61 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
                 Err(e) => self.stats.count_rejected(e),
             },
             (FrameKind::Sync, Role::Responder) => {
+                // Answer every Sync. A Sync of the current session (same epoch and nonce) is a
+                // repeat and must not reset the stream; anything else starts a new one, which
+                // becomes Up only when the initiator confirms it knows our boot nonce: a stale
+                // Sync that reaches a freshly started device thus never leads to data.
                 self.send_sync_ack = true;
-                // A repeated Sync of the current session (same epoch and nonce) must not reset
-                // the stream; a restarted host that happens to pick the same epoch has
-                // another nonce.
-                if self.state != LinkState::Up || header.epoch != self.epoch || nonce != self.nonce {
-                    self.nonce = nonce;
+                let same = this_epoch && control.nonce == self.nonce;
+                if !(same && self.state != LinkState::Down) {
+                    self.nonce = control.nonce;
                     self.start_epoch(header.epoch);
-                    return Some(Delivery::Connected { epoch: header.epoch });
+                    self.state = LinkState::Syncing;
                 }
             }
-            (FrameKind::SyncAck, Role::Initiator)
-                if self.state == LinkState::Syncing && header.epoch == self.epoch && nonce == self.nonce =>
+            (FrameKind::Confirm, Role::Responder)
+                if self.state == LinkState::Syncing
+                    && this_epoch
+                    && control.nonce == self.config.boot_nonce =>
             {
-                self.start_epoch(header.epoch);
+                self.state = LinkState::Up;
                 return Some(Delivery::Connected { epoch: header.epoch });
             }
-            (FrameKind::Resync, Role::Initiator)
-                if self.state == LinkState::Up && header.epoch == self.epoch =>
-            {
+            (FrameKind::SyncAck, Role::Initiator) if this_epoch && control.nonce == self.nonce => {
+                match self.state {
+                    LinkState::Syncing => {
+                        self.peer_boot = control.boot_nonce;
+                        self.start_epoch(header.epoch);
+                        self.state = LinkState::Up;
+                        self.send_confirm = true;
+                        return Some(Delivery::Connected { epoch: header.epoch });
+                    }
+                    // The responder still waits for our Confirm (it was lost): send it again.
+                    LinkState::Up if control.boot_nonce == self.peer_boot => self.send_confirm = true,
+                    // Another boot nonce: the device restarted and answered a stale copy of our
+                    // Sync. Start a new epoch; its SyncAck will carry the new boot nonce.
+                    LinkState::Up => {
+                        self.connect(self.epoch.wrapping_add(1), self.nonce, now);
+                    }
+                    LinkState::Down => {}
+                }
+            }
+            (FrameKind::Resync, Role::Initiator) if self.state == LinkState::Up && this_epoch => {
                 self.connect(self.epoch.wrapping_add(1), self.nonce.wrapping_add(1), now);
             }
             (FrameKind::Data | FrameKind::Ack | FrameKind::Nak, _) => {
-                if header.epoch != self.epoch || self.state == LinkState::Down {
+                if !this_epoch || self.state != LinkState::Up {
                     self.stats.stale_epoch = self.stats.stale_epoch.wrapping_add(1);
-                    if self.role == Role::Responder {
-                        self.send_resync = Some(header.epoch);
+                    match (self.role, self.state) {
+                        // The initiator is Up and sends in our new epoch: our SyncAck or its
+                        // Confirm was lost. Ask again; the frame comes again later.
+                        (Role::Responder, LinkState::Syncing) if this_epoch => self.send_sync_ack = true,
+                        (Role::Responder, _) => self.send_resync = Some(header.epoch),
+                        // The initiator drops frames of other epochs (or of an epoch it is
+                        // still syncing: the responder sends none before Confirm).
+                        (Role::Initiator, _) => {}
                     }
                     return None;
-                }
-                if self.state == LinkState::Syncing {
-                    // The responder already sends in our epoch: its SyncAck was lost. Report
-                    // the connection first; this frame is dropped unacknowledged and comes
-                    // again, so `Connected` always precedes the epoch's first message.
-                    self.start_epoch(header.epoch);
-                    return Some(Delivery::Connected { epoch: header.epoch });
                 }
                 self.on_ack(header.ack, now);
                 match header.kind {
@@ -491,9 +542,9 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
         None
     }
 
+    /// Resets both directions for a new epoch; the caller sets the state.
     fn start_epoch(&mut self, epoch: u8) {
         self.epoch = epoch;
-        self.state = LinkState::Up;
         self.sync_deadline = None;
         self.expected = 0;
         self.need_ack = false;
@@ -575,7 +626,11 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
             return Some(write(&header(FrameKind::Sync, 0, 0), Some(&self.nonce), out));
         }
         if core::mem::take(&mut self.send_sync_ack) {
-            return Some(write(&header(FrameKind::SyncAck, 0, 0), Some(&self.nonce), out));
+            let body = SyncAckBody { nonce: self.nonce, boot_nonce: self.config.boot_nonce };
+            return Some(write(&header(FrameKind::SyncAck, 0, 0), Some(&body), out));
+        }
+        if core::mem::take(&mut self.send_confirm) {
+            return Some(write(&header(FrameKind::Confirm, 0, 0), Some(&self.peer_boot), out));
         }
         if let Some(epoch) = self.send_resync.take() {
             let h = Header { kind: FrameKind::Resync, epoch, seq: 0, ack: 0 };
@@ -612,6 +667,14 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
             return Some(write::<T>(&header(FrameKind::Ack, 0, self.expected), None, out));
         }
         None
+    }
+}
+
+/// Decodes a body that must be exactly one canonical `B`.
+fn exact<B: Serialize + for<'de> Deserialize<'de>>(body: &[u8]) -> Option<B> {
+    match postcard::take_from_bytes::<B>(body) {
+        Ok((b, [])) if postcard::experimental::serialized_size(&b).ok() == Some(body.len()) => Some(b),
+        _ => None,
     }
 }
 

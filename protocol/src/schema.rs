@@ -64,8 +64,10 @@ const fn compute() -> u64 {
     h = fold_key(h, Key::for_path::<Header>("lightrig/link"));
     h = fold_key(h, Key::for_path::<HostMsg>("lightrig/host"));
     h = fold_key(h, Key::for_path::<DeviceMsg>("lightrig/device"));
-    // Bodies of link control frames: the Sync/SyncAck session nonce and the Nak reason.
+    // Bodies of link control frames: Sync, SyncAck, Confirm and Nak.
     h = fold_key(h, Key::for_path::<u32>("lightrig/link/sync-nonce"));
+    h = fold_key(h, Key::for_path::<crate::link::SyncAckBody>("lightrig/link/sync-ack"));
+    h = fold_key(h, Key::for_path::<u32>("lightrig/link/confirm"));
     h = fold_key(h, Key::for_path::<crate::frame::FrameError>("lightrig/link/nak"));
     let mut i = 0;
     while i < LIMITS.len() {

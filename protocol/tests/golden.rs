@@ -27,6 +27,7 @@ enum Body {
     Device(DeviceMsg),
     Nak(FrameError),
     Nonce(u32),
+    SyncAck(link::SyncAckBody),
 }
 
 struct Vector {
@@ -85,10 +86,10 @@ pub fn device_info() -> DeviceInfo {
 fn vectors() -> Vec<Vector> {
     let ctl =
         |name, kind, seq, ack| Vector { name, header: Header { kind, epoch: 1, seq, ack }, body: Body::None };
-    let sync = |name, kind| Vector {
+    let sync = |name, kind, nonce| Vector {
         name,
         header: Header { kind, epoch: 1, seq: 0, ack: 0 },
-        body: Body::Nonce(0xC0FF_EE42),
+        body: Body::Nonce(nonce),
     };
     let galvo = GalvoConfig {
         galvo: 0,
@@ -153,8 +154,13 @@ fn vectors() -> Vec<Vector> {
         lasers: 0b001,
     };
     vec![
-        sync("link.sync", FrameKind::Sync),
-        sync("link.sync_ack", FrameKind::SyncAck),
+        sync("link.sync", FrameKind::Sync, 0xC0FF_EE42),
+        Vector {
+            name: "link.sync_ack",
+            header: Header { kind: FrameKind::SyncAck, epoch: 1, seq: 0, ack: 0 },
+            body: Body::SyncAck(link::SyncAckBody { nonce: 0xC0FF_EE42, boot_nonce: 0x5eed_0001 }),
+        },
+        sync("link.confirm", FrameKind::Confirm, 0x5eed_0001),
         ctl("link.ack", FrameKind::Ack, 0, 5),
         ctl("link.resync", FrameKind::Resync, 0, 0),
         Vector {
@@ -439,6 +445,7 @@ fn encode(v: &Vector) -> Vec<u8> {
         Body::Device(m) => link::write(&v.header, Some(m), &mut out),
         Body::Nak(e) => link::write(&v.header, Some(e), &mut out),
         Body::Nonce(n) => link::write(&v.header, Some(n), &mut out),
+        Body::SyncAck(b) => link::write(&v.header, Some(b), &mut out),
     };
     out[..n].to_vec()
 }
@@ -450,6 +457,7 @@ fn describe(v: &Vector) -> String {
         Body::Device(m) => format!(" {m:?}"),
         Body::Nak(e) => format!(" {e:?}"),
         Body::Nonce(n) => format!(" nonce 0x{n:08x}"),
+        Body::SyncAck(b) => format!(" {b:?}"),
     };
     format!("{:?}{body}", v.header)
 }
@@ -491,6 +499,7 @@ fn decode(frame: &[u8], like: &Body) -> (Header, Body) {
         Body::Device(_) => Body::Device(link::decode(body).expect("device message")),
         Body::Nak(_) => Body::Nak(postcard::from_bytes(body).expect("nak reason")),
         Body::Nonce(_) => Body::Nonce(postcard::from_bytes(body).expect("nonce")),
+        Body::SyncAck(_) => Body::SyncAck(postcard::from_bytes(body).expect("sync ack")),
     };
     (header, body)
 }

@@ -15,11 +15,20 @@ type DevLink = Link<DeviceMsg, HostMsg, 8>;
 const RTO: u64 = 50;
 
 fn host_link() -> HostLink {
-    Link::new(Role::Initiator, LinkConfig { rto: RTO, rx_reserve: 0 })
+    Link::new(Role::Initiator, LinkConfig { rto: RTO, rx_reserve: 0, boot_nonce: 0 })
+}
+
+/// A device link; `boot` is its boot nonce (differs at every device start).
+fn dev_link_boot(boot: u32) -> DevLink {
+    Link::new(Role::Responder, LinkConfig { rto: RTO, rx_reserve: 0, boot_nonce: boot })
 }
 
 fn dev_link() -> DevLink {
-    Link::new(Role::Responder, LinkConfig { rto: RTO, rx_reserve: 0 })
+    dev_link_boot(0xD1)
+}
+
+fn kinds(frames: &[Vec<u8>]) -> Vec<FrameKind> {
+    frames.iter().map(|f| kind_of(f)).collect()
 }
 
 fn req(id: u16) -> HostMsg {
@@ -63,18 +72,28 @@ fn kind_of(frame: &[u8]) -> FrameKind {
     kind.unwrap()
 }
 
+/// Runs the three-way handshake from a host that has called `connect`; checks every step.
+fn handshake(h: &mut HostLink, d: &mut DevLink, epoch: u8, now: u64) {
+    let sync = drain(h, now);
+    assert_eq!(kinds(&sync), vec![FrameKind::Sync]);
+    assert_eq!(feed(d, &sync, now), vec![], "no data before Confirm");
+    assert_eq!(d.state(), LinkState::Syncing);
+    let ack = drain(d, now);
+    assert_eq!(kinds(&ack), vec![FrameKind::SyncAck]);
+    assert_eq!(feed(h, &ack, now), vec![Delivery::Connected { epoch }]);
+    // Confirm goes first; frames queued before the epoch follow it and are left on the host
+    // to be resent at its timeout.
+    let confirm = drain(h, now);
+    assert_eq!(kinds(&confirm)[0], FrameKind::Confirm);
+    assert_eq!(feed(d, &confirm[..1], now), vec![Delivery::Connected { epoch }]);
+    assert_eq!((h.state(), d.state()), (LinkState::Up, LinkState::Up));
+}
+
 /// Host and device connected in epoch 1.
 fn connected() -> (HostLink, DevLink) {
     let (mut h, mut d) = (host_link(), dev_link());
     h.connect(1, 0xC0FFEE, 0);
-    let sync = drain(&mut h, 0);
-    assert_eq!(sync.len(), 1);
-    assert_eq!(kind_of(&sync[0]), FrameKind::Sync);
-    assert_eq!(feed(&mut d, &sync, 0), vec![Delivery::Connected { epoch: 1 }]);
-    let ack = drain(&mut d, 0);
-    assert_eq!(ack.iter().map(|f| kind_of(f)).collect::<Vec<_>>(), vec![FrameKind::SyncAck]);
-    assert_eq!(feed(&mut h, &ack, 0), vec![Delivery::Connected { epoch: 1 }]);
-    assert_eq!((h.state(), d.state()), (LinkState::Up, LinkState::Up));
+    handshake(&mut h, &mut d, 1, 0);
     (h, d)
 }
 
@@ -174,20 +193,75 @@ fn events_flow_device_to_host_with_acks_too() {
 fn device_restart_triggers_resync_and_nothing_is_lost() {
     let (mut h, d) = connected();
     drop(d);
-    let mut d = dev_link(); // the device reset: it knows no epoch
+    let mut d = dev_link_boot(0xD2); // the device reset: it knows no epoch
     h.send(req(1)).unwrap();
     let f = drain(&mut h, 10);
     assert_eq!(feed(&mut d, &f, 10), vec![]);
     assert_eq!(d.stats().stale_epoch, 1);
     let resync = drain(&mut d, 10);
-    assert_eq!(resync.iter().map(|f| kind_of(f)).collect::<Vec<_>>(), vec![FrameKind::Resync]);
+    assert_eq!(kinds(&resync), vec![FrameKind::Resync]);
     feed(&mut h, &resync, 11);
     assert_eq!((h.state(), h.epoch()), (LinkState::Syncing, 2));
-    let sync = drain(&mut h, 11);
-    assert_eq!(feed(&mut d, &sync, 12), vec![Delivery::Connected { epoch: 2 }]);
-    assert_eq!(feed(&mut h, &drain(&mut d, 12), 12), vec![Delivery::Connected { epoch: 2 }]);
-    // The request queued before the reset goes out again, renumbered from 0.
-    assert_eq!(feed(&mut d, &drain(&mut h, 13), 13), vec![Delivery::Message(req(1))]);
+    handshake(&mut h, &mut d, 2, 11);
+    // The request queued before the reset goes out again, renumbered from 0 (its copy sent
+    // right behind Confirm was dropped by the helper, so it comes at the timeout).
+    assert!(drain(&mut h, 11 + RTO - 1).is_empty());
+    assert_eq!(feed(&mut d, &drain(&mut h, 11 + RTO), 11 + RTO), vec![Delivery::Message(req(1))]);
+}
+
+#[test]
+fn stale_sync_reaching_a_restarted_device_cannot_wedge_the_link() {
+    // The host re-sent Sync while syncing; one copy is still in a buffer on the way.
+    let (mut h, mut d) = (host_link(), dev_link_boot(0xD1));
+    h.connect(1, 0xC0FFEE, 0);
+    let first_sync = drain(&mut h, 0);
+    let stale_copy = drain(&mut h, RTO); // the retry: same epoch, same nonce
+    assert_eq!(first_sync, stale_copy);
+    feed(&mut d, &first_sync, 0);
+    feed(&mut h, &drain(&mut d, 0), 0);
+    feed(&mut d, &drain(&mut h, 0), 0);
+    for i in 0..3 {
+        h.send(req(i)).unwrap();
+    }
+    assert_eq!(feed(&mut d, &drain(&mut h, 1), 1).len(), 3);
+    feed(&mut h, &drain(&mut d, 1), 1);
+    // The device restarts, then receives the stale copy: it answers but sends no data.
+    let mut d = dev_link_boot(0xD2);
+    d.send(ev(100)).unwrap();
+    d.send(ev(101)).unwrap();
+    assert_eq!(feed(&mut d, &stale_copy, 2), vec![]);
+    let ack = drain(&mut d, 2);
+    assert_eq!(kinds(&ack), vec![FrameKind::SyncAck], "no events before Confirm");
+    // The host sees a new boot nonce and starts a new epoch; everything then flows.
+    assert_eq!(feed(&mut h, &ack, 2), vec![]);
+    assert_eq!((h.state(), h.epoch()), (LinkState::Syncing, 2));
+    handshake(&mut h, &mut d, 2, 3);
+    h.send(req(3)).unwrap();
+    assert_eq!(feed(&mut d, &drain(&mut h, 4), 4), vec![Delivery::Message(req(3))]);
+    assert_eq!(
+        feed(&mut h, &drain(&mut d, 4), 4),
+        vec![Delivery::Message(ev(100)), Delivery::Message(ev(101))]
+    );
+}
+
+#[test]
+fn lost_confirm_is_asked_for_again() {
+    let (mut h, mut d) = (host_link(), dev_link());
+    h.connect(1, 5, 0);
+    feed(&mut d, &drain(&mut h, 0), 0);
+    feed(&mut h, &drain(&mut d, 0), 0);
+    let _lost_confirm = drain(&mut h, 0);
+    h.send(req(1)).unwrap();
+    // The device, still waiting for Confirm, answers the data frame with another SyncAck.
+    assert_eq!(feed(&mut d, &drain(&mut h, 1), 1), vec![]);
+    let ack = drain(&mut d, 1);
+    assert_eq!(kinds(&ack), vec![FrameKind::SyncAck]);
+    feed(&mut h, &ack, 1);
+    let confirm = drain(&mut h, 1);
+    assert_eq!(kinds(&confirm), vec![FrameKind::Confirm]);
+    assert_eq!(feed(&mut d, &confirm, 1), vec![Delivery::Connected { epoch: 1 }]);
+    // The request comes again at the host's timeout.
+    assert_eq!(feed(&mut d, &drain(&mut h, 1 + RTO), 1 + RTO), vec![Delivery::Message(req(1))]);
 }
 
 #[test]
@@ -215,8 +289,7 @@ fn restarted_host_reusing_the_epoch_is_told_apart_by_its_nonce() {
     // The host program restarts and picks epoch 1 again, with a fresh nonce.
     let mut h = host_link();
     h.connect(1, 0xBEEF, 10);
-    assert_eq!(feed(&mut d, &drain(&mut h, 10), 10), vec![Delivery::Connected { epoch: 1 }]);
-    feed(&mut h, &drain(&mut d, 10), 10);
+    handshake(&mut h, &mut d, 1, 10);
     h.send(req(2)).unwrap();
     assert_eq!(feed(&mut d, &drain(&mut h, 11), 11), vec![Delivery::Message(req(2))]);
 }
@@ -232,21 +305,6 @@ fn stale_sync_ack_of_another_nonce_is_ignored() {
     h.connect(1, 222, 1);
     assert_eq!(feed(&mut h, &stale_ack, 1), vec![]);
     assert_eq!(h.state(), LinkState::Syncing);
-}
-
-#[test]
-fn lost_sync_ack_is_implied_by_data_and_connected_comes_first() {
-    let (mut h, mut d) = (host_link(), dev_link());
-    h.connect(1, 5, 0);
-    feed(&mut d, &drain(&mut h, 0), 0);
-    let _lost_sync_ack = drain(&mut d, 0);
-    d.send(ev(0)).unwrap();
-    let data = drain(&mut d, 1);
-    assert_eq!(feed(&mut h, &data, 1), vec![Delivery::Connected { epoch: 1 }]);
-    assert_eq!(h.state(), LinkState::Up);
-    // The data frame was not acknowledged; the device resends it and it is delivered.
-    let again = drain(&mut d, 1 + RTO);
-    assert_eq!(feed(&mut h, &again, 1 + RTO), vec![Delivery::Message(ev(0))]);
 }
 
 #[test]
@@ -290,10 +348,9 @@ fn trailing_bytes_after_a_message_are_a_bad_payload() {
 #[test]
 fn reserve_defers_requests_that_could_not_be_answered() {
     let mut h = host_link();
-    let mut d: DevLink = Link::new(Role::Responder, LinkConfig { rto: RTO, rx_reserve: 1 });
+    let mut d: DevLink = Link::new(Role::Responder, LinkConfig { rto: RTO, rx_reserve: 1, boot_nonce: 9 });
     h.connect(1, 0xC0FFEE, 0);
-    feed(&mut d, &drain(&mut h, 0), 0);
-    feed(&mut h, &drain(&mut d, 0), 0);
+    handshake(&mut h, &mut d, 1, 0);
     for i in 0..8 {
         d.send(ev(i)).unwrap(); // the device's window is full of unacknowledged events
     }

@@ -6,6 +6,7 @@
 use lightrig_firmware::Controller;
 use lightrig_host::selfcheck::{virtual_device_info, SimClock};
 use lightrig_protocol::link::{Delivery, Link, LinkConfig, Role};
+use lightrig_protocol::session::DeviceInfo;
 use lightrig_protocol::{Command, DeviceMsg, HostMsg, MAX_FRAME};
 
 /// Host link, device controller and a perfect wire.
@@ -26,14 +27,16 @@ impl Pair {
     pub fn new() -> Self {
         let clock = SimClock::default();
         let device = Controller::new(clock.clone(), virtual_device_info(), RTO);
-        let mut host = Link::new(Role::Initiator, LinkConfig { rto: RTO, rx_reserve: 0 });
+        let mut host = Link::new(Role::Initiator, LinkConfig { rto: RTO, rx_reserve: 0, boot_nonce: 0 });
         host.connect(1, 0x1157, 0);
         Self { clock, host, device }
     }
 
-    /// The device restarts (power cycle): a new controller, same clock.
+    /// The device restarts (power cycle): a new controller with a new boot id, same clock.
     pub fn restart_device(&mut self) {
-        self.device = Controller::new(self.clock.clone(), virtual_device_info(), RTO);
+        let boot_id = self.device.info().boot_id.wrapping_add(1);
+        let info = DeviceInfo { boot_id, ..virtual_device_info() };
+        self.device = Controller::new(self.clock.clone(), info, RTO);
     }
 
     /// Moves frames both ways for `ticks` ticks; returns what the host received.
