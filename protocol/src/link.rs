@@ -184,7 +184,8 @@ pub struct LinkConfig {
 pub enum LinkState {
     /// No epoch yet (responder before the first `Sync`, initiator before `connect`).
     Down,
-    /// Initiator: waiting for `SyncAck`. Responder: `SyncAck` sent, waiting for `Confirm`.
+    /// Initiator: waiting for `SyncAck` (repeating `Sync` every rto). Responder: waiting for
+    /// `Confirm` (repeating `SyncAck` every rto).
     Syncing,
     /// Exchanging data.
     Up,
@@ -479,6 +480,9 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
                     self.nonce = control.nonce;
                     self.start_epoch(header.epoch);
                     self.state = LinkState::Syncing;
+                    // Repeat the SyncAck every rto until Confirm arrives: an idle host whose
+                    // Confirm was lost would otherwise never be asked again.
+                    self.sync_deadline = Some(now + self.config.rto);
                 }
             }
             (FrameKind::Confirm, Role::Responder)
@@ -623,7 +627,12 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
         let header = |kind, seq, ack| Header { kind, epoch, seq, ack };
         if self.state == LinkState::Syncing && self.sync_deadline.is_some_and(|d| now >= d) {
             self.sync_deadline = Some(now + self.config.rto);
-            return Some(write(&header(FrameKind::Sync, 0, 0), Some(&self.nonce), out));
+            match self.role {
+                Role::Initiator => {
+                    return Some(write(&header(FrameKind::Sync, 0, 0), Some(&self.nonce), out));
+                }
+                Role::Responder => self.send_sync_ack = true,
+            }
         }
         if core::mem::take(&mut self.send_sync_ack) {
             let body = SyncAckBody { nonce: self.nonce, boot_nonce: self.config.boot_nonce };

@@ -14,8 +14,10 @@ use lightrig_protocol::frame::{FrameDecoder, FrameError};
 use lightrig_protocol::link::{self, FrameKind, Header, LinkStats};
 use lightrig_protocol::message::Status;
 use lightrig_protocol::sequence::*;
-use lightrig_protocol::session::*;
 use lightrig_protocol::*;
+
+mod common;
+use common::device_info;
 
 const PATH: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/golden/frames.txt");
 
@@ -54,33 +56,6 @@ fn ok(id: u16, reply: Reply) -> DeviceMsg {
 
 fn event(index: u32, event: Event) -> DeviceMsg {
     DeviceMsg::Event { index, event }
-}
-
-/// A virtual-rig device as it answers `Hello`.
-pub fn device_info() -> DeviceInfo {
-    DeviceInfo {
-        protocol_version: PROTOCOL_VERSION,
-        schema_hash: SCHEMA_HASH,
-        firmware: Version { major: 0, minor: 1, patch: 0 },
-        board: BoardId::Virtual,
-        serial: 0x1234_5678_9abc_def0,
-        tick_hz: 1_000_000,
-        reset_cause: ResetCause::PowerOn,
-        boot_id: 0x5eed_0001,
-        capabilities: Capabilities {
-            galvos: 1,
-            lasers: 3,
-            steppers: 2,
-            filter_wheels: 1,
-            voice_coils: 2,
-            partials_per_coil: 8,
-            cameras: 1,
-            sequence_buffer: 256,
-            event_queue: 64,
-            link_window: 8,
-            max_packet: MAX_PACKET as u16,
-        },
-    }
 }
 
 fn vectors() -> Vec<Vector> {

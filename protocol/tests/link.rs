@@ -245,6 +245,23 @@ fn stale_sync_reaching_a_restarted_device_cannot_wedge_the_link() {
 }
 
 #[test]
+fn half_open_device_repeats_sync_ack_until_an_idle_host_confirms() {
+    let (mut h, mut d) = (host_link(), dev_link());
+    h.connect(1, 5, 0);
+    feed(&mut d, &drain(&mut h, 0), 0);
+    feed(&mut h, &drain(&mut d, 0), 0);
+    let _lost_confirm = drain(&mut h, 0);
+    d.send(ev(0)).unwrap();
+    assert_eq!(d.next_deadline(), Some(RTO));
+    assert!(drain(&mut d, RTO - 1).is_empty(), "nothing before the deadline, no data before Confirm");
+    let again = drain(&mut d, RTO);
+    assert_eq!(kinds(&again), vec![FrameKind::SyncAck]);
+    feed(&mut h, &again, RTO);
+    assert_eq!(feed(&mut d, &drain(&mut h, RTO), RTO), vec![Delivery::Connected { epoch: 1 }]);
+    assert_eq!(feed(&mut h, &drain(&mut d, RTO), RTO), vec![Delivery::Message(ev(0))]);
+}
+
+#[test]
 fn lost_confirm_is_asked_for_again() {
     let (mut h, mut d) = (host_link(), dev_link());
     h.connect(1, 5, 0);
@@ -477,7 +494,7 @@ fn run_lossy(seed: u64, faults: Faults, n_host: u32, n_dev: u32) -> (Vec<HostMsg
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 64, .. ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: 256, .. ProptestConfig::default() })]
 
     #[test]
     fn exactly_once_in_order_under_loss_duplication_reordering_and_corruption(

@@ -9,6 +9,8 @@ use lightrig_protocol::session::*;
 use lightrig_protocol::*;
 use proptest::prelude::*;
 
+mod common;
+
 fn frame_roundtrip<M: lightrig_protocol::message::Message + PartialEq>(msg: &M) {
     let header = Header { kind: FrameKind::Data, epoch: 3, seq: 65535, ack: 65535 };
     let mut out = [0u8; MAX_FRAME];
@@ -53,29 +55,7 @@ proptest! {
 }
 
 fn info() -> DeviceInfo {
-    DeviceInfo {
-        protocol_version: PROTOCOL_VERSION,
-        schema_hash: SCHEMA_HASH,
-        firmware: Version { major: 0, minor: 1, patch: 0 },
-        board: BoardId::Virtual,
-        serial: 1,
-        tick_hz: 1_000_000,
-        reset_cause: ResetCause::PowerOn,
-        boot_id: 7,
-        capabilities: Capabilities {
-            galvos: 1,
-            lasers: 3,
-            steppers: 2,
-            filter_wheels: 1,
-            voice_coils: 2,
-            partials_per_coil: 8,
-            cameras: 1,
-            sequence_buffer: 256,
-            event_queue: 64,
-            link_window: 8,
-            max_packet: MAX_PACKET as u16,
-        },
-    }
+    common::device_info()
 }
 
 fn laser() -> LaserConfig {
