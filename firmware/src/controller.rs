@@ -51,7 +51,7 @@ impl<C: Clock> Controller<C> {
         info.capabilities.link_window = LINK_WINDOW as u8;
         // Keep one send slot free per request in flight so every request can be answered. The
         // boot id doubles as the link's boot nonce: it must differ at every start.
-        let link = Link::new(Role::Responder, LinkConfig { rto, rx_reserve: 1, boot_nonce: info.boot_id });
+        let link = Link::new(Role::Responder, LinkConfig { rto, rx_reserve: 1, nonce: info.boot_id });
         let last_heartbeat = clock.now();
         Self {
             clock,

@@ -125,7 +125,8 @@ impl Bench {
     fn new(opts: Options) -> Self {
         let clock = SimClock::default();
         let device = Controller::new(clock.clone(), virtual_device_info(), RTO_TICKS);
-        let host = Link::new(Role::Initiator, LinkConfig { rto: RTO_TICKS, rx_reserve: 0, boot_nonce: 0 });
+        let host =
+            Link::new(Role::Initiator, LinkConfig { rto: RTO_TICKS, rx_reserve: 0, nonce: opts.seed as u32 });
         Self {
             clock,
             host,
@@ -200,7 +201,7 @@ impl Bench {
 /// Runs the self-check.
 pub fn run(opts: Options) -> Result<Report> {
     let mut b = Bench::new(opts);
-    b.host.connect(1, opts.seed as u32, 0);
+    b.host.connect(0);
 
     // Before Hello, the device refuses everything else.
     let early = b.request(Command::GetClock).context("request before the handshake")?;

@@ -174,9 +174,10 @@ pub struct LinkConfig {
     /// every accepted request can be answered (the device uses 1 or more; the host 0).
     /// A frame refused for lack of room is left unacknowledged and the peer sends it again.
     pub rx_reserve: usize,
-    /// Responder: identifies this boot of the device (random, or a persistent counter); sent
-    /// in every `SyncAck`. Initiator: unused (its nonce is given to [`Link::connect`]).
-    pub boot_nonce: u32,
+    /// This end's nonce, different at every start: random when the host program starts (the
+    /// initiator's session nonce, sent in `Sync`), random or a persistent counter when the
+    /// device boots (the responder's boot nonce, sent in `SyncAck`).
+    pub nonce: u32,
 }
 
 /// Where the link is.
@@ -248,8 +249,8 @@ pub struct Link<T: Message, R: Message, const W: usize> {
     config: LinkConfig,
     state: LinkState,
     epoch: u8,
-    /// The initiator's session nonce of the current epoch.
-    nonce: u32,
+    /// The initiator's session nonce of the current epoch (the responder learns it from `Sync`).
+    session: u32,
     /// Initiator: the responder's boot nonce learnt from its `SyncAck`.
     peer_boot: u32,
     // Transmit side. `queue[i]` has sequence number `base + i`, `base = next_seq - len`.
@@ -288,7 +289,7 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
             config,
             state: LinkState::Down,
             epoch: 0,
-            nonce: 0,
+            session: 0,
             peer_boot: 0,
             queue: Deque::new(),
             next_seq: 0,
@@ -340,16 +341,15 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
         self.last_rx
     }
 
-    /// Initiator: start epoch `epoch` (pick one that differs from the last, e.g. +1). Queued
-    /// messages are kept and sent in the new epoch once the responder confirms.
-    ///
-    /// `nonce` identifies this host session: pick it at random when the host program starts,
-    /// so that a restarted host is told apart from a repeated `Sync` even if it reuses the
-    /// epoch number.
-    pub fn connect(&mut self, epoch: u8, nonce: u32, now: u64) {
-        self.epoch = epoch;
-        self.nonce = nonce;
+    /// Initiator: start the next epoch (each `connect` moves to epoch + 1; the responder
+    /// ignores a `Sync` of an older epoch of the same session, so stale copies cannot pull it
+    /// back). Queued messages are kept and sent in the new epoch once it is up.
+    pub fn connect(&mut self, now: u64) {
+        self.epoch = self.epoch.wrapping_add(1);
+        self.session = self.config.nonce;
         self.state = LinkState::Syncing;
+        // A Confirm still pending belongs to the epoch being left.
+        self.send_confirm = false;
         self.sync_deadline = Some(now);
         self.decoder.reset();
     }
@@ -470,30 +470,33 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
                 Err(e) => self.stats.count_rejected(e),
             },
             (FrameKind::Sync, Role::Responder) => {
-                // Answer every Sync. A Sync of the current session (same epoch and nonce) is a
-                // repeat and must not reset the stream; anything else starts a new one, which
-                // becomes Up only when the initiator confirms it knows our boot nonce: a stale
-                // Sync that reaches a freshly started device thus never leads to data.
-                self.send_sync_ack = true;
-                let same = this_epoch && control.nonce == self.nonce;
-                if !(same && self.state != LinkState::Down) {
-                    self.nonce = control.nonce;
+                // Within one host session (same nonce) epochs only move forward: a Sync of the
+                // current epoch is a repeat (answer it, keep the stream), one of an older epoch
+                // is a stale copy (ignore it). A newer epoch or another session starts a new
+                // stream, which becomes Up only when the initiator confirms it knows our boot
+                // nonce: a stale Sync reaching a freshly started device never leads to data.
+                let ahead = header.epoch.wrapping_sub(self.epoch);
+                let fresh = self.state == LinkState::Down || control.nonce != self.session;
+                if fresh || (1..0x80).contains(&ahead) {
+                    self.session = control.nonce;
                     self.start_epoch(header.epoch);
                     self.state = LinkState::Syncing;
                     // Repeat the SyncAck every rto until Confirm arrives: an idle host whose
                     // Confirm was lost would otherwise never be asked again.
                     self.sync_deadline = Some(now + self.config.rto);
+                } else if ahead != 0 {
+                    self.stats.stale_epoch = self.stats.stale_epoch.wrapping_add(1);
+                    return None;
                 }
+                self.send_sync_ack = true;
             }
             (FrameKind::Confirm, Role::Responder)
-                if self.state == LinkState::Syncing
-                    && this_epoch
-                    && control.nonce == self.config.boot_nonce =>
+                if self.state == LinkState::Syncing && this_epoch && control.nonce == self.config.nonce =>
             {
                 self.state = LinkState::Up;
                 return Some(Delivery::Connected { epoch: header.epoch });
             }
-            (FrameKind::SyncAck, Role::Initiator) if this_epoch && control.nonce == self.nonce => {
+            (FrameKind::SyncAck, Role::Initiator) if this_epoch && control.nonce == self.session => {
                 match self.state {
                     LinkState::Syncing => {
                         self.peer_boot = control.boot_nonce;
@@ -506,14 +509,12 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
                     LinkState::Up if control.boot_nonce == self.peer_boot => self.send_confirm = true,
                     // Another boot nonce: the device restarted and answered a stale copy of our
                     // Sync. Start a new epoch; its SyncAck will carry the new boot nonce.
-                    LinkState::Up => {
-                        self.connect(self.epoch.wrapping_add(1), self.nonce, now);
-                    }
+                    LinkState::Up => self.connect(now),
                     LinkState::Down => {}
                 }
             }
             (FrameKind::Resync, Role::Initiator) if self.state == LinkState::Up && this_epoch => {
-                self.connect(self.epoch.wrapping_add(1), self.nonce.wrapping_add(1), now);
+                self.connect(now);
             }
             (FrameKind::Data | FrameKind::Ack | FrameKind::Nak, _) => {
                 if !this_epoch || self.state != LinkState::Up {
@@ -629,13 +630,13 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
             self.sync_deadline = Some(now + self.config.rto);
             match self.role {
                 Role::Initiator => {
-                    return Some(write(&header(FrameKind::Sync, 0, 0), Some(&self.nonce), out));
+                    return Some(write(&header(FrameKind::Sync, 0, 0), Some(&self.session), out));
                 }
                 Role::Responder => self.send_sync_ack = true,
             }
         }
         if core::mem::take(&mut self.send_sync_ack) {
-            let body = SyncAckBody { nonce: self.nonce, boot_nonce: self.config.boot_nonce };
+            let body = SyncAckBody { nonce: self.session, boot_nonce: self.config.nonce };
             return Some(write(&header(FrameKind::SyncAck, 0, 0), Some(&body), out));
         }
         if core::mem::take(&mut self.send_confirm) {

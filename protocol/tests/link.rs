@@ -14,13 +14,18 @@ type DevLink = Link<DeviceMsg, HostMsg, 8>;
 
 const RTO: u64 = 50;
 
+/// A host link whose program run has session nonce `nonce`.
+fn host_link_nonce(nonce: u32) -> HostLink {
+    Link::new(Role::Initiator, LinkConfig { rto: RTO, rx_reserve: 0, nonce })
+}
+
 fn host_link() -> HostLink {
-    Link::new(Role::Initiator, LinkConfig { rto: RTO, rx_reserve: 0, boot_nonce: 0 })
+    host_link_nonce(0xC0FFEE)
 }
 
 /// A device link; `boot` is its boot nonce (differs at every device start).
 fn dev_link_boot(boot: u32) -> DevLink {
-    Link::new(Role::Responder, LinkConfig { rto: RTO, rx_reserve: 0, boot_nonce: boot })
+    Link::new(Role::Responder, LinkConfig { rto: RTO, rx_reserve: 0, nonce: boot })
 }
 
 fn dev_link() -> DevLink {
@@ -92,7 +97,7 @@ fn handshake(h: &mut HostLink, d: &mut DevLink, epoch: u8, now: u64) {
 /// Host and device connected in epoch 1.
 fn connected() -> (HostLink, DevLink) {
     let (mut h, mut d) = (host_link(), dev_link());
-    h.connect(1, 0xC0FFEE, 0);
+    h.connect(0);
     handshake(&mut h, &mut d, 1, 0);
     (h, d)
 }
@@ -100,7 +105,7 @@ fn connected() -> (HostLink, DevLink) {
 #[test]
 fn sync_is_repeated_every_rto_until_answered() {
     let mut h = host_link();
-    h.connect(9, 0xC0FFEE, 1000);
+    h.connect(1000);
     assert_eq!(drain(&mut h, 1000).len(), 1);
     assert_eq!(h.next_deadline(), Some(1000 + RTO));
     assert!(drain(&mut h, 1000 + RTO - 1).is_empty());
@@ -213,7 +218,7 @@ fn device_restart_triggers_resync_and_nothing_is_lost() {
 fn stale_sync_reaching_a_restarted_device_cannot_wedge_the_link() {
     // The host re-sent Sync while syncing; one copy is still in a buffer on the way.
     let (mut h, mut d) = (host_link(), dev_link_boot(0xD1));
-    h.connect(1, 0xC0FFEE, 0);
+    h.connect(0);
     let first_sync = drain(&mut h, 0);
     let stale_copy = drain(&mut h, RTO); // the retry: same epoch, same nonce
     assert_eq!(first_sync, stale_copy);
@@ -247,7 +252,7 @@ fn stale_sync_reaching_a_restarted_device_cannot_wedge_the_link() {
 #[test]
 fn half_open_device_repeats_sync_ack_until_an_idle_host_confirms() {
     let (mut h, mut d) = (host_link(), dev_link());
-    h.connect(1, 5, 0);
+    h.connect(0);
     feed(&mut d, &drain(&mut h, 0), 0);
     feed(&mut h, &drain(&mut d, 0), 0);
     let _lost_confirm = drain(&mut h, 0);
@@ -264,7 +269,7 @@ fn half_open_device_repeats_sync_ack_until_an_idle_host_confirms() {
 #[test]
 fn lost_confirm_is_asked_for_again() {
     let (mut h, mut d) = (host_link(), dev_link());
-    h.connect(1, 5, 0);
+    h.connect(0);
     feed(&mut d, &drain(&mut h, 0), 0);
     feed(&mut h, &drain(&mut d, 0), 0);
     let _lost_confirm = drain(&mut h, 0);
@@ -288,7 +293,7 @@ fn repeated_sync_of_the_current_epoch_does_not_reset_the_stream() {
     feed(&mut d, &drain(&mut h, 0), 0);
     // A late duplicate of the Sync frame (same epoch, same nonce) arrives.
     let mut h2 = host_link();
-    h2.connect(1, 0xC0FFEE, 0);
+    h2.connect(0);
     let old_sync = drain(&mut h2, 0);
     assert_eq!(feed(&mut d, &old_sync, 1), vec![]);
     // The device re-sends SyncAck but keeps its receive state: req 1 is not taken again.
@@ -304,8 +309,8 @@ fn restarted_host_reusing_the_epoch_is_told_apart_by_its_nonce() {
     h.send(req(1)).unwrap();
     feed(&mut d, &drain(&mut h, 0), 0);
     // The host program restarts and picks epoch 1 again, with a fresh nonce.
-    let mut h = host_link();
-    h.connect(1, 0xBEEF, 10);
+    let mut h = host_link_nonce(0xBEEF);
+    h.connect(10);
     handshake(&mut h, &mut d, 1, 10);
     h.send(req(2)).unwrap();
     assert_eq!(feed(&mut d, &drain(&mut h, 11), 11), vec![Delivery::Message(req(2))]);
@@ -313,13 +318,13 @@ fn restarted_host_reusing_the_epoch_is_told_apart_by_its_nonce() {
 
 #[test]
 fn stale_sync_ack_of_another_nonce_is_ignored() {
-    let mut h = host_link();
     let mut d = dev_link();
-    let mut old = host_link();
-    old.connect(1, 111, 0);
+    let mut old = host_link_nonce(111);
+    old.connect(0);
     feed(&mut d, &drain(&mut old, 0), 0);
     let stale_ack = drain(&mut d, 0);
-    h.connect(1, 222, 1);
+    let mut h = host_link_nonce(222);
+    h.connect(1);
     assert_eq!(feed(&mut h, &stale_ack, 1), vec![]);
     assert_eq!(h.state(), LinkState::Syncing);
 }
@@ -365,8 +370,8 @@ fn trailing_bytes_after_a_message_are_a_bad_payload() {
 #[test]
 fn reserve_defers_requests_that_could_not_be_answered() {
     let mut h = host_link();
-    let mut d: DevLink = Link::new(Role::Responder, LinkConfig { rto: RTO, rx_reserve: 1, boot_nonce: 9 });
-    h.connect(1, 0xC0FFEE, 0);
+    let mut d: DevLink = Link::new(Role::Responder, LinkConfig { rto: RTO, rx_reserve: 1, nonce: 9 });
+    h.connect(0);
     handshake(&mut h, &mut d, 1, 0);
     for i in 0..8 {
         d.send(ev(i)).unwrap(); // the device's window is full of unacknowledged events
@@ -398,6 +403,129 @@ fn sequence_numbers_wrap() {
     }
     assert_eq!(delivered, 70_000);
     assert_eq!(h.stats().retransmits, 0);
+}
+
+/// Perfect wire for `rounds` rto steps from `now`: what the device and the host delivered.
+fn pump(
+    h: &mut HostLink,
+    d: &mut DevLink,
+    now: u64,
+    rounds: u64,
+) -> (Vec<Delivery<HostMsg>>, Vec<Delivery<DeviceMsg>>) {
+    let (mut to_dev, mut to_host) = (Vec::new(), Vec::new());
+    for t in 0..rounds {
+        let now = now + t * RTO;
+        to_dev.extend(feed(d, &drain(h, now), now));
+        to_host.extend(feed(h, &drain(d, now), now));
+    }
+    (to_dev, to_host)
+}
+
+/// D1 is up in epoch 1 and restarts; the host reconnects with D2 in epoch 2. Returns the
+/// links and copies of Sync(1) and Sync(2) that the host repeated while syncing, still on
+/// their way (a reordering wire). Found by the link fuzzer.
+fn restarted_in_epoch_2() -> (HostLink, DevLink, Vec<Vec<u8>>, Vec<Vec<u8>>) {
+    let (mut h, mut d) = (host_link(), dev_link_boot(0xD1));
+    h.connect(0);
+    let sync1 = drain(&mut h, 0);
+    let stale_sync1 = drain(&mut h, RTO);
+    feed(&mut d, &sync1, RTO);
+    feed(&mut h, &drain(&mut d, RTO), RTO);
+    feed(&mut d, &drain(&mut h, RTO), RTO);
+    let mut d = dev_link_boot(0xD2);
+    h.send(req(0)).unwrap();
+    feed(&mut d, &drain(&mut h, 100), 100);
+    feed(&mut h, &drain(&mut d, 100), 100); // Resync
+    assert_eq!((h.state(), h.epoch()), (LinkState::Syncing, 2));
+    let sync2 = drain(&mut h, 100);
+    let stale_sync2 = drain(&mut h, 100 + RTO);
+    feed(&mut d, &sync2, 150);
+    feed(&mut h, &drain(&mut d, 150), 150);
+    assert_eq!(
+        feed(&mut d, &drain(&mut h, 150), 150),
+        vec![Delivery::Connected { epoch: 2 }, Delivery::Message(req(0))]
+    );
+    (h, d, stale_sync1, stale_sync2)
+}
+
+#[test]
+fn reordered_stale_syncs_cannot_restart_the_device_stream_under_the_host() {
+    let (mut h, mut d, stale_sync1, stale_sync2) = restarted_in_epoch_2();
+    // Event 0 is acknowledged; event 1 is delivered but its ack is lost; event 2 is queued.
+    d.send(ev(0)).unwrap();
+    assert_eq!(feed(&mut h, &drain(&mut d, 151), 151), vec![Delivery::Message(ev(0))]);
+    feed(&mut d, &drain(&mut h, 151), 151);
+    d.send(ev(1)).unwrap();
+    assert_eq!(feed(&mut h, &drain(&mut d, 152), 152), vec![Delivery::Message(ev(1))]);
+    let _lost_ack = drain(&mut h, 152);
+    d.send(ev(2)).unwrap();
+    // Stale Sync(1), then a stale copy of Sync(2): the first is older than the device's epoch
+    // and ignored, the second is a repeat and only answered.
+    let stale_before = d.stats().stale_epoch;
+    assert_eq!(feed(&mut d, &stale_sync1, 153), vec![]);
+    assert!(drain(&mut d, 153).iter().all(|f| kind_of(f) != FrameKind::SyncAck));
+    assert_eq!(d.stats().stale_epoch, stale_before + 1);
+    feed(&mut d, &stale_sync2, 154);
+    assert_eq!(d.state(), LinkState::Up);
+    feed(&mut h, &drain(&mut d, 154), 154);
+    feed(&mut d, &drain(&mut h, 154), 154);
+    h.send(req(1)).unwrap();
+    let (to_dev, to_host) = pump(&mut h, &mut d, 155, 100);
+    assert!(to_host.contains(&Delivery::Message(ev(2))), "event 2 lost; host got {to_host:?}");
+    assert!(to_dev.contains(&Delivery::Message(req(1))), "request 1 stuck; device got {to_dev:?}");
+}
+
+#[test]
+fn confirm_is_not_sent_for_an_epoch_the_host_has_not_brought_up() {
+    let mut h = host_link();
+    h.connect(0);
+    let sync1 = drain(&mut h, 0);
+    // D1 answers the Sync and restarts; its SyncAck is delayed. D2 answers the repeated Sync.
+    let mut d1 = dev_link_boot(0xD1);
+    feed(&mut d1, &sync1, 0);
+    let late_ack_d1 = drain(&mut d1, 0);
+    let mut d2 = dev_link_boot(0xD2);
+    feed(&mut d2, &drain(&mut h, RTO), RTO);
+    assert_eq!(feed(&mut h, &drain(&mut d2, RTO), RTO), vec![Delivery::Connected { epoch: 1 }]);
+    feed(&mut h, &late_ack_d1, RTO); // another boot nonce: reconnect
+    assert_eq!((h.state(), h.epoch()), (LinkState::Syncing, 2));
+    let out = drain(&mut h, RTO);
+    assert_eq!(kinds(&out), vec![FrameKind::Sync], "no Confirm while syncing");
+    // Had a Confirm(2, D2) gone out, D2 would come up in epoch 2 early, send an event and
+    // restart; D3 brings epoch 2 up properly and D2's late frame must not be taken for D3's.
+    feed(&mut d2, &out, RTO);
+    let _lost_sync_ack = drain(&mut d2, RTO);
+    d2.send(ev(0)).unwrap();
+    let late_d2 = drain(&mut d2, RTO + 1);
+    let mut d3 = dev_link_boot(0xD3);
+    d3.send(ev(1)).unwrap();
+    feed(&mut d3, &drain(&mut h, 2 * RTO), 2 * RTO);
+    feed(&mut h, &drain(&mut d3, 2 * RTO), 2 * RTO);
+    feed(&mut d3, &drain(&mut h, 2 * RTO), 2 * RTO);
+    let d3_data = drain(&mut d3, 2 * RTO);
+    let mut got = feed(&mut h, &late_d2, 2 * RTO);
+    feed(&mut d3, &drain(&mut h, 2 * RTO), 2 * RTO);
+    got.extend(feed(&mut h, &d3_data, 2 * RTO));
+    got.extend(pump(&mut h, &mut d3, 3 * RTO, 50).1);
+    assert!(got.contains(&Delivery::Message(ev(1))), "D3's event lost; host got {got:?}");
+}
+
+#[test]
+fn device_knocked_into_a_stale_epoch_recovers_while_the_host_is_idle() {
+    let (mut h, mut d, stale_sync1, _) = restarted_in_epoch_2();
+    pump(&mut h, &mut d, 151, 5); // request 0 acknowledged: the host is idle
+    assert_eq!((h.unacked(), d.unacked()), (0, 0));
+    d.send(ev(0)).unwrap();
+    feed(&mut d, &stale_sync1, 500); // the copy of Sync(1) arrives last
+    let (_, to_host) = pump(&mut h, &mut d, 500, 100);
+    assert!(
+        to_host.contains(&Delivery::Message(ev(0))),
+        "event stuck: device {:?} in epoch {}, host {:?} in epoch {}",
+        d.state(),
+        d.epoch(),
+        h.state(),
+        h.epoch()
+    );
 }
 
 /// A deterministic PRNG (splitmix64) so failures replay from the proptest seed.
@@ -452,7 +580,7 @@ fn run_lossy(seed: u64, faults: Faults, n_host: u32, n_dev: u32) -> (Vec<HostMsg
     let (mut h2d, mut d2h) = (VecDeque::new(), VecDeque::new());
     let (mut to_dev, mut to_host) = (Vec::new(), Vec::new());
     let (mut sent_h, mut sent_d) = (0u32, 0u32);
-    h.connect(1, 0xC0FFEE, 0);
+    h.connect(0);
     for now in 0..200_000u64 {
         while sent_h < n_host && h.free() > 0 {
             h.send(req(sent_h as u16)).unwrap();

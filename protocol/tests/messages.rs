@@ -237,8 +237,8 @@ fn an_incompatible_hello_answer_still_yields_version_and_hash() {
     assert_eq!(DeviceMsg::handshake_prefix(&body), Some((2, 0xfeed)));
     // Through the link, the host gets `Incompatible` rather than a bare rejection.
     let mut host: Link<HostMsg, DeviceMsg, 8> =
-        Link::new(Role::Initiator, LinkConfig { rto: 10, rx_reserve: 0, boot_nonce: 0 });
-    host.connect(1, 9, 0);
+        Link::new(Role::Initiator, LinkConfig { rto: 10, rx_reserve: 0, nonce: 9 });
+    host.connect(0);
     let mut out = [0u8; MAX_FRAME];
     let ack = link::SyncAckBody { nonce: 9, boot_nonce: 77 };
     let n = link::write(&Header { kind: FrameKind::SyncAck, epoch: 1, seq: 0, ack: 0 }, Some(&ack), &mut out);

@@ -27,8 +27,8 @@ impl Pair {
     pub fn new() -> Self {
         let clock = SimClock::default();
         let device = Controller::new(clock.clone(), virtual_device_info(), RTO);
-        let mut host = Link::new(Role::Initiator, LinkConfig { rto: RTO, rx_reserve: 0, boot_nonce: 0 });
-        host.connect(1, 0x1157, 0);
+        let mut host = Link::new(Role::Initiator, LinkConfig { rto: RTO, rx_reserve: 0, nonce: 0x1157 });
+        host.connect(0);
         Self { clock, host, device }
     }
 

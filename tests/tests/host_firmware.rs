@@ -43,7 +43,7 @@ fn emergency_stop_acts_before_the_handshake_and_stays_latched_across_reconnectio
     assert_eq!(p.device.state(), DeviceState::Faulted(FaultCause::EmergencyStop));
     assert_eq!(p.messages(5), vec![]);
     // The host reconnects: the fault is still latched.
-    p.host.connect(2, 0x3157, 0);
+    p.host.connect(0);
     p.run(5);
     p.request(2, hello(), 10);
     assert_eq!(p.device.state(), DeviceState::Faulted(FaultCause::EmergencyStop));
@@ -87,7 +87,7 @@ fn forged_frame_with_valid_crc_is_answered_with_rejected_and_the_device_keeps_wo
     assert_eq!(p.device.link().stats().rejected(), 3);
     // The host's own seq 1 collides with the forged one and is dropped as a duplicate; its
     // retransmission never succeeds. A real host never forges, so resynchronise instead:
-    p.host.connect(2, 0x2157, 0);
+    p.host.connect(0);
     p.run(5);
     let got = p.request(2, hello(), 10);
     assert!(matches!(got[..], [DeviceMsg::Response { id: 2, result: Ok(Reply::Hello(_)) }]));
