@@ -197,8 +197,9 @@ impl<C: Clock> Controller<C> {
                 item.validate(&self.info).map_err(Error::InvalidConfig)?;
                 Err(Error::Unsupported)
             }
-            _ if self.fault.is_some() => Err(Error::Faulted(self.fault.unwrap_or(FaultCause::EmergencyStop))),
-            _ => Err(Error::Unsupported),
+            // The rest moves hardware: refused while a fault is latched, and not implemented by
+            // this firmware slice otherwise.
+            _ => Err(self.fault.map_or(Error::Unsupported, Error::Faulted)),
         }
     }
 
