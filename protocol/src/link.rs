@@ -702,15 +702,19 @@ pub fn decode<R: Message>(body: &[u8]) -> Result<R, FrameError> {
     }
 }
 
-/// Encodes a frame: header, optional body, CRC, COBS, delimiter. Returns its length.
+/// Encodes a frame: header, optional body, CRC, COBS, delimiter. Returns its length, or 0
+/// (nothing written) if the body does not fit a packet.
 ///
-/// Bodies are checked against [`MAX_MESSAGE`] when queued, so this cannot overflow.
+/// The link checks bodies against [`MAX_MESSAGE`] when they are queued, so its own frames
+/// always fit.
 pub fn write<B: Serialize>(header: &Header, body: Option<&B>, out: &mut [u8; MAX_FRAME]) -> usize {
     let mut buf = [0u8; MAX_PACKET];
-    let mut len = postcard::to_slice(header, &mut buf[..HEADER_MAX]).map_or(0, |s| s.len());
+    let Ok(h) = postcard::to_slice(header, &mut buf[..HEADER_MAX]) else { return 0 };
+    let mut len = h.len();
     if let Some(body) = body {
         let room = &mut buf[len..MAX_PACKET - CRC_LEN];
-        len += postcard::to_slice(body, room).map_or(0, |s| s.len());
+        let Ok(b) = postcard::to_slice(body, room) else { return 0 };
+        len += b.len();
     }
     seal(&mut buf, len, out)
 }

@@ -267,6 +267,14 @@ fn unknown_message_types_are_told_from_bad_payloads() {
 }
 
 #[test]
+fn write_refuses_a_body_that_does_not_fit() {
+    let mut out = [0u8; MAX_FRAME];
+    let header = Header { kind: FrameKind::Datagram, epoch: 1, seq: 0, ack: 0 };
+    assert_eq!(link::write(&header, Some(&&[0xAAu8; MAX_PACKET][..]), &mut out), 0);
+    assert!(link::write(&header, Some(&&[0xAAu8; 100][..]), &mut out) > 0);
+}
+
+#[test]
 fn largest_messages_fit_a_packet() {
     use lightrig_protocol::event::*;
     use lightrig_protocol::sequence::*;
