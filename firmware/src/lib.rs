@@ -16,6 +16,8 @@
 
 pub mod controller;
 pub mod galvo;
+pub mod motion;
+pub mod synth;
 
 pub use controller::{Clock, Controller};
 pub use lightrig_protocol::Error;

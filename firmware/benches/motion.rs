@@ -1,0 +1,2 @@
+//! Step-time generation benchmark (filled in with `motion`).
+fn main() {}

@@ -1,0 +1,2 @@
+//! Voice-coil synthesis benchmark (filled in with `synth`).
+fn main() {}

@@ -1,0 +1,1 @@
+//! Trapezoidal stepper motion with exact integer step ticks (work in progress).

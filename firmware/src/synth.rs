@@ -1,0 +1,1 @@
+//! Voice-coil synthesis (work in progress).
