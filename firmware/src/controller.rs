@@ -1,13 +1,27 @@
-//! The device endpoint: link, handshake gate, request dispatch.
+//! The device endpoint: link, handshake gate, request dispatch, and the event stream. The
+//! behaviour behind the commands is the [`Rig`]'s.
+//!
+//! A board's run loop, in outline:
+//! ```text
+//! loop {
+//!     wait until controller.next_deadline(), a received byte or an input edge;
+//!     controller.receive(bytes);            // requests are handled at once
+//!     controller.poll();                    // due work, then events into the link
+//!     while let Some(n) = controller.poll_transmit(&mut frame) { uart.write(&frame[..n]) }
+//! }
+//! ```
 
 use heapless::Deque;
-use lightrig_protocol::event::{DeviceState, FaultCause};
+use lightrig_protocol::event::DeviceState;
 use lightrig_protocol::link::{Delivery, Link, LinkConfig, Role};
 use lightrig_protocol::message::Status;
 use lightrig_protocol::session::DeviceInfo;
 use lightrig_protocol::{
     Command, DeviceMsg, Error, HostMsg, Reply, MAX_FRAME, PROTOCOL_VERSION, SCHEMA_HASH,
 };
+
+use crate::hal::Board;
+use crate::rig::Rig;
 
 /// Frames in flight per direction.
 pub const LINK_WINDOW: usize = 8;
@@ -18,16 +32,31 @@ pub trait Clock {
     fn now(&self) -> u64;
 }
 
-/// The controller: owns the link and answers the host.
-pub struct Controller<C: Clock> {
+/// The controller's clock from embassy-time (feature `embassy`): `DeviceInfo::tick_hz` must be
+/// embassy-time's tick rate. A run loop sleeps with
+/// `embassy_time::Timer::at(Instant::from_ticks(controller.next_deadline()))`.
+#[cfg(feature = "embassy")]
+#[derive(Debug, Clone, Copy, Default)]
+pub struct EmbassyClock;
+
+#[cfg(feature = "embassy")]
+impl Clock for EmbassyClock {
+    fn now(&self) -> u64 {
+        embassy_time::Instant::now().as_ticks()
+    }
+}
+
+/// The controller: owns the link and the rig, answers the host, streams events.
+pub struct Controller<C: Clock, B: Board> {
     clock: C,
     info: DeviceInfo,
     link: Link<DeviceMsg, HostMsg, LINK_WINDOW>,
     /// Answers produced but not yet accepted by the link (its window was full).
     outbox: Deque<DeviceMsg, 4>,
     session: Session,
-    /// A latched fault; survives reconnections until `ClearFault`.
-    fault: Option<FaultCause>,
+    rig: Rig<B>,
+    /// Number of the next event (`DeviceMsg::Event::index`).
+    event_index: u32,
     last_heartbeat: u64,
 }
 
@@ -42,35 +71,56 @@ enum Session {
     Open,
 }
 
-impl<C: Clock> Controller<C> {
-    /// A controller that describes itself with `info` (its `protocol_version` and
-    /// `schema_hash` are overwritten with this build's). `rto` is in ticks.
-    pub fn new(clock: C, mut info: DeviceInfo, rto: u64) -> Self {
+impl<C: Clock, B: Board> Controller<C, B> {
+    /// A controller for `board` that describes itself with `info` (its `protocol_version`,
+    /// `schema_hash`, link window, buffer and queue sizes are overwritten with this build's).
+    /// `rto` is in ticks.
+    pub fn new(clock: C, board: B, mut info: DeviceInfo, rto: u64) -> Self {
         info.protocol_version = PROTOCOL_VERSION;
         info.schema_hash = SCHEMA_HASH;
         info.capabilities.link_window = LINK_WINDOW as u8;
+        info.capabilities.sequence_buffer = crate::rig::SEQUENCE_BUFFER as u16;
+        info.capabilities.event_queue = crate::rig::EVENT_QUEUE as u16;
         // Keep one send slot free per request in flight so every request can be answered. The
         // boot id doubles as the link's boot nonce: it must differ at every start.
         let link = Link::new(Role::Responder, LinkConfig { rto, rx_reserve: 1, nonce: info.boot_id });
         let last_heartbeat = clock.now();
+        let rig = Rig::new(board, info.capabilities, info.tick_hz);
         Self {
             clock,
             info,
             link,
             outbox: Deque::new(),
             session: Session::AwaitingHello,
-            fault: None,
+            rig,
+            event_index: 0,
             last_heartbeat,
         }
     }
 
-    /// Current state: a latched fault first, then the session.
+    /// Current state: a latched fault first, then the session, then the rig.
     pub fn state(&self) -> DeviceState {
-        match (self.fault, self.session) {
+        match (self.rig.fault(), self.session) {
             (Some(cause), _) => DeviceState::Faulted(cause),
-            (None, Session::Open) => DeviceState::Ready,
+            (None, Session::Open) => self.rig.state(),
             (None, _) => DeviceState::AwaitingHello,
         }
+    }
+
+    /// The rig behind the protocol.
+    pub fn rig(&self) -> &Rig<B> {
+        &self.rig
+    }
+
+    /// The rig, mutably (simulations change inputs through its board).
+    pub fn rig_mut(&mut self) -> &mut Rig<B> {
+        &mut self.rig
+    }
+
+    /// Does the rig's work due by now and moves its events into the link.
+    pub fn poll(&mut self) {
+        self.rig.poll(self.clock.now());
+        self.pump_events();
     }
 
     /// Tick of the last command from the host.
@@ -118,13 +168,31 @@ impl<C: Clock> Controller<C> {
 
     /// Writes the next frame for the host into `out`; `None` when nothing is due.
     pub fn poll_transmit(&mut self, out: &mut [u8; MAX_FRAME]) -> Option<usize> {
-        self.flush_outbox();
+        self.pump_events();
         self.link.poll_transmit(self.clock.now(), out)
     }
 
-    /// When the link next needs `poll_transmit` even if nothing arrives.
+    /// When `poll` / `poll_transmit` next have work even if nothing arrives.
     pub fn next_deadline(&self) -> Option<u64> {
-        self.link.next_deadline()
+        match (self.link.next_deadline(), self.rig.next_due()) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+
+    /// Moves rig events into the link while it has room, keeping the slot that answers the
+    /// next request (`rx_reserve`). Events wait in the rig's queue meanwhile; the rig faults
+    /// with `EventOverflow` if the host stops acknowledging for that long.
+    fn pump_events(&mut self) {
+        self.flush_outbox();
+        while self.outbox.is_empty() && self.link.free() > 1 {
+            let Some(event) = self.rig.pop_event() else { break };
+            let index = self.event_index;
+            self.event_index = self.event_index.wrapping_add(1);
+            if let Err(e) = self.link.send(DeviceMsg::Event { index, event }) {
+                let _ = self.outbox.push_back(e.into_inner());
+            }
+        }
     }
 
     fn answer(&mut self, msg: DeviceMsg) {
@@ -146,6 +214,8 @@ impl<C: Clock> Controller<C> {
 
     fn handle(&mut self, command: &Command) -> Result<Reply, Error> {
         let now = self.clock.now();
+        // Commands act at `now`: first catch up with everything due before it.
+        self.rig.poll(now);
         match *command {
             Command::Hello { protocol_version, schema_hash } => {
                 // Always describe ourselves (the answer's prefix is frozen, so a host of any
@@ -162,11 +232,18 @@ impl<C: Clock> Controller<C> {
                     Session::Open
                 };
                 self.last_heartbeat = now;
+                if self.session == Session::Open {
+                    self.rig.host_seen(now, true);
+                }
                 return Ok(Reply::Hello(self.info));
             }
             // Safety commands act whatever the session state.
             Command::EmergencyStop => {
-                self.fault = Some(FaultCause::EmergencyStop);
+                self.rig.emergency_stop(now);
+                return Ok(Reply::Done);
+            }
+            Command::Disarm => {
+                self.rig.disarm(now);
                 return Ok(Reply::Done);
             }
             _ => {}
@@ -177,29 +254,33 @@ impl<C: Clock> Controller<C> {
             Session::Open => {}
         }
         self.last_heartbeat = now;
+        self.rig.host_seen(now, true);
+        let rig = &mut self.rig;
         match command {
             Command::GetClock => Ok(Reply::Clock { tick: now }),
             Command::Heartbeat => Ok(Reply::Done),
             Command::GetStatus => Ok(Reply::Status(Status {
                 state: self.state(),
-                armed: 0,
-                lasers_on: 0,
+                armed: self.rig.armed(),
+                lasers_on: self.rig.lasers_on(),
                 tick: now,
-                buffer: None,
+                buffer: self.rig.buffer(),
                 unacked: self.link.unacked() as u16,
                 link: *self.link.stats(),
             })),
-            Command::ClearFault => {
-                self.fault = None;
-                Ok(Reply::Done)
-            }
+            Command::ClearFault => rig.clear_fault(now).map(|()| Reply::Done),
             Command::Configure(item) => {
                 item.validate(&self.info).map_err(Error::InvalidConfig)?;
-                Err(Error::Unsupported)
+                rig.configure(item, now).map(|()| Reply::Done)
             }
-            // The rest moves hardware: refused while a fault is latched, and not implemented by
-            // this firmware slice otherwise.
-            _ => Err(self.fault.map_or(Error::Unsupported, Error::Faulted)),
+            Command::Arm { lasers } => rig.arm(*lasers, now).map(|()| Reply::Done),
+            Command::Home(axis) => rig.home(*axis, now).map(|()| Reply::Done),
+            Command::Immediate(action) => rig.immediate(action, now).map(|()| Reply::Done),
+            Command::SequenceLoad(chunk) => rig.load(chunk).map(Reply::Buffer),
+            Command::SequenceStart { sequence, at } => rig.start(*sequence, *at, now).map(|()| Reply::Done),
+            Command::SequenceAbort { sequence } => rig.abort(*sequence, now).map(|()| Reply::Done),
+            // Answered above, before the session check.
+            Command::Hello { .. } | Command::EmergencyStop | Command::Disarm => Ok(Reply::Done),
         }
     }
 

@@ -10,7 +10,9 @@
 //! - **XY2-100**: per axis a 20-bit frame at 100 kHz, MSB first: control code `001`, the
 //!   16-bit unsigned position, then an even-parity bit over the 19 bits before it.
 //!
-//! X goes to DAC channel A, Y to channel B.
+//! - **MCU DAC**: the microcontroller's two 12-bit channels, written together.
+//!
+//! X goes to DAC channel A (channel 1), Y to channel B (channel 2).
 
 use embedded_hal::spi::SpiDevice;
 use lightrig_protocol::config::Xy;
@@ -106,6 +108,120 @@ impl<S: SpiDevice> GalvoOutput for SpiDacGalvo<S> {
     }
 }
 
+/// XY2-100 over GPIO: the pin states of one frame period, for a DMA stream into a GPIO port
+/// at 4 MHz (two states per bit, 20 bits per 10 µs frame, so 100 kHz frames). Each byte is
+/// one state: bit 0 `CLOCK`, bit 1 `SYNC`, bit 2 `X` (channel 1), bit 3 `Y` (channel 2).
+///
+/// The data lines change with the clock's rising edge and the galvo samples them on the
+/// falling edge; `SYNC` is high for the first 19 bits and low for the parity bit, which marks
+/// the frame's end. (Real links are differential; the line drivers take these single-ended
+/// states.)
+pub mod xy2_100_pins {
+    /// Clock.
+    pub const CLOCK: u8 = 1 << 0;
+    /// Frame sync.
+    pub const SYNC: u8 = 1 << 1;
+    /// X data (channel 1).
+    pub const X: u8 = 1 << 2;
+    /// Y data (channel 2).
+    pub const Y: u8 = 1 << 3;
+}
+
+/// GPIO states per XY2-100 frame.
+pub const XY2_100_STATES: usize = 40;
+
+/// The GPIO states of the XY2-100 frame that drives the mirrors to `to`.
+pub const fn xy2_100_gpio_frame(to: Xy) -> [u8; XY2_100_STATES] {
+    use xy2_100_pins::*;
+    let (fx, fy) = (xy2_100_frame(to.x), xy2_100_frame(to.y));
+    let mut out = [0u8; XY2_100_STATES];
+    let mut i = 0;
+    while i < 20 {
+        let shift = 19 - i;
+        let mut data = 0u8;
+        if (fx >> shift) & 1 == 1 {
+            data |= X;
+        }
+        if (fy >> shift) & 1 == 1 {
+            data |= Y;
+        }
+        if i < 19 {
+            data |= SYNC;
+        }
+        out[2 * i] = data | CLOCK;
+        out[2 * i + 1] = data;
+        i += 1;
+    }
+    out
+}
+
+/// A GPIO port fed by DMA, one state per 250 ns.
+pub trait GpioStream {
+    /// The stream's error.
+    type Error;
+    /// Queues one frame period of pin states; it repeats until the next frame is queued.
+    fn queue_frame(&mut self, states: &[u8; XY2_100_STATES]) -> Result<(), Self::Error>;
+}
+
+/// A galvo pair on an XY2-100 link driven from a GPIO port.
+pub struct Xy2Gpio<G> {
+    port: G,
+}
+
+impl<G: GpioStream> Xy2Gpio<G> {
+    /// A galvo pair on `port`.
+    pub fn new(port: G) -> Self {
+        Self { port }
+    }
+
+    /// Gives the port back.
+    pub fn release(self) -> G {
+        self.port
+    }
+}
+
+impl<G: GpioStream> GalvoOutput for Xy2Gpio<G> {
+    type Error = G::Error;
+
+    fn set(&mut self, to: Xy) -> Result<(), G::Error> {
+        self.port.queue_frame(&xy2_100_gpio_frame(to))
+    }
+}
+
+/// The microcontroller's own two 12-bit DAC channels.
+pub trait DualDac12 {
+    /// The converter's error.
+    type Error;
+    /// Writes both channels at once (`0..=4095` each; X to channel 1, Y to channel 2).
+    fn write(&mut self, x: u16, y: u16) -> Result<(), Self::Error>;
+}
+
+/// A galvo pair on the MCU's DAC. Codes are already 12-bit (`DacKind::McuDac::max_code`);
+/// anything above is clamped rather than wrapped, so a bad code never flips the mirror.
+pub struct McuDacGalvo<D> {
+    dac: D,
+}
+
+impl<D: DualDac12> McuDacGalvo<D> {
+    /// A galvo pair on `dac`.
+    pub fn new(dac: D) -> Self {
+        Self { dac }
+    }
+
+    /// Gives the converter back.
+    pub fn release(self) -> D {
+        self.dac
+    }
+}
+
+impl<D: DualDac12> GalvoOutput for McuDacGalvo<D> {
+    type Error = D::Error;
+
+    fn set(&mut self, to: Xy) -> Result<(), D::Error> {
+        self.dac.write(to.x.min(4095), to.y.min(4095))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     extern crate std;
@@ -179,5 +295,57 @@ mod tests {
         };
         assert_eq!(g.release().transactions, [[0x31, 0x12, 0x34], [0x38, 0xBE, 0xEF]]);
         assert_eq!(g2.release().transactions, [[0x18, 0x00, 0x01], [0x19, 0x00, 0x02]]);
+    }
+
+    #[test]
+    fn xy2_100_gpio_frame_exact_states() {
+        use xy2_100_pins::*;
+        // X = 0x8000: frame 001 1000..0 0 (two ones, parity 0).
+        // Y = 0x0001: frame 001 0000..1 0 (two ones, parity 0).
+        let f = xy2_100_gpio_frame(Xy { x: 0x8000, y: 0x0001 });
+        let bits =
+            |mask: u8| -> u32 { (0..20).fold(0, |acc, i| (acc << 1) | u32::from(f[2 * i] & mask != 0)) };
+        assert_eq!(bits(X), xy2_100_frame(0x8000));
+        assert_eq!(bits(Y), xy2_100_frame(0x0001));
+        assert_eq!(bits(SYNC), 0b1111_1111_1111_1111_1110, "sync low on the parity bit only");
+        for i in 0..20 {
+            assert_eq!(f[2 * i] & CLOCK, CLOCK, "clock high first");
+            assert_eq!(f[2 * i + 1], f[2 * i] & !CLOCK, "data held across the falling edge");
+        }
+        // Spot check of the raw bytes: bit 2 (control `001`, third bit) carries 1 on both.
+        assert_eq!(f[4], CLOCK | SYNC | X | Y);
+        assert_eq!(f[6], CLOCK | SYNC | X); // X's position MSB
+        assert_eq!(f[38], CLOCK); // parity 0 on both, sync low
+    }
+
+    struct Port(Vec<[u8; XY2_100_STATES]>);
+
+    impl GpioStream for Port {
+        type Error = core::convert::Infallible;
+        fn queue_frame(&mut self, states: &[u8; XY2_100_STATES]) -> Result<(), Self::Error> {
+            self.0.push(*states);
+            Ok(())
+        }
+    }
+
+    struct Dac(Vec<(u16, u16)>);
+
+    impl DualDac12 for Dac {
+        type Error = core::convert::Infallible;
+        fn write(&mut self, x: u16, y: u16) -> Result<(), Self::Error> {
+            self.0.push((x, y));
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn xy2_and_mcu_dac_outputs() {
+        let mut g = Xy2Gpio::new(Port(Vec::new()));
+        g.set(Xy { x: 1, y: 2 }).unwrap();
+        assert_eq!(g.release().0, [xy2_100_gpio_frame(Xy { x: 1, y: 2 })]);
+        let mut d = McuDacGalvo::new(Dac(Vec::new()));
+        d.set(Xy { x: 4095, y: 7 }).unwrap();
+        d.set(Xy { x: 5000, y: 65535 }).unwrap();
+        assert_eq!(d.release().0, [(4095, 7), (4095, 4095)]);
     }
 }

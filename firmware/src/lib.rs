@@ -2,22 +2,32 @@
 //! the microcontroller (board crates implement the traits) and on the host (simulated
 //! peripherals, the virtual rig, tests).
 //!
-//! What exists so far:
 //! - [`controller`]: the protocol endpoint: the device side of the reliable link, the
-//!   handshake gate, the clock, the heartbeat and the latched emergency stop.
-//! - [`galvo`]: the galvo output frame formats (DAC8563, AD5689, XY2-100) and the SPI DAC
-//!   driver behind the [`galvo::GalvoOutput`] trait.
+//!   handshake gate, request dispatch and the event stream.
+//! - [`rig`]: every peripheral's behaviour, the sequencer and the safety state machine, in
+//!   integer ticks.
+//! - [`hal`]: the hardware traits a board implements.
+//! - [`motion`]: trapezoidal step timing, exact in integer ticks.
+//! - [`synth`]: voice-coil sine synthesis in fixed point.
+//! - [`galvo`]: galvo output frame formats (DAC8563, AD5689, XY2-100) and drivers.
+//! - [`sim`] (feature `std`): simulated peripherals that record every change with its tick.
 //!
-//! The other peripherals, the sequencer and the rest of the safety state machine come with the
-//! firmware-core issue; until then their commands are answered with [`Error::Unsupported`],
-//! never silently accepted.
-#![no_std]
+//! Logging goes through the macros of `fmt.rs` (defmt on the MCU, `log` on the host).
+#![cfg_attr(not(feature = "std"), no_std)]
 #![forbid(unsafe_code)]
+
+#[macro_use]
+mod fmt;
 
 pub mod controller;
 pub mod galvo;
+pub mod hal;
 pub mod motion;
+pub mod rig;
+#[cfg(feature = "std")]
+pub mod sim;
 pub mod synth;
 
 pub use controller::{Clock, Controller};
 pub use lightrig_protocol::Error;
+pub use rig::Rig;

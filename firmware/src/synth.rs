@@ -376,7 +376,8 @@ impl Synth {
         y
     }
 
-    fn check(&self, partials: &[Partial]) -> Result<(), SynthError> {
+    /// Whether `set(partials, _)` would be accepted (the controller checks items on load).
+    pub fn check(&self, partials: &[Partial]) -> Result<(), SynthError> {
         if partials.len() > MAX_PARTIALS {
             return Err(SynthError::TooManyPartials);
         }

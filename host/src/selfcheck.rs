@@ -4,11 +4,11 @@
 //! It proves the build's two halves agree: framing, the reliable link both ways, the
 //! handshake and schema check, request/response pairing and typed configuration errors.
 
-use std::cell::Cell;
 use std::collections::VecDeque;
-use std::rc::Rc;
 
 use anyhow::{bail, ensure, Context, Result};
+use lightrig_firmware::sim::SimBoard;
+pub use lightrig_firmware::sim::SimClock;
 use lightrig_firmware::{Clock, Controller};
 use lightrig_protocol::config::{ConfigField, ConfigItem, Input, InvalidReason, LaserConfig, Polarity};
 use lightrig_protocol::link::{Delivery, Link, LinkConfig, LinkStats, Role};
@@ -16,23 +16,6 @@ use lightrig_protocol::session::{BoardId, Capabilities, DeviceInfo, ResetCause, 
 use lightrig_protocol::{
     Command, DeviceMsg, Error, HostMsg, Reply, MAX_FRAME, MAX_PACKET, PROTOCOL_VERSION, SCHEMA_HASH,
 };
-
-/// Simulated device time, shared by the test bench and the controller.
-#[derive(Clone, Default)]
-pub struct SimClock(Rc<Cell<u64>>);
-
-impl SimClock {
-    /// Moves time forward.
-    pub fn advance(&self, ticks: u64) {
-        self.0.set(self.0.get() + ticks);
-    }
-}
-
-impl Clock for SimClock {
-    fn now(&self) -> u64 {
-        self.0.get()
-    }
-}
 
 /// How the self-check is run.
 #[derive(Debug, Clone, Copy)]
@@ -109,7 +92,7 @@ impl Rng {
 struct Bench {
     clock: SimClock,
     host: Link<HostMsg, DeviceMsg, 8>,
-    device: Controller<SimClock>,
+    device: Controller<SimClock, SimBoard>,
     to_device: VecDeque<Vec<u8>>,
     to_host: VecDeque<Vec<u8>>,
     rng: Rng,
@@ -124,7 +107,7 @@ const STEP_LIMIT: u64 = 50_000_000;
 impl Bench {
     fn new(opts: Options) -> Self {
         let clock = SimClock::default();
-        let device = Controller::new(clock.clone(), virtual_device_info(), RTO_TICKS);
+        let device = Controller::new(clock.clone(), SimBoard::default(), virtual_device_info(), RTO_TICKS);
         let host =
             Link::new(Role::Initiator, LinkConfig { rto: RTO_TICKS, rx_reserve: 0, nonce: opts.seed as u32 });
         Self {
@@ -162,6 +145,7 @@ impl Bench {
         while let Some(f) = self.to_device.pop_front() {
             self.device.receive(&f);
         }
+        self.device.poll();
         while let Some(n) = self.device.poll_transmit(&mut out) {
             if let Some(f) = self.impair(out[..n].to_vec()) {
                 self.to_host.push_back(f);

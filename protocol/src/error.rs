@@ -5,6 +5,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::config::ConfigError;
 use crate::event::{DeviceState, FaultCause};
+use crate::sequence::AxisRef;
 
 /// A kind of peripheral, for errors that name one.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Schema)]
@@ -97,4 +98,19 @@ pub enum Error {
     },
     /// The firmware does not implement this command on this board.
     Unsupported,
+    /// The axis has a homing procedure and has not been homed since power-up: send `Home`.
+    NotHomed {
+        /// The axis.
+        axis: AxisRef,
+    },
+    /// The axis is still moving (or homing); wait for its `MoveDone` / `Homed`.
+    Busy {
+        /// The axis.
+        axis: AxisRef,
+    },
+    /// `SequenceStart` named a tick that has already passed.
+    StartInPast {
+        /// The device tick when the command was processed.
+        now: u64,
+    },
 }

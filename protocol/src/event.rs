@@ -114,6 +114,22 @@ pub enum FaultCause {
     },
     /// The event queue to the host overflowed: the host stopped acknowledging.
     EventOverflow,
+    /// A sequence item asked an axis to move while it was still moving.
+    AxisBusy {
+        /// The axis.
+        axis: AxisRef,
+    },
+    /// A trigger came sooner after the previous one than the camera's `min_interval_ticks`
+    /// (or while the previous pulse was still high).
+    TriggerTooSoon {
+        /// Camera.
+        camera: u8,
+    },
+    /// A galvo output reported an error (converter or bus).
+    GalvoOutput {
+        /// Galvo pair.
+        galvo: u8,
+    },
 }
 
 /// The controller's overall state.

@@ -64,8 +64,9 @@ pub enum WaitFor {
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, Schema)]
 #[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
 pub enum Action {
-    /// Jump a galvo pair to a point. Lasers are not blanked by the device: the planner
-    /// switches them off around jumps it wants dark.
+    /// Jump a galvo pair to a point. If the point differs from where the mirrors are, the
+    /// device blanks every laser from this tick until the pair's `settle_ticks` have passed
+    /// (the spot never streaks), then lets the lasers that are on emit again.
     GalvoPoint {
         /// Galvo pair.
         galvo: u8,
@@ -73,7 +74,9 @@ pub enum Action {
         to: Xy,
     },
     /// Sweep a galvo pair in a straight line from where it is to `to`, in `steps` equal
-    /// updates spread evenly over `duration` ticks.
+    /// updates spread evenly over `duration` ticks: update `i` (1..=steps) at
+    /// `due + i·duration/steps` (floor) to `from + (to − from)·i/steps` (rounded towards
+    /// `from`). Lasers stay on: this is a sweep, not a jump. `1 <= steps <= max(duration, 1)`.
     GalvoLine {
         /// Galvo pair.
         galvo: u8,

@@ -3,6 +3,7 @@
 //! [`Pair`] joins a host link to a firmware [`Controller`] by a perfect wire under simulated
 //! time, so a test can inject its own bytes and inspect both ends.
 
+use lightrig_firmware::sim::SimBoard;
 use lightrig_firmware::Controller;
 use lightrig_host::selfcheck::{virtual_device_info, SimClock};
 use lightrig_protocol::link::{Delivery, Link, LinkConfig, Role};
@@ -16,7 +17,7 @@ pub struct Pair {
     /// The host end.
     pub host: Link<HostMsg, DeviceMsg, 8>,
     /// The device.
-    pub device: Controller<SimClock>,
+    pub device: Controller<SimClock, SimBoard>,
 }
 
 /// Retransmission timeout used by both ends, in ticks.
@@ -26,7 +27,7 @@ impl Pair {
     /// A fresh pair; the host has started connecting.
     pub fn new() -> Self {
         let clock = SimClock::default();
-        let device = Controller::new(clock.clone(), virtual_device_info(), RTO);
+        let device = Controller::new(clock.clone(), SimBoard::default(), virtual_device_info(), RTO);
         let mut host = Link::new(Role::Initiator, LinkConfig { rto: RTO, rx_reserve: 0, nonce: 0x1157 });
         host.connect(0);
         Self { clock, host, device }
@@ -36,7 +37,7 @@ impl Pair {
     pub fn restart_device(&mut self) {
         let boot_id = self.device.info().boot_id.wrapping_add(1);
         let info = DeviceInfo { boot_id, ..virtual_device_info() };
-        self.device = Controller::new(self.clock.clone(), info, RTO);
+        self.device = Controller::new(self.clock.clone(), SimBoard::default(), info, RTO);
     }
 
     /// Moves frames both ways for `ticks` ticks; returns what the host received.
@@ -48,6 +49,7 @@ impl Pair {
             while let Some(n) = self.host.poll_transmit(now, &mut out) {
                 self.device.receive(&out[..n]);
             }
+            self.device.poll();
             while let Some(n) = self.device.poll_transmit(&mut out) {
                 self.host.receive_all(&out[..n], now, |d| got.push(d));
             }

@@ -31,7 +31,7 @@ fn version_mismatch_is_refused_with_both_versions() {
 
 #[test]
 fn emergency_stop_acts_before_the_handshake_and_stays_latched_across_reconnection() {
-    use lightrig_protocol::event::{DeviceState, FaultCause};
+    use lightrig_protocol::event::{DeviceState, Event, FaultCause};
     let mut p = Pair::new();
     p.run(3);
     // As a datagram (no answer) before any Hello.
@@ -41,7 +41,15 @@ fn emergency_stop_acts_before_the_handshake_and_stays_latched_across_reconnectio
     let n = link::write(&h, Some(&estop), &mut out);
     p.device.receive(&out[..n]);
     assert_eq!(p.device.state(), DeviceState::Faulted(FaultCause::EmergencyStop));
-    assert_eq!(p.messages(5), vec![]);
+    // No answer to a datagram, but the fault is reported as events, numbered from 0.
+    let state = DeviceState::Faulted(FaultCause::EmergencyStop);
+    assert_eq!(
+        p.messages(5),
+        vec![
+            DeviceMsg::Event { index: 0, event: Event::Fault { cause: FaultCause::EmergencyStop, tick: 3 } },
+            DeviceMsg::Event { index: 1, event: Event::State { state, armed: 0, tick: 3 } },
+        ]
+    );
     // The host reconnects: the fault is still latched.
     p.host.connect(0);
     p.run(5);
@@ -95,23 +103,26 @@ fn forged_frame_with_valid_crc_is_answered_with_rejected_and_the_device_keeps_wo
 
 #[test]
 fn every_command_gets_exactly_one_typed_answer() {
+    use lightrig_protocol::error::Peripheral;
     let mut p = Pair::new();
     p.request(1, hello(), 10);
-    let unsupported = || Err(Error::Unsupported);
-    // Peripheral commands are not implemented by this firmware slice yet: they must say so
-    // rather than pretend.
     let cases: [(Command, Option<Result<Reply, Error>>); 7] = [
         (Command::GetClock, None),
         (Command::GetStatus, None),
         (Command::Heartbeat, Some(Ok(Reply::Done))),
         (Command::ClearFault, Some(Ok(Reply::Done))),
-        (Command::Arm { lasers: 1 }, Some(unsupported())),
-        (Command::Disarm, Some(unsupported())),
-        (Command::SequenceAbort { sequence: 1 }, Some(unsupported())),
+        (Command::Arm { lasers: 1 }, Some(Err(Error::NotConfigured { kind: Peripheral::Laser, index: 0 }))),
+        (Command::Disarm, Some(Ok(Reply::Done))),
+        (Command::SequenceAbort { sequence: 1 }, Some(Err(Error::NoSuchSequence { sequence: 1 }))),
     ];
     for (i, (c, want)) in cases.into_iter().enumerate() {
         let id = 10 + i as u16;
-        let got = p.request(id, c.clone(), 10);
+        // Events (Disarm reports the state) travel alongside; exactly one response comes.
+        let got: Vec<_> = p
+            .request(id, c.clone(), 10)
+            .into_iter()
+            .filter(|m| matches!(m, DeviceMsg::Response { .. }))
+            .collect();
         let [DeviceMsg::Response { id: got_id, result }] = &got[..] else { panic!("{c:?}: {got:?}") };
         assert_eq!(*got_id, id);
         match (&c, want) {

@@ -1,0 +1,1566 @@
+//! The rig: every peripheral's behaviour, the sequencer and the safety state machine, driven by
+//! integer ticks. [`crate::controller::Controller`] puts the protocol in front of it.
+//!
+//! The rig is a deterministic state machine. [`Rig::next_due`] says when it next has work;
+//! [`Rig::poll`] does all work due up to a tick, in tick order, passing every output change its
+//! exact tick. A board's run loop sleeps until the earlier of `next_due` and the next input;
+//! the simulation jumps straight there. Nothing here reads a clock, so the same sequence gives
+//! the same edges, to the tick, on the MCU, in the virtual rig and in tests.
+//!
+//! Work due at the same tick runs in this order: exposure captures, steps, galvo line updates,
+//! trigger pulse ends, laser timers, the heartbeat check, sequence items (in sequence order),
+//! then voice-coil blocks. A trigger's snapshot therefore sees every step and galvo update of
+//! its own tick and every earlier item of its sequence.
+//!
+//! Safety (the safe state, entered on any fault, e-stop, lapsed heartbeat or underrun): lasers
+//! off and disarmed; galvos parked; steppers and filter wheels decelerate to a stop (stop at
+//! once on e-stop or limit switch); synthesis fades to silence over [`FADE_MS`]; the sequence
+//! is dropped; the fault stays latched until `ClearFault`.
+
+mod motor;
+mod sequencer;
+
+use heapless::{Deque, Vec};
+use lightrig_protocol::config::{
+    CameraConfig, ConfigItem, FilterWheelConfig, GalvoConfig, HomingMode, Input, LaserConfig, Polarity,
+    StepperConfig, VoiceCoilConfig, Xy,
+};
+use lightrig_protocol::error::Peripheral;
+use lightrig_protocol::event::{DeviceState, Event, FaultCause, Snapshot, Switch, TriggerEvent};
+use lightrig_protocol::sequence::{Action, AxisRef, BufferStatus, Chunk, Partial, StartAt, WaitFor};
+use lightrig_protocol::session::Capabilities;
+use lightrig_protocol::{
+    Error, MAX_CAMERAS, MAX_FILTER_WHEELS, MAX_GALVOS, MAX_LASERS, MAX_PARTIALS, MAX_STEPPERS,
+    MAX_VOICE_COILS,
+};
+
+use crate::hal::Board;
+use crate::synth::Synth;
+use motor::{Motor, Purpose, Stepped};
+pub use sequencer::SEQUENCE_BUFFER;
+use sequencer::{Phase, Sequencer, Waiting};
+
+/// Events the rig holds until the controller hands them to the link.
+pub const EVENT_QUEUE: usize = 64;
+/// Samples per voice-coil DMA block.
+pub const VOICE_COIL_BLOCK: usize = 64;
+/// A voice-coil sample plays this many blocks after its nominal tick: the block is computed
+/// once its window has passed (so every setting inside it lands on its exact sample), then
+/// waits one block in the DMA double buffer. Constant, so the host plans around it.
+pub const VOICE_COIL_LATENCY_BLOCKS: u64 = 2;
+/// Fade to silence in the safe state, milliseconds.
+pub const FADE_MS: u32 = 20;
+/// Heartbeat timeout until the host configures one, milliseconds.
+pub const DEFAULT_HEARTBEAT_MS: u32 = 1000;
+/// Settings a voice-coil channel holds for its current block.
+const COIL_PENDING: usize = 8;
+/// Slots kept free in the event queue for the overflow fault's own `Fault` and `State`.
+const EVENT_RESERVE: usize = 2;
+
+/// Who asked for an action: a sequence item (with its index) or an `Immediate` command.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Origin {
+    Sequence(u32),
+    Immediate,
+}
+
+/// Sequence id reported by triggers and markers fired by `Immediate`.
+pub const IMMEDIATE_SEQUENCE: u32 = u32::MAX;
+
+struct Galvo {
+    config: Option<GalvoConfig>,
+    pos: Xy,
+    line: Option<Line>,
+}
+
+/// A galvo sweep in progress.
+#[derive(Clone, Copy)]
+struct Line {
+    from: Xy,
+    to: Xy,
+    start: u64,
+    duration: u32,
+    steps: u16,
+    /// Updates made.
+    done: u16,
+}
+
+impl Line {
+    fn tick_of(&self, i: u16) -> u64 {
+        self.start + u64::from(self.duration) * u64::from(i) / u64::from(self.steps.max(1))
+    }
+
+    fn point(&self, i: u16) -> Xy {
+        let lerp = |a: u16, b: u16| {
+            let d = i64::from(b) - i64::from(a);
+            let v = i64::from(a) + d * i64::from(i) / i64::from(self.steps.max(1));
+            v.clamp(0, i64::from(u16::MAX)) as u16
+        };
+        Xy { x: lerp(self.from.x, self.to.x), y: lerp(self.from.y, self.to.y) }
+    }
+}
+
+#[derive(Clone, Copy)]
+struct Laser {
+    config: Option<LaserConfig>,
+    /// Asked on (by an item or `Immediate`).
+    on: bool,
+    /// Output level is "emit".
+    emitting: bool,
+    on_since: u64,
+    /// Warm-up finished since the last turn-on.
+    ready: bool,
+}
+
+struct Axis {
+    config: Option<StepperConfig>,
+    motor: Motor,
+    homed: bool,
+}
+
+struct Wheel {
+    config: Option<FilterWheelConfig>,
+    /// Position in motor steps, 0 = centre of slot 0, kept in `0..steps_per_rev`.
+    motor: Motor,
+    homed: bool,
+    /// The slot the wheel rests at (`None` while moving or not homed).
+    slot: Option<u8>,
+}
+
+struct Camera {
+    config: Option<CameraConfig>,
+    /// Tick at which the trigger pulse in progress ends.
+    pulse_end: Option<u64>,
+    last_edge: Option<u64>,
+    exposure_active: bool,
+    /// The exposure input went inactive since the last trigger.
+    exposure_ended: bool,
+}
+
+struct Coil {
+    config: Option<VoiceCoilConfig>,
+    synth: Synth,
+    /// Tick of sample 0.
+    t0: u64,
+    /// First sample of the next block to compute.
+    next_sample: u64,
+    /// Settings that take effect inside the block being collected, by sample.
+    pending: Deque<(u64, CoilSetting), COIL_PENDING>,
+}
+
+#[derive(Clone)]
+enum CoilSetting {
+    Set { partials: Vec<Partial, MAX_PARTIALS>, ramp: u32 },
+    Fade { ramp: u32 },
+}
+
+struct Heartbeat {
+    timeout: u64,
+    last: u64,
+    watching: bool,
+}
+
+/// Outgoing events, with room kept for the overflow fault.
+struct Events {
+    queue: Deque<Event, EVENT_QUEUE>,
+    dropped: u32,
+}
+
+/// The rig controller's behaviour over a [`Board`].
+pub struct Rig<B: Board> {
+    board: B,
+    tick_hz: u32,
+    caps: Capabilities,
+    galvos: [Galvo; MAX_GALVOS],
+    lasers: [Laser; MAX_LASERS],
+    axes: [Axis; MAX_STEPPERS],
+    wheels: [Wheel; MAX_FILTER_WHEELS],
+    coils: [Coil; MAX_VOICE_COILS],
+    cameras: [Camera; MAX_CAMERAS],
+    heartbeat: Heartbeat,
+    /// Lasers are blanked (galvo jump settling) until this tick.
+    blank_until: u64,
+    /// A blank is in progress: the lasers that are on come back at `blank_until`.
+    blanking: bool,
+    armed: u8,
+    fault: Option<FaultCause>,
+    seq: Sequencer,
+    events: Events,
+}
+
+fn level(polarity: Polarity, active: bool) -> bool {
+    active == (polarity == Polarity::ActiveHigh)
+}
+
+fn ms_to_ticks(ms: u32, tick_hz: u32) -> u64 {
+    u64::from(ms) * u64::from(tick_hz) / 1000
+}
+
+impl<B: Board> Rig<B> {
+    /// A rig in the safe state, nothing configured, with the capabilities of `caps` (clamped
+    /// to the protocol's maxima) at `tick_hz`.
+    pub fn new(board: B, caps: Capabilities, tick_hz: u32) -> Self {
+        let caps = Capabilities {
+            galvos: caps.galvos.min(MAX_GALVOS as u8),
+            lasers: caps.lasers.min(MAX_LASERS as u8),
+            steppers: caps.steppers.min(MAX_STEPPERS as u8),
+            filter_wheels: caps.filter_wheels.min(MAX_FILTER_WHEELS as u8),
+            voice_coils: caps.voice_coils.min(MAX_VOICE_COILS as u8),
+            partials_per_coil: caps.partials_per_coil.min(MAX_PARTIALS as u8),
+            cameras: caps.cameras.min(MAX_CAMERAS as u8),
+            ..caps
+        };
+        let laser = Laser { config: None, on: false, emitting: false, on_since: 0, ready: false };
+        Self {
+            board,
+            tick_hz,
+            caps,
+            galvos: core::array::from_fn(|_| Galvo { config: None, pos: Xy::default(), line: None }),
+            lasers: [laser; MAX_LASERS],
+            axes: core::array::from_fn(|i| Axis {
+                config: None,
+                motor: Motor::new(AxisRef::Stepper(i as u8)),
+                homed: false,
+            }),
+            wheels: core::array::from_fn(|i| Wheel {
+                config: None,
+                motor: Motor::new(AxisRef::FilterWheel(i as u8)),
+                homed: false,
+                slot: None,
+            }),
+            coils: core::array::from_fn(|_| Coil {
+                config: None,
+                synth: Synth::new(48_000),
+                t0: 0,
+                next_sample: 0,
+                pending: Deque::new(),
+            }),
+            cameras: core::array::from_fn(|_| Camera {
+                config: None,
+                pulse_end: None,
+                last_edge: None,
+                exposure_active: false,
+                exposure_ended: false,
+            }),
+            heartbeat: Heartbeat {
+                timeout: ms_to_ticks(DEFAULT_HEARTBEAT_MS, tick_hz),
+                last: 0,
+                watching: false,
+            },
+            blank_until: 0,
+            blanking: false,
+            armed: 0,
+            fault: None,
+            seq: Sequencer::new(),
+            events: Events { queue: Deque::new(), dropped: 0 },
+        }
+    }
+
+    /// The board, for inspection (the simulation's record) and for input changes.
+    pub fn board(&self) -> &B {
+        &self.board
+    }
+
+    /// The board, mutably.
+    pub fn board_mut(&mut self) -> &mut B {
+        &mut self.board
+    }
+
+    /// The latched fault, if any.
+    pub fn fault(&self) -> Option<FaultCause> {
+        self.fault
+    }
+
+    /// Armed lasers, one bit per channel.
+    pub fn armed(&self) -> u8 {
+        self.armed
+    }
+
+    /// Lasers emitting, one bit per channel.
+    pub fn lasers_on(&self) -> u8 {
+        self.lasers.iter().enumerate().fold(0, |m, (i, l)| if l.emitting { m | (1 << i) } else { m })
+    }
+
+    /// The sequence state, `None` when no sequence is running.
+    pub fn running(&self) -> Option<u32> {
+        (self.seq.phase == Phase::Running).then_some(self.seq.id)
+    }
+
+    /// The sequence buffer, if a sequence is loaded or running.
+    pub fn buffer(&self) -> Option<BufferStatus> {
+        (self.seq.phase != Phase::Idle).then(|| self.seq.status())
+    }
+
+    /// The state the protocol reports (the controller adds the handshake state).
+    pub fn state(&self) -> DeviceState {
+        match (self.fault, self.running()) {
+            (Some(cause), _) => DeviceState::Faulted(cause),
+            (None, Some(sequence)) => DeviceState::Running { sequence },
+            (None, None) => DeviceState::Ready,
+        }
+    }
+
+    /// Takes the oldest event for the host.
+    pub fn pop_event(&mut self) -> Option<Event> {
+        self.events.queue.pop_front()
+    }
+
+    /// Events dropped because the queue was full (after the overflow fault).
+    pub fn dropped_events(&self) -> u32 {
+        self.events.dropped
+    }
+
+    /// A stepper axis' position in steps.
+    pub fn axis_position(&self, axis: u8) -> Option<i64> {
+        self.axes.get(usize::from(axis)).map(|a| a.motor.position)
+    }
+
+    /// A galvo pair's output position.
+    pub fn galvo_position(&self, galvo: u8) -> Option<Xy> {
+        self.galvos.get(usize::from(galvo)).map(|g| g.pos)
+    }
+
+    // ---------------------------------------------------------------- host contact & safety
+
+    /// The host spoke at `now` (any command counts as a heartbeat). `watch` starts the
+    /// heartbeat watchdog (the session is open).
+    pub fn host_seen(&mut self, now: u64, watch: bool) {
+        self.heartbeat.last = now;
+        self.heartbeat.watching |= watch;
+    }
+
+    /// Emergency stop: safe state at once, motors without deceleration.
+    pub fn emergency_stop(&mut self, now: u64) {
+        self.enter_safe_state(FaultCause::EmergencyStop, now);
+    }
+
+    /// Clears a latched fault. Lasers stay disarmed.
+    pub fn clear_fault(&mut self, now: u64) -> Result<(), Error> {
+        if self.fault.take().is_some() {
+            self.heartbeat.last = now;
+            self.emit_state(now);
+        }
+        Ok(())
+    }
+
+    fn emit(&mut self, event: Event, now: u64) {
+        if self.events.queue.len() + EVENT_RESERVE >= EVENT_QUEUE {
+            self.events.dropped = self.events.dropped.saturating_add(1);
+            if self.fault != Some(FaultCause::EventOverflow) {
+                self.enter_safe_state(FaultCause::EventOverflow, now);
+            }
+            return;
+        }
+        let _ = self.events.queue.push_back(event);
+    }
+
+    /// For the safe state's own events: may use the reserved slots.
+    fn emit_reserved(&mut self, event: Event) {
+        if self.events.queue.push_back(event).is_err() {
+            self.events.dropped = self.events.dropped.saturating_add(1);
+        }
+    }
+
+    fn emit_state(&mut self, now: u64) {
+        let event = Event::State { state: self.state(), armed: self.armed, tick: now };
+        self.emit(event, now);
+    }
+
+    /// Enters the safe state and latches `cause` (the first cause stays latched).
+    fn enter_safe_state(&mut self, cause: FaultCause, now: u64) {
+        let hard = matches!(cause, FaultCause::EmergencyStop | FaultCause::Limit { .. });
+        warn!("safe state at tick {}", now);
+        // Latch first: stopping a homing seek below would otherwise report a second fault.
+        if self.fault.is_none() {
+            self.fault = Some(cause);
+        }
+        self.armed = 0;
+        for ch in 0..MAX_LASERS {
+            self.laser_off(ch as u8, now);
+        }
+        for g in 0..MAX_GALVOS {
+            self.park(g as u8, now);
+        }
+        self.stop_motors(now, hard);
+        for c in 0..MAX_VOICE_COILS {
+            self.coil_fade(c as u8, now);
+        }
+        self.seq.clear();
+        self.emit_reserved(Event::Fault { cause, tick: now });
+        self.emit_reserved(Event::State { state: self.state(), armed: 0, tick: now });
+    }
+
+    fn stop_motors(&mut self, now: u64, hard: bool) {
+        for i in 0..MAX_STEPPERS {
+            let purpose = match self.axes.get_mut(i) {
+                Some(a) if hard => a.motor.stop_now(),
+                Some(a) => a.motor.decelerate(),
+                None => None,
+            };
+            if let Some(p) = purpose {
+                self.motor_finished(AxisRef::Stepper(i as u8), p, now);
+            }
+        }
+        for i in 0..MAX_FILTER_WHEELS {
+            let purpose = match self.wheels.get_mut(i) {
+                Some(w) if hard => w.motor.stop_now(),
+                Some(w) => w.motor.decelerate(),
+                None => None,
+            };
+            if let Some(p) = purpose {
+                self.motor_finished(AxisRef::FilterWheel(i as u8), p, now);
+            }
+        }
+    }
+
+    fn park(&mut self, galvo: u8, now: u64) {
+        let Some(g) = self.galvos.get_mut(usize::from(galvo)) else { return };
+        g.line = None;
+        if let Some(c) = g.config {
+            g.pos = c.park;
+            // Parking is the safe state's last resort; a failing output cannot be helped here.
+            let _ = self.board.set_galvo(galvo, c.park, now);
+        }
+    }
+
+    // ---------------------------------------------------------------- configuration
+
+    /// Applies a configuration item (validated by the caller against the device's
+    /// capabilities). Refused while a sequence runs or an axis moves.
+    pub fn configure(&mut self, item: &ConfigItem, now: u64) -> Result<(), Error> {
+        if let Some(sequence) = self.running() {
+            return Err(Error::InvalidState(DeviceState::Running { sequence }));
+        }
+        match *item {
+            ConfigItem::Galvo(c) => {
+                let g = self.galvos.get_mut(usize::from(c.galvo)).ok_or(Error::Unsupported)?;
+                g.config = Some(c);
+                g.line = None;
+                g.pos = c.park;
+                if self.board.set_galvo(c.galvo, c.park, now).is_err() {
+                    self.enter_safe_state(FaultCause::GalvoOutput { galvo: c.galvo }, now);
+                }
+            }
+            ConfigItem::Laser(c) => {
+                self.laser_off(c.channel, now);
+                let l = self.lasers.get_mut(usize::from(c.channel)).ok_or(Error::Unsupported)?;
+                l.config = Some(c);
+                self.board.set_laser(c.channel, level(c.enable, false), now);
+            }
+            ConfigItem::Stepper(c) => {
+                let a = self.axes.get_mut(usize::from(c.axis)).ok_or(Error::Unsupported)?;
+                if a.motor.is_moving() {
+                    return Err(Error::Busy { axis: AxisRef::Stepper(c.axis) });
+                }
+                a.config = Some(c);
+                a.homed = c.homing.mode == HomingMode::None;
+                a.motor.configure(&mut self.board, c.invert_dir, c.enable, now);
+            }
+            ConfigItem::FilterWheel(c) => {
+                let w = self.wheels.get_mut(usize::from(c.wheel)).ok_or(Error::Unsupported)?;
+                if w.motor.is_moving() {
+                    return Err(Error::Busy { axis: AxisRef::FilterWheel(c.wheel) });
+                }
+                w.config = Some(c);
+                w.homed = false;
+                w.slot = None;
+                w.motor.configure(&mut self.board, c.invert_dir, c.enable, now);
+            }
+            ConfigItem::VoiceCoil(c) => {
+                let k = self.coils.get_mut(usize::from(c.channel)).ok_or(Error::Unsupported)?;
+                *k = Coil {
+                    config: Some(c),
+                    synth: Synth::new(c.sample_rate_hz),
+                    t0: now,
+                    next_sample: 0,
+                    pending: Deque::new(),
+                };
+            }
+            ConfigItem::Camera(c) => {
+                let k = self.cameras.get_mut(usize::from(c.camera)).ok_or(Error::Unsupported)?;
+                k.config = Some(c);
+                k.pulse_end = None;
+                self.board.set_trigger(c.camera, level(c.polarity, false), now);
+            }
+            ConfigItem::Safety(s) => {
+                self.heartbeat.timeout = u64::from(s.heartbeat_timeout_ticks);
+            }
+        }
+        Ok(())
+    }
+
+    // ---------------------------------------------------------------- commands
+
+    fn check_not_faulted(&self) -> Result<(), Error> {
+        self.fault.map_or(Ok(()), |c| Err(Error::Faulted(c)))
+    }
+
+    /// Allows the lasers in `mask` to be turned on.
+    pub fn arm(&mut self, mask: u8, now: u64) -> Result<(), Error> {
+        self.check_not_faulted()?;
+        for ch in 0..8u8 {
+            if mask & (1 << ch) != 0 {
+                self.laser_config(ch)?;
+            }
+        }
+        self.armed = mask;
+        // Channels no longer armed go dark.
+        for ch in 0..MAX_LASERS {
+            if mask & (1 << ch) == 0 {
+                self.laser_off(ch as u8, now);
+            }
+        }
+        self.emit_state(now);
+        Ok(())
+    }
+
+    /// Turns every laser off and disallows them. Always allowed.
+    pub fn disarm(&mut self, now: u64) {
+        self.armed = 0;
+        for ch in 0..MAX_LASERS {
+            self.laser_off(ch as u8, now);
+        }
+        self.emit_state(now);
+    }
+
+    /// Executes one action now (jog, park, test shot).
+    pub fn immediate(&mut self, action: &Action, now: u64) -> Result<(), Error> {
+        self.check_not_faulted()?;
+        if let Some(sequence) = self.running() {
+            return Err(Error::InvalidState(DeviceState::Running { sequence }));
+        }
+        if matches!(action, Action::Wait { .. }) {
+            return Err(Error::InvalidState(self.state()));
+        }
+        self.check_action(action)?;
+        if let Action::Laser { channel, on: true } = *action {
+            if self.armed & (1 << channel) == 0 {
+                return Err(Error::NotArmed { channel });
+            }
+        }
+        if let Some(axis) = self.busy_axis(action) {
+            return Err(Error::Busy { axis });
+        }
+        self.execute(action, now, Origin::Immediate);
+        Ok(())
+    }
+
+    /// Starts homing an axis.
+    pub fn home(&mut self, axis: AxisRef, now: u64) -> Result<(), Error> {
+        self.check_not_faulted()?;
+        if let Some(sequence) = self.running() {
+            return Err(Error::InvalidState(DeviceState::Running { sequence }));
+        }
+        match axis {
+            AxisRef::Stepper(i) => {
+                let c = self.stepper_config(i)?;
+                let a = self.axes.get_mut(usize::from(i)).ok_or(Error::Unsupported)?;
+                if a.motor.is_moving() {
+                    return Err(Error::Busy { axis });
+                }
+                let h = c.homing;
+                let forward = match h.mode {
+                    HomingMode::None => {
+                        a.motor.position = i64::from(h.position);
+                        a.homed = true;
+                        self.emit(Event::Homed { axis, position: h.position, tick: now }, now);
+                        return Ok(());
+                    }
+                    HomingMode::ToMinLimit => false,
+                    HomingMode::ToMaxLimit | HomingMode::ToIndex => true,
+                };
+                a.homed = false;
+                let span = seek_span(&c);
+                let r = a.motor.start(
+                    &mut self.board,
+                    span,
+                    forward,
+                    h.speed,
+                    c.accel,
+                    self.tick_hz,
+                    now,
+                    Purpose::HomeSeek,
+                );
+                r.map_err(|_| Error::OutOfRange { kind: Peripheral::Stepper, index: i })
+            }
+            AxisRef::FilterWheel(i) => {
+                let c = self.wheel_config(i)?;
+                let w = self.wheels.get_mut(usize::from(i)).ok_or(Error::Unsupported)?;
+                if w.motor.is_moving() {
+                    return Err(Error::Busy { axis });
+                }
+                w.homed = false;
+                w.slot = None;
+                // One and a half turns always pass the index mark.
+                let span = c.steps_per_rev.saturating_add(c.steps_per_rev / 2);
+                let r = w.motor.start(
+                    &mut self.board,
+                    span,
+                    true,
+                    c.max_speed,
+                    c.accel,
+                    self.tick_hz,
+                    now,
+                    Purpose::WheelSeek,
+                );
+                r.map_err(|_| Error::OutOfRange { kind: Peripheral::FilterWheel, index: i })
+            }
+        }
+    }
+
+    /// Loads a chunk of a sequence; answers the buffer after it.
+    pub fn load(&mut self, chunk: &Chunk) -> Result<BufferStatus, Error> {
+        self.check_not_faulted()?;
+        self.seq.check_chunk(chunk)?;
+        for item in &chunk.items {
+            self.check_action(&item.action)?;
+            if let Action::Laser { channel, on: true } = item.action {
+                if self.armed & (1 << channel) == 0 {
+                    return Err(Error::NotArmed { channel });
+                }
+            }
+        }
+        self.seq.append(chunk);
+        Ok(self.seq.status())
+    }
+
+    /// Starts the loaded sequence `sequence`.
+    pub fn start(&mut self, sequence: u32, at: StartAt, now: u64) -> Result<(), Error> {
+        self.check_not_faulted()?;
+        if self.seq.phase != Phase::Loaded || self.seq.id != sequence {
+            if let Some(running) = self.running() {
+                return Err(Error::InvalidState(DeviceState::Running { sequence: running }));
+            }
+            return Err(Error::NoSuchSequence { sequence });
+        }
+        let start = match at {
+            StartAt::Now => now,
+            StartAt::Tick(t) if t < now => return Err(Error::StartInPast { now }),
+            StartAt::Tick(t) => t,
+        };
+        self.seq.start(start);
+        self.emit_state(now);
+        // A sequence loaded without items ends at once; one loaded short is an underrun.
+        self.check_sequence_end(start);
+        Ok(())
+    }
+
+    /// Stops the running (or loaded) sequence: lasers off, axes decelerate, galvos park.
+    pub fn abort(&mut self, sequence: u32, now: u64) -> Result<(), Error> {
+        if self.seq.phase == Phase::Idle || self.seq.id != sequence {
+            return Err(Error::NoSuchSequence { sequence });
+        }
+        let was_running = self.seq.phase == Phase::Running;
+        self.seq.clear();
+        if was_running {
+            for ch in 0..MAX_LASERS {
+                self.laser_off(ch as u8, now);
+            }
+            for g in 0..MAX_GALVOS {
+                self.park(g as u8, now);
+            }
+            self.stop_motors(now, false);
+            self.emit_state(now);
+        }
+        Ok(())
+    }
+
+    // ---------------------------------------------------------------- checks
+
+    fn laser_config(&self, ch: u8) -> Result<LaserConfig, Error> {
+        let count = self.caps.lasers;
+        if ch >= count {
+            return Err(Error::NoSuchPeripheral { kind: Peripheral::Laser, index: ch, count });
+        }
+        self.lasers
+            .get(usize::from(ch))
+            .and_then(|l| l.config)
+            .ok_or(Error::NotConfigured { kind: Peripheral::Laser, index: ch })
+    }
+
+    fn stepper_config(&self, i: u8) -> Result<StepperConfig, Error> {
+        let count = self.caps.steppers;
+        if i >= count {
+            return Err(Error::NoSuchPeripheral { kind: Peripheral::Stepper, index: i, count });
+        }
+        self.axes
+            .get(usize::from(i))
+            .and_then(|a| a.config)
+            .ok_or(Error::NotConfigured { kind: Peripheral::Stepper, index: i })
+    }
+
+    fn wheel_config(&self, i: u8) -> Result<FilterWheelConfig, Error> {
+        let count = self.caps.filter_wheels;
+        if i >= count {
+            return Err(Error::NoSuchPeripheral { kind: Peripheral::FilterWheel, index: i, count });
+        }
+        self.wheels
+            .get(usize::from(i))
+            .and_then(|w| w.config)
+            .ok_or(Error::NotConfigured { kind: Peripheral::FilterWheel, index: i })
+    }
+
+    fn galvo_config(&self, i: u8) -> Result<GalvoConfig, Error> {
+        let count = self.caps.galvos;
+        if i >= count {
+            return Err(Error::NoSuchPeripheral { kind: Peripheral::Galvo, index: i, count });
+        }
+        self.galvos
+            .get(usize::from(i))
+            .and_then(|g| g.config)
+            .ok_or(Error::NotConfigured { kind: Peripheral::Galvo, index: i })
+    }
+
+    fn camera_config(&self, i: u8) -> Result<CameraConfig, Error> {
+        let count = self.caps.cameras;
+        if i >= count {
+            return Err(Error::NoSuchPeripheral { kind: Peripheral::Camera, index: i, count });
+        }
+        self.cameras
+            .get(usize::from(i))
+            .and_then(|c| c.config)
+            .ok_or(Error::NotConfigured { kind: Peripheral::Camera, index: i })
+    }
+
+    fn coil_config(&self, i: u8) -> Result<VoiceCoilConfig, Error> {
+        let count = self.caps.voice_coils;
+        if i >= count {
+            return Err(Error::NoSuchPeripheral { kind: Peripheral::VoiceCoil, index: i, count });
+        }
+        self.coils
+            .get(usize::from(i))
+            .and_then(|c| c.config)
+            .ok_or(Error::NotConfigured { kind: Peripheral::VoiceCoil, index: i })
+    }
+
+    /// Whether `action` is acceptable for the configuration (not the timing): the peripheral
+    /// exists and is configured, and every value lies in its configured range.
+    fn check_action(&self, action: &Action) -> Result<(), Error> {
+        match *action {
+            Action::GalvoPoint { galvo, to } => {
+                let c = self.galvo_config(galvo)?;
+                check_galvo_point(&c, to)
+            }
+            Action::GalvoLine { galvo, to, duration, steps } => {
+                let c = self.galvo_config(galvo)?;
+                check_galvo_point(&c, to)?;
+                let ok = steps >= 1 && u32::from(steps) <= duration.max(1);
+                ok.then_some(()).ok_or(Error::OutOfRange { kind: Peripheral::Galvo, index: galvo })
+            }
+            Action::Laser { channel, .. } => self.laser_config(channel).map(|_| ()),
+            Action::StepperMove { axis, target, profile } => {
+                let c = self.stepper_config(axis)?;
+                let homed = self.axes.get(usize::from(axis)).is_some_and(|a| a.homed);
+                if !homed {
+                    return Err(Error::NotHomed { axis: AxisRef::Stepper(axis) });
+                }
+                let out = Error::OutOfRange { kind: Peripheral::Stepper, index: axis };
+                if let Some(r) = c.limits {
+                    if target < r.min || target > r.max {
+                        return Err(out);
+                    }
+                }
+                let (speed, accel) = move_profile(&c, profile);
+                if speed > c.max_speed || accel > c.accel || u64::from(speed) * 2 > u64::from(self.tick_hz) {
+                    return Err(out);
+                }
+                Ok(())
+            }
+            Action::FilterWheel { wheel, slot } => {
+                let c = self.wheel_config(wheel)?;
+                if !self.wheels.get(usize::from(wheel)).is_some_and(|w| w.homed) {
+                    return Err(Error::NotHomed { axis: AxisRef::FilterWheel(wheel) });
+                }
+                if slot >= c.slots {
+                    return Err(Error::OutOfRange { kind: Peripheral::FilterWheel, index: wheel });
+                }
+                Ok(())
+            }
+            Action::VoiceCoil { channel, ref partials, .. } => {
+                let c = self.coil_config(channel)?;
+                let out = Error::OutOfRange { kind: Peripheral::VoiceCoil, index: channel };
+                if partials.len() > usize::from(self.caps.partials_per_coil) {
+                    return Err(out);
+                }
+                let sum: u32 = partials.iter().map(|p| u32::from(p.amplitude)).sum();
+                if sum > u32::from(c.max_amplitude) {
+                    return Err(out);
+                }
+                // Frequencies: above zero, below Nyquist, no duplicates (the synthesiser's rules).
+                let synth = self.coils.get(usize::from(channel)).map(|k| &k.synth);
+                synth.map_or(Err(out), |s| s.check(partials).map_err(|_| out))
+            }
+            Action::Trigger { camera, .. } => self.camera_config(camera).map(|_| ()),
+            Action::Wait { until, .. } => match until {
+                WaitFor::MoveDone(AxisRef::Stepper(i)) => self.stepper_config(i).map(|_| ()),
+                WaitFor::MoveDone(AxisRef::FilterWheel(i)) => self.wheel_config(i).map(|_| ()),
+                WaitFor::LaserReady(ch) => self.laser_config(ch).map(|_| ()),
+                WaitFor::ExposureEnd(cam) => self.camera_config(cam).map(|_| ()),
+            },
+            Action::Marker { .. } => Ok(()),
+        }
+    }
+
+    fn busy_axis(&self, action: &Action) -> Option<AxisRef> {
+        match *action {
+            Action::StepperMove { axis, .. } => self
+                .axes
+                .get(usize::from(axis))
+                .is_some_and(|a| a.motor.is_moving())
+                .then_some(AxisRef::Stepper(axis)),
+            Action::FilterWheel { wheel, .. } => self
+                .wheels
+                .get(usize::from(wheel))
+                .is_some_and(|w| w.motor.is_moving())
+                .then_some(AxisRef::FilterWheel(wheel)),
+            _ => None,
+        }
+    }
+
+    // ---------------------------------------------------------------- execution
+
+    fn execute(&mut self, action: &Action, t: u64, origin: Origin) {
+        match *action {
+            Action::GalvoPoint { galvo, to } => {
+                let Some(g) = self.galvos.get_mut(usize::from(galvo)) else { return };
+                let Some(c) = g.config else { return };
+                g.line = None;
+                if g.pos != to {
+                    // Blank every laser while the mirrors jump and settle.
+                    self.blank_until = self.blank_until.max(t.saturating_add(u64::from(c.settle_ticks)));
+                    self.blanking = true;
+                    self.update_laser_outputs(t);
+                }
+                self.galvo_write(galvo, to, t);
+            }
+            Action::GalvoLine { galvo, to, duration, steps } => {
+                let Some(g) = self.galvos.get_mut(usize::from(galvo)) else { return };
+                g.line = Some(Line { from: g.pos, to, start: t, duration, steps, done: 0 });
+            }
+            Action::Laser { channel, on } => {
+                if !on {
+                    self.laser_off(channel, t);
+                } else if self.armed & (1 << channel) == 0 {
+                    // Disarmed since the chunk was loaded: the host's disarm wins.
+                    warn!("laser {} not armed; item skipped", channel);
+                } else {
+                    self.laser_on(channel, t);
+                }
+            }
+            Action::StepperMove { axis, target, profile } => {
+                let Ok(c) = self.stepper_config(axis) else { return };
+                let Some(a) = self.axes.get_mut(usize::from(axis)) else { return };
+                let id = AxisRef::Stepper(axis);
+                if a.motor.is_moving() {
+                    self.enter_safe_state(FaultCause::AxisBusy { axis: id }, t);
+                    return;
+                }
+                let distance = i64::from(target) - a.motor.position;
+                let steps = u32::try_from(distance.unsigned_abs()).unwrap_or(u32::MAX);
+                if steps == 0 {
+                    self.emit(Event::MoveDone { axis: id, position: target, tick: t }, t);
+                    return;
+                }
+                let (speed, accel) = move_profile(&c, profile);
+                let r = a.motor.start(
+                    &mut self.board,
+                    steps,
+                    distance > 0,
+                    speed,
+                    accel,
+                    self.tick_hz,
+                    t,
+                    Purpose::Move,
+                );
+                if r.is_err() {
+                    // `check_action` refused every profile the planner cannot run; a move too
+                    // long for its tick arithmetic is the one left.
+                    self.enter_safe_state(FaultCause::Limit { axis: id }, t);
+                }
+            }
+            Action::FilterWheel { wheel, slot } => self.wheel_to(wheel, slot, t),
+            Action::VoiceCoil { channel, ramp, ref partials } => {
+                let setting = CoilSetting::Set { partials: partials.clone(), ramp };
+                self.coil_schedule(channel, t, setting);
+            }
+            Action::Trigger { camera, exposure } => self.trigger(camera, exposure, t, origin),
+            Action::Wait { until, timeout } => {
+                if let Origin::Sequence(item) = origin {
+                    self.seq.waiting =
+                        Some(Waiting { until, deadline: t.saturating_add(u64::from(timeout)), item });
+                    // It may already hold.
+                    self.check_wait(t);
+                }
+            }
+            Action::Marker { id } => {
+                let (sequence, item) = match origin {
+                    Origin::Sequence(i) => (self.seq.id, i),
+                    Origin::Immediate => (IMMEDIATE_SEQUENCE, 0),
+                };
+                self.emit(Event::Marker { sequence, item, id, tick: t }, t);
+            }
+        }
+    }
+
+    fn galvo_write(&mut self, galvo: u8, to: Xy, t: u64) {
+        if let Some(g) = self.galvos.get_mut(usize::from(galvo)) {
+            g.pos = to;
+        }
+        if self.board.set_galvo(galvo, to, t).is_err() {
+            self.enter_safe_state(FaultCause::GalvoOutput { galvo }, t);
+        }
+    }
+
+    fn laser_on(&mut self, channel: u8, t: u64) {
+        let Some(l) = self.lasers.get_mut(usize::from(channel)) else { return };
+        let Some(c) = l.config else { return };
+        if l.on {
+            return;
+        }
+        if let Input::Wired(p) = c.interlock {
+            if !level(p, true).eq(&self.board.interlock_level(channel)) {
+                self.enter_safe_state(FaultCause::Interlock { channel }, t);
+                return;
+            }
+        }
+        l.on = true;
+        l.on_since = t;
+        l.ready = false;
+        self.update_laser_outputs(t);
+    }
+
+    fn laser_off(&mut self, channel: u8, t: u64) {
+        let Some(l) = self.lasers.get_mut(usize::from(channel)) else { return };
+        l.on = false;
+        l.ready = false;
+        self.update_laser_outputs(t);
+    }
+
+    /// Drives every laser output to what it should be at `t`: on, armed and not blanked.
+    fn update_laser_outputs(&mut self, t: u64) {
+        let blanked = t < self.blank_until;
+        for (ch, l) in self.lasers.iter_mut().enumerate() {
+            let Some(c) = l.config else { continue };
+            let emit = l.on && !blanked && self.armed & (1 << ch) != 0;
+            if emit != l.emitting {
+                l.emitting = emit;
+                self.board.set_laser(ch as u8, level(c.enable, emit), t);
+            }
+        }
+    }
+
+    fn trigger(&mut self, camera: u8, exposure: u32, t: u64, origin: Origin) {
+        let Some(k) = self.cameras.get_mut(usize::from(camera)) else { return };
+        let Some(c) = k.config else { return };
+        let too_soon = k.pulse_end.is_some()
+            || k.last_edge.is_some_and(|e| t.saturating_sub(e) < u64::from(c.min_interval_ticks));
+        if too_soon {
+            self.enter_safe_state(FaultCause::TriggerTooSoon { camera }, t);
+            return;
+        }
+        let width = if exposure == 0 { c.pulse_ticks } else { exposure };
+        k.pulse_end = Some(t.saturating_add(u64::from(width)));
+        k.last_edge = Some(t);
+        k.exposure_ended = false;
+        self.board.set_trigger(camera, level(c.polarity, true), t);
+        let (sequence, item, frame) = match origin {
+            Origin::Sequence(i) => {
+                let f = self.seq.frames.get_mut(usize::from(camera));
+                let frame = f.map_or(0, |f| {
+                    let n = *f;
+                    *f = n.saturating_add(1);
+                    n
+                });
+                (self.seq.id, i, frame)
+            }
+            Origin::Immediate => (IMMEDIATE_SEQUENCE, 0, 0),
+        };
+        let snapshot = self.snapshot();
+        self.emit(
+            Event::Trigger(TriggerEvent { sequence, item, frame, camera, tick: t, width, snapshot }),
+            t,
+        );
+    }
+
+    fn snapshot(&self) -> Snapshot {
+        let mut s =
+            Snapshot { galvos: Vec::new(), axes: Vec::new(), filters: Vec::new(), lasers: self.lasers_on() };
+        for g in self.galvos.iter().take(usize::from(self.caps.galvos)) {
+            let _ = s.galvos.push(g.pos);
+        }
+        for a in self.axes.iter().take(usize::from(self.caps.steppers)) {
+            let _ = s.axes.push(a.motor.position.clamp(i32::MIN.into(), i32::MAX.into()) as i32);
+        }
+        for w in self.wheels.iter().take(usize::from(self.caps.filter_wheels)) {
+            let _ = s.filters.push(w.slot);
+        }
+        s
+    }
+
+    fn wheel_to(&mut self, wheel: u8, slot: u8, t: u64) {
+        let Ok(c) = self.wheel_config(wheel) else { return };
+        let Some(w) = self.wheels.get_mut(usize::from(wheel)) else { return };
+        let id = AxisRef::FilterWheel(wheel);
+        if !w.homed {
+            // `check_action` cannot know: homing may come between loading and executing.
+            self.enter_safe_state(FaultCause::HomingFailed { axis: id }, t);
+            return;
+        }
+        if w.motor.is_moving() {
+            self.enter_safe_state(FaultCause::AxisBusy { axis: id }, t);
+            return;
+        }
+        let (delta, forward) = wheel_path(&c, w.motor.position, slot);
+        if delta == 0 {
+            w.slot = Some(slot);
+            self.emit(Event::MoveDone { axis: id, position: i32::from(slot), tick: t }, t);
+            return;
+        }
+        w.slot = None;
+        let r = w.motor.start(
+            &mut self.board,
+            delta,
+            forward,
+            c.max_speed,
+            c.accel,
+            self.tick_hz,
+            t,
+            Purpose::WheelTo(slot),
+        );
+        if r.is_err() {
+            self.enter_safe_state(FaultCause::Driver { axis: id }, t);
+        }
+    }
+
+    // ---------------------------------------------------------------- voice coils
+
+    fn coil_schedule(&mut self, channel: u8, t: u64, setting: CoilSetting) {
+        let Some(k) = self.coils.get_mut(usize::from(channel)) else { return };
+        let Some(c) = k.config else { return };
+        let sample =
+            sample_at_or_after(t.saturating_sub(k.t0), c.sample_rate_hz, self.tick_hz).max(k.next_sample);
+        let ramp_samples = |ticks: u32| {
+            let s = u64::from(ticks) * u64::from(c.sample_rate_hz) / u64::from(self.tick_hz.max(1));
+            u32::try_from(s).unwrap_or(u32::MAX)
+        };
+        let setting = match setting {
+            CoilSetting::Set { partials, ramp } => CoilSetting::Set { partials, ramp: ramp_samples(ramp) },
+            CoilSetting::Fade { ramp } => CoilSetting::Fade { ramp: ramp_samples(ramp) },
+        };
+        if let Err((_, setting)) = k.pending.push_back((sample, setting)) {
+            // More changes inside one block than a channel holds: apply the oldest now (a few
+            // samples early) rather than lose one.
+            if let Some((_, oldest)) = k.pending.pop_front() {
+                apply_coil(&mut k.synth, oldest);
+            }
+            let _ = k.pending.push_back((sample, setting));
+        }
+    }
+
+    fn coil_fade(&mut self, channel: u8, t: u64) {
+        let ramp = ms_to_ticks(FADE_MS, self.tick_hz);
+        self.coil_schedule(channel, t, CoilSetting::Fade { ramp: u32::try_from(ramp).unwrap_or(u32::MAX) });
+    }
+
+    /// Tick at which the block starting at `next_sample` may be computed: when its window ends.
+    fn coil_due(&self, k: &Coil) -> Option<u64> {
+        let c = k.config?;
+        let end = k.next_sample + VOICE_COIL_BLOCK as u64;
+        Some(k.t0.saturating_add(tick_of_sample(end, c.sample_rate_hz, self.tick_hz)))
+    }
+
+    fn coil_block(&mut self, channel: u8, t: u64) {
+        let Some(k) = self.coils.get_mut(usize::from(channel)) else { return };
+        let first = k.next_sample;
+        let mut buf = [0i16; VOICE_COIL_BLOCK];
+        let mut at = 0usize;
+        while at < VOICE_COIL_BLOCK {
+            // Settings due inside the block split it at their sample.
+            let split = match k.pending.front() {
+                Some(&(s, _)) if s <= first + at as u64 => {
+                    if let Some((_, setting)) = k.pending.pop_front() {
+                        apply_coil(&mut k.synth, setting);
+                    }
+                    continue;
+                }
+                Some(&(s, _)) => ((s - first) as usize).min(VOICE_COIL_BLOCK),
+                None => VOICE_COIL_BLOCK,
+            };
+            if let Some(part) = buf.get_mut(at..split) {
+                k.synth.fill(part);
+            }
+            at = split;
+        }
+        k.next_sample = first + VOICE_COIL_BLOCK as u64;
+        self.board.write_samples(channel, first, &buf, t);
+    }
+
+    // ---------------------------------------------------------------- the schedule
+
+    /// The earliest tick at which the rig has work, if any.
+    pub fn next_due(&self) -> Option<u64> {
+        let mut due: Option<u64> = None;
+        let mut at = |t: Option<u64>| {
+            if let Some(t) = t {
+                due = Some(due.map_or(t, |d| d.min(t)));
+            }
+        };
+        for a in &self.axes {
+            at(a.motor.next_due());
+        }
+        for w in &self.wheels {
+            at(w.motor.next_due());
+        }
+        for g in &self.galvos {
+            at(g.line.map(|l| l.tick_of(l.done.saturating_add(1))));
+        }
+        for k in &self.cameras {
+            at(k.pulse_end);
+        }
+        for l in &self.lasers {
+            at(self.laser_deadline(l));
+        }
+        if self.blanking {
+            at(Some(self.blank_until));
+        }
+        if self.heartbeat.watching && self.fault.is_none() {
+            at(Some(self.heartbeat.last.saturating_add(self.heartbeat.timeout)));
+        }
+        at(self.seq.next_due());
+        at(self.seq.waiting.map(|w| w.deadline));
+        for k in &self.coils {
+            at(self.coil_due(k));
+        }
+        due
+    }
+
+    fn laser_deadline(&self, l: &Laser) -> Option<u64> {
+        let c = l.config?;
+        if !l.on {
+            return None;
+        }
+        let off = l.on_since.saturating_add(u64::from(c.max_on_ticks));
+        if l.ready {
+            Some(off)
+        } else {
+            Some(off.min(l.on_since.saturating_add(u64::from(c.warmup_ticks))))
+        }
+    }
+
+    /// Does all work due at or before `now`, in tick order.
+    pub fn poll(&mut self, now: u64) {
+        self.check_interlocks(now);
+        while let Some(t) = self.next_due().filter(|&t| t <= now) {
+            self.run_at(t);
+        }
+        self.take_captures(now);
+    }
+
+    fn check_interlocks(&mut self, now: u64) {
+        for ch in 0..MAX_LASERS {
+            let Some(l) = self.lasers.get(ch) else { continue };
+            let Some(c) = l.config else { continue };
+            if let (true, Input::Wired(p)) = (l.on, c.interlock) {
+                if self.board.interlock_level(ch as u8) != level(p, true) {
+                    self.enter_safe_state(FaultCause::Interlock { channel: ch as u8 }, now);
+                }
+            }
+        }
+    }
+
+    fn take_captures(&mut self, until: u64) {
+        while let Some(cap) = self.board.take_capture(until) {
+            let Some(k) = self.cameras.get_mut(usize::from(cap.camera)) else { continue };
+            let Some(c) = k.config else { continue };
+            let Input::Wired(p) = c.exposure_input else { continue };
+            let active = cap.level == level(p, true);
+            if active == k.exposure_active {
+                continue;
+            }
+            k.exposure_active = active;
+            if !active {
+                k.exposure_ended = true;
+            }
+            self.emit(Event::Exposure { camera: cap.camera, active, tick: cap.tick }, cap.tick);
+            self.check_wait(cap.tick);
+        }
+    }
+
+    fn run_at(&mut self, t: u64) {
+        self.take_captures(t);
+        // Steps.
+        for i in 0..MAX_STEPPERS {
+            let Some(a) = self.axes.get_mut(i) else { continue };
+            if a.motor.next_due() == Some(t) {
+                let r = a.motor.step(&mut self.board, t);
+                self.after_step(AxisRef::Stepper(i as u8), r, t);
+            }
+        }
+        for i in 0..MAX_FILTER_WHEELS {
+            let Some(w) = self.wheels.get_mut(i) else { continue };
+            if w.motor.next_due() == Some(t) {
+                let r = w.motor.step(&mut self.board, t);
+                self.after_step(AxisRef::FilterWheel(i as u8), r, t);
+            }
+        }
+        // Galvo lines.
+        for i in 0..MAX_GALVOS {
+            let Some(line) = self.galvos.get(i).and_then(|g| g.line) else { continue };
+            let n = line.done.saturating_add(1);
+            if line.tick_of(n) != t {
+                continue;
+            }
+            if let Some(g) = self.galvos.get_mut(i) {
+                g.line = (n < line.steps).then_some(Line { done: n, ..line });
+            }
+            self.galvo_write(i as u8, line.point(n), t);
+        }
+        // Trigger pulse ends.
+        for i in 0..MAX_CAMERAS {
+            let Some(k) = self.cameras.get_mut(i) else { continue };
+            if k.pulse_end == Some(t) {
+                k.pulse_end = None;
+                if let Some(c) = k.config {
+                    self.board.set_trigger(i as u8, level(c.polarity, false), t);
+                }
+            }
+        }
+        // Laser timers.
+        for ch in 0..MAX_LASERS {
+            let Some(l) = self.lasers.get(ch).copied() else { continue };
+            let Some(c) = l.config else { continue };
+            if !l.on {
+                continue;
+            }
+            if t >= l.on_since.saturating_add(u64::from(c.max_on_ticks)) {
+                self.enter_safe_state(FaultCause::LaserOnTime { channel: ch as u8 }, t);
+            } else if !l.ready && t >= l.on_since.saturating_add(u64::from(c.warmup_ticks)) {
+                if let Some(l) = self.lasers.get_mut(ch) {
+                    l.ready = true;
+                }
+                self.emit(Event::LaserReady { channel: ch as u8, tick: t }, t);
+                self.check_wait(t);
+            }
+        }
+        if self.blanking && t >= self.blank_until {
+            self.blanking = false;
+            self.update_laser_outputs(t);
+        }
+        // Heartbeat.
+        if self.heartbeat.watching
+            && self.fault.is_none()
+            && t >= self.heartbeat.last.saturating_add(self.heartbeat.timeout)
+        {
+            self.enter_safe_state(FaultCause::HeartbeatLost, t);
+        }
+        // Sequence.
+        if let Some(w) = self.seq.waiting {
+            if t >= w.deadline {
+                let cause = FaultCause::WaitTimeout { sequence: self.seq.id, item: w.item };
+                self.enter_safe_state(cause, t);
+            }
+        }
+        while self.seq.next_due() == Some(t) {
+            let Some((index, item)) = self.seq.pop(t) else { break };
+            self.execute(&item.action, t, Origin::Sequence(index));
+            if self.seq.phase != Phase::Running {
+                break; // the item ended the sequence (a fault)
+            }
+            if let Some(status) = self.seq.take_report() {
+                self.emit(Event::Buffer(status), t);
+            }
+            self.check_sequence_end(t);
+        }
+        // Voice-coil blocks.
+        for c in 0..MAX_VOICE_COILS {
+            let due = self.coils.get(c).and_then(|k| self.coil_due(k));
+            if due == Some(t) {
+                self.coil_block(c as u8, t);
+            }
+        }
+    }
+
+    /// After an item (or at the start): done if the buffer is dry after the last chunk, an
+    /// underrun if it is dry before.
+    fn check_sequence_end(&mut self, t: u64) {
+        if !self.seq.is_dry() {
+            return;
+        }
+        let sequence = self.seq.id;
+        if self.seq.complete {
+            let items = self.seq.executed;
+            self.seq.clear();
+            // Lasers never outlive their sequence.
+            for ch in 0..MAX_LASERS {
+                self.laser_off(ch as u8, t);
+            }
+            self.emit(Event::SequenceDone { sequence, items, tick: t }, t);
+            self.emit_state(t);
+        } else {
+            let item = self.seq.executed;
+            self.emit(Event::Underrun { sequence, item, tick: t }, t);
+            self.enter_safe_state(FaultCause::Underrun { sequence }, t);
+        }
+    }
+
+    fn check_wait(&mut self, t: u64) {
+        let Some(w) = self.seq.waiting else { return };
+        let holds = match w.until {
+            WaitFor::MoveDone(AxisRef::Stepper(i)) => {
+                self.axes.get(usize::from(i)).is_some_and(|a| !a.motor.is_moving())
+            }
+            WaitFor::MoveDone(AxisRef::FilterWheel(i)) => {
+                self.wheels.get(usize::from(i)).is_some_and(|w| !w.motor.is_moving())
+            }
+            WaitFor::LaserReady(ch) => self.lasers.get(usize::from(ch)).is_some_and(|l| l.on && l.ready),
+            WaitFor::ExposureEnd(cam) => self.cameras.get(usize::from(cam)).is_some_and(|k| k.exposure_ended),
+        };
+        if holds {
+            self.seq.waiting = None;
+            self.seq.last_due = t;
+            self.check_sequence_end(t);
+        }
+    }
+
+    fn after_step(&mut self, id: AxisRef, stepped: Stepped, t: u64) {
+        // Switches are read after every step: the motor is what changes them.
+        if let Some(p) = self.motor_purpose(id, &stepped) {
+            if self.check_switches(id, p, t) {
+                return;
+            }
+        }
+        if let Stepped::Finished(p) = stepped {
+            self.motor_finished(id, p, t);
+        }
+    }
+
+    fn motor_purpose(&self, id: AxisRef, stepped: &Stepped) -> Option<Purpose> {
+        if let Stepped::Finished(p) = stepped {
+            return Some(*p);
+        }
+        match id {
+            AxisRef::Stepper(i) => {
+                self.axes.get(usize::from(i)).and_then(|a| a.motor.motion.as_ref()).map(|m| m.purpose)
+            }
+            AxisRef::FilterWheel(i) => {
+                self.wheels.get(usize::from(i)).and_then(|w| w.motor.motion.as_ref()).map(|m| m.purpose)
+            }
+        }
+    }
+
+    /// Reacts to the switches after a step. Returns whether the move was ended by them.
+    fn check_switches(&mut self, id: AxisRef, purpose: Purpose, t: u64) -> bool {
+        match id {
+            AxisRef::Stepper(i) => {
+                let Ok(c) = self.stepper_config(i) else { return false };
+                let active = |rig: &mut Self, input: Input, sw: Switch| match input {
+                    Input::Wired(p) => rig.board.switch_level(id, sw) == level(p, true),
+                    Input::Unused => false,
+                };
+                let seeking = purpose == Purpose::HomeSeek;
+                let target = match c.homing.mode {
+                    HomingMode::ToMinLimit => Some((c.limit_min, Switch::Min)),
+                    HomingMode::ToMaxLimit => Some((c.limit_max, Switch::Max)),
+                    HomingMode::ToIndex => Some((c.index, Switch::Index)),
+                    HomingMode::None => None,
+                };
+                if seeking {
+                    if let Some((input, sw)) = target {
+                        if active(self, input, sw) {
+                            let a = self.axes.get_mut(usize::from(i));
+                            let Some(a) = a else { return true };
+                            a.motor.stop_now();
+                            let position = a.motor.position.clamp(i32::MIN.into(), i32::MAX.into()) as i32;
+                            self.emit(Event::Switch { axis: id, switch: sw, position, tick: t }, t);
+                            self.home_backoff(i, &c, sw, t);
+                            return true;
+                        }
+                    }
+                }
+                for (input, sw) in [(c.limit_min, Switch::Min), (c.limit_max, Switch::Max)] {
+                    // The homing switch is expected while homing; any other limit is a fault.
+                    let expected = seeking || purpose == Purpose::HomeBackoff;
+                    if !expected && active(self, input, sw) {
+                        let position = self.axes.get(usize::from(i)).map_or(0, |a| a.motor.position);
+                        let position = position.clamp(i32::MIN.into(), i32::MAX.into()) as i32;
+                        self.emit(Event::Switch { axis: id, switch: sw, position, tick: t }, t);
+                        if let Some(a) = self.axes.get_mut(usize::from(i)) {
+                            a.motor.stop_now();
+                        }
+                        self.enter_safe_state(FaultCause::Limit { axis: id }, t);
+                        return true;
+                    }
+                }
+                false
+            }
+            AxisRef::FilterWheel(i) => {
+                if purpose != Purpose::WheelSeek {
+                    return false;
+                }
+                let Ok(c) = self.wheel_config(i) else { return false };
+                let Input::Wired(p) = c.index else { return false };
+                if self.board.switch_level(id, Switch::Index) != level(p, true) {
+                    return false;
+                }
+                self.emit(Event::Switch { axis: id, switch: Switch::Index, position: 0, tick: t }, t);
+                let Some(w) = self.wheels.get_mut(usize::from(i)) else { return true };
+                w.motor.stop_now();
+                // Slot 0's centre lies `index_offset` steps past the mark.
+                let spr = i64::from(c.steps_per_rev);
+                w.motor.position = (-i64::from(c.index_offset)).rem_euclid(spr);
+                let (delta, forward) = wheel_path(&c, w.motor.position, 0);
+                if delta == 0 {
+                    self.wheel_homed(i, t);
+                } else {
+                    let r = w.motor.start(
+                        &mut self.board,
+                        delta,
+                        forward,
+                        c.max_speed,
+                        c.accel,
+                        self.tick_hz,
+                        t,
+                        Purpose::WheelHome,
+                    );
+                    if r.is_err() {
+                        self.enter_safe_state(FaultCause::HomingFailed { axis: id }, t);
+                    }
+                }
+                true
+            }
+        }
+    }
+
+    fn home_backoff(&mut self, i: u8, c: &StepperConfig, sw: Switch, t: u64) {
+        let h = c.homing;
+        let Some(a) = self.axes.get_mut(usize::from(i)) else { return };
+        if h.backoff == 0 {
+            return self.stepper_homed(i, t);
+        }
+        // Back away from the switch: forward off the min limit, backward off the others.
+        let forward = sw == Switch::Min;
+        let r = a.motor.start(
+            &mut self.board,
+            h.backoff,
+            forward,
+            h.speed,
+            c.accel,
+            self.tick_hz,
+            t,
+            Purpose::HomeBackoff,
+        );
+        if r.is_err() {
+            self.enter_safe_state(FaultCause::HomingFailed { axis: AxisRef::Stepper(i) }, t);
+        }
+    }
+
+    fn stepper_homed(&mut self, i: u8, t: u64) {
+        let Ok(c) = self.stepper_config(i) else { return };
+        let Some(a) = self.axes.get_mut(usize::from(i)) else { return };
+        a.motor.position = i64::from(c.homing.position);
+        a.homed = true;
+        let axis = AxisRef::Stepper(i);
+        self.emit(Event::Homed { axis, position: c.homing.position, tick: t }, t);
+        self.check_wait(t);
+    }
+
+    fn wheel_homed(&mut self, i: u8, t: u64) {
+        let Some(w) = self.wheels.get_mut(usize::from(i)) else { return };
+        w.homed = true;
+        w.slot = Some(0);
+        self.emit(Event::Homed { axis: AxisRef::FilterWheel(i), position: 0, tick: t }, t);
+        self.check_wait(t);
+    }
+
+    fn motor_finished(&mut self, id: AxisRef, purpose: Purpose, t: u64) {
+        match (id, purpose) {
+            (AxisRef::Stepper(i), Purpose::Move) => {
+                let position = self.axes.get(usize::from(i)).map_or(0, |a| a.motor.position);
+                let position = position.clamp(i32::MIN.into(), i32::MAX.into()) as i32;
+                self.emit(Event::MoveDone { axis: id, position, tick: t }, t);
+            }
+            (AxisRef::Stepper(i), Purpose::HomeBackoff) => self.stepper_homed(i, t),
+            (_, Purpose::HomeSeek | Purpose::WheelSeek) if self.fault.is_none() => {
+                self.enter_safe_state(FaultCause::HomingFailed { axis: id }, t);
+            }
+            (AxisRef::FilterWheel(i), Purpose::WheelTo(slot)) => {
+                let Ok(c) = self.wheel_config(i) else { return };
+                let Some(w) = self.wheels.get_mut(usize::from(i)) else { return };
+                let spr = i64::from(c.steps_per_rev);
+                w.motor.position = w.motor.position.rem_euclid(spr);
+                // A wheel stopped short (safe state) rests between slots.
+                let arrived = w.motor.position == slot_position(&c, slot);
+                w.slot = arrived.then_some(slot);
+                let position = if arrived { i32::from(slot) } else { -1 };
+                self.emit(Event::MoveDone { axis: id, position, tick: t }, t);
+            }
+            (AxisRef::FilterWheel(i), Purpose::WheelHome) => self.wheel_homed(i, t),
+            _ => {}
+        }
+        self.check_wait(t);
+    }
+}
+
+fn apply_coil(synth: &mut Synth, setting: CoilSetting) {
+    match setting {
+        // Checked when the item was loaded; a refusal here would be a bug, and silence is
+        // the safe answer to it.
+        CoilSetting::Set { partials, ramp } => {
+            if synth.set(&partials, ramp).is_err() {
+                synth.fade_out(ramp);
+            }
+        }
+        CoilSetting::Fade { ramp } => synth.fade_out(ramp),
+    }
+}
+
+fn check_galvo_point(c: &GalvoConfig, to: Xy) -> Result<(), Error> {
+    let ok = (c.x.min_code..=c.x.max_code).contains(&to.x) && (c.y.min_code..=c.y.max_code).contains(&to.y);
+    ok.then_some(()).ok_or(Error::OutOfRange { kind: Peripheral::Galvo, index: c.galvo })
+}
+
+/// Speed and acceleration of a move: the profile's, or the axis' where the profile says 0.
+fn move_profile(c: &StepperConfig, p: lightrig_protocol::sequence::Profile) -> (u32, u32) {
+    let speed = if p.max_speed == 0 { c.max_speed } else { p.max_speed };
+    let accel = if p.accel == 0 { c.accel } else { p.accel };
+    (speed, accel)
+}
+
+/// How far a homing seek may travel before giving up: the soft-limit span and half again for a
+/// linear axis; for an endless axis, 2^24 steps.
+fn seek_span(c: &StepperConfig) -> u32 {
+    match c.limits {
+        Some(r) => {
+            let span = (i64::from(r.max) - i64::from(r.min)).unsigned_abs();
+            u32::try_from(span.saturating_add(span / 2)).unwrap_or(u32::MAX).max(1)
+        }
+        None => 1 << 24,
+    }
+}
+
+/// Motor position (steps from slot 0's centre) of a filter slot's centre.
+fn slot_position(c: &FilterWheelConfig, slot: u8) -> i64 {
+    i64::from(slot) * i64::from(c.steps_per_rev) / i64::from(c.slots.max(1))
+}
+
+/// The shorter way from `position` to `slot`'s centre: (steps, forward). Ties go forward.
+fn wheel_path(c: &FilterWheelConfig, position: i64, slot: u8) -> (u32, bool) {
+    let spr = i64::from(c.steps_per_rev);
+    let ahead = (slot_position(c, slot) - position).rem_euclid(spr);
+    let (steps, forward) = if ahead * 2 <= spr { (ahead, true) } else { (spr - ahead, false) };
+    (u32::try_from(steps).unwrap_or(u32::MAX), forward)
+}
+
+/// Ticks from sample 0 to sample `n`: `floor(n · tick_hz / rate)`.
+fn tick_of_sample(n: u64, rate: u32, tick_hz: u32) -> u64 {
+    let t = u128::from(n) * u128::from(tick_hz) / u128::from(rate.max(1));
+    u64::try_from(t).unwrap_or(u64::MAX)
+}
+
+/// The first sample whose tick is at or after `ticks`.
+fn sample_at_or_after(ticks: u64, rate: u32, tick_hz: u32) -> u64 {
+    // Smallest n with floor(n·f/r) >= t  <=>  n·f >= t·r  <=>  n = ceil(t·r / f).
+    let num = u128::from(ticks) * u128::from(rate);
+    let f = u128::from(tick_hz.max(1));
+    u64::try_from(num.div_ceil(f)).unwrap_or(u64::MAX)
+}
