@@ -87,7 +87,7 @@ struct Line {
 
 impl Line {
     fn tick_of(&self, i: u16) -> u64 {
-        self.start + u64::from(self.duration) * u64::from(i) / u64::from(self.steps.max(1))
+        self.start.saturating_add(u64::from(self.duration) * u64::from(i) / u64::from(self.steps.max(1)))
     }
 
     fn point(&self, i: u16) -> Xy {
@@ -188,6 +188,11 @@ pub struct Rig<B: Board> {
     events: Events,
 }
 
+/// The bit of channel `ch` in a laser mask (none for a channel beyond the mask).
+fn bit(ch: u8) -> u8 {
+    1u8.checked_shl(u32::from(ch)).unwrap_or(0)
+}
+
 fn level(polarity: Polarity, active: bool) -> bool {
     active == (polarity == Polarity::ActiveHigh)
 }
@@ -278,7 +283,7 @@ impl<B: Board> Rig<B> {
 
     /// Lasers emitting, one bit per channel.
     pub fn lasers_on(&self) -> u8 {
-        self.lasers.iter().enumerate().fold(0, |m, (i, l)| if l.emitting { m | (1 << i) } else { m })
+        self.lasers.iter().enumerate().fold(0, |m, (i, l)| if l.emitting { m | bit(i as u8) } else { m })
     }
 
     /// The sequence state, `None` when no sequence is running.
@@ -499,14 +504,14 @@ impl<B: Board> Rig<B> {
     pub fn arm(&mut self, mask: u8, now: u64) -> Result<(), Error> {
         self.check_not_faulted()?;
         for ch in 0..8u8 {
-            if mask & (1 << ch) != 0 {
+            if mask & bit(ch) != 0 {
                 self.laser_config(ch)?;
             }
         }
         self.armed = mask;
         // Channels no longer armed go dark.
         for ch in 0..MAX_LASERS {
-            if mask & (1 << ch) == 0 {
+            if mask & bit(ch as u8) == 0 {
                 self.laser_off(ch as u8, now);
             }
         }
@@ -534,7 +539,7 @@ impl<B: Board> Rig<B> {
         }
         self.check_action(action)?;
         if let Action::Laser { channel, on: true } = *action {
-            if self.armed & (1 << channel) == 0 {
+            if self.armed & bit(channel) == 0 {
                 return Err(Error::NotArmed { channel });
             }
         }
@@ -615,7 +620,7 @@ impl<B: Board> Rig<B> {
         for item in &chunk.items {
             self.check_action(&item.action)?;
             if let Action::Laser { channel, on: true } = item.action {
-                if self.armed & (1 << channel) == 0 {
+                if self.armed & bit(channel) == 0 {
                     return Err(Error::NotArmed { channel });
                 }
             }
@@ -840,7 +845,7 @@ impl<B: Board> Rig<B> {
             Action::Laser { channel, on } => {
                 if !on {
                     self.laser_off(channel, t);
-                } else if self.armed & (1 << channel) == 0 {
+                } else if self.armed & bit(channel) == 0 {
                     // Disarmed since the chunk was loaded: the host's disarm wins.
                     warn!("laser {} not armed; item skipped", channel);
                 } else {
@@ -941,7 +946,7 @@ impl<B: Board> Rig<B> {
         let blanked = t < self.blank_until;
         for (ch, l) in self.lasers.iter_mut().enumerate() {
             let Some(c) = l.config else { continue };
-            let emit = l.on && !blanked && self.armed & (1 << ch) != 0;
+            let emit = l.on && !blanked && self.armed & bit(ch as u8) != 0;
             if emit != l.emitting {
                 l.emitting = emit;
                 self.board.set_laser(ch as u8, level(c.enable, emit), t);
@@ -1406,7 +1411,7 @@ impl<B: Board> Rig<B> {
                 let Some(w) = self.wheels.get_mut(usize::from(i)) else { return true };
                 w.motor.stop_now();
                 // Slot 0's centre lies `index_offset` steps past the mark.
-                let spr = i64::from(c.steps_per_rev);
+                let spr = i64::from(c.steps_per_rev.max(1));
                 w.motor.position = (-i64::from(c.index_offset)).rem_euclid(spr);
                 let (delta, forward) = wheel_path(&c, w.motor.position, 0);
                 if delta == 0 {
@@ -1486,7 +1491,7 @@ impl<B: Board> Rig<B> {
             (AxisRef::FilterWheel(i), Purpose::WheelTo(slot)) => {
                 let Ok(c) = self.wheel_config(i) else { return };
                 let Some(w) = self.wheels.get_mut(usize::from(i)) else { return };
-                let spr = i64::from(c.steps_per_rev);
+                let spr = i64::from(c.steps_per_rev.max(1));
                 w.motor.position = w.motor.position.rem_euclid(spr);
                 // A wheel stopped short (safe state) rests between slots.
                 let arrived = w.motor.position == slot_position(&c, slot);
@@ -1545,7 +1550,7 @@ fn slot_position(c: &FilterWheelConfig, slot: u8) -> i64 {
 
 /// The shorter way from `position` to `slot`'s centre: (steps, forward). Ties go forward.
 fn wheel_path(c: &FilterWheelConfig, position: i64, slot: u8) -> (u32, bool) {
-    let spr = i64::from(c.steps_per_rev);
+    let spr = i64::from(c.steps_per_rev.max(1));
     let ahead = (slot_position(c, slot) - position).rem_euclid(spr);
     let (steps, forward) = if ahead * 2 <= spr { (ahead, true) } else { (spr - ahead, false) };
     (u32::try_from(steps).unwrap_or(u32::MAX), forward)
