@@ -525,3 +525,19 @@ fn a_host_that_stops_taking_events_faults_the_rig_with_event_overflow() {
     assert_eq!(triggers(&events).len(), n - 3, "state event first, then the triggers that fit");
     assert_eq!(rig.dropped_events(), 1);
 }
+
+#[test]
+fn a_run_loop_that_wakes_too_late_faults_instead_of_drifting() {
+    let mut rig = rig();
+    configure_all(&mut rig);
+    let items = [item(1_000, trigger(0)), item(1_000, trigger(0))];
+    load_all(&mut rig, 6, &items);
+    rig.start(6, StartAt::Tick(0), 0).unwrap();
+    // On time (within 1 ms = 1000 ticks): runs, with its exact tick on the output.
+    rig.poll(1_900);
+    assert_eq!(edges(&rig, 0)[1], (1_000, true));
+    // 1001 ticks late: refused.
+    rig.poll(3_001);
+    assert_eq!(rig.fault(), Some(FaultCause::Late { sequence: 6, item: 1 }));
+    assert_eq!(edges(&rig, 0).len(), 3, "second trigger never fired");
+}

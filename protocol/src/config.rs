@@ -128,6 +128,61 @@ pub struct Ratio {
     pub den: u32,
 }
 
+/// Divides rounding to the nearest integer, ties away from zero.
+fn div_round(num: i128, den: i128) -> Option<i64> {
+    if den == 0 {
+        return None;
+    }
+    let (num, den) = if den < 0 { (-num, -den) } else { (num, den) };
+    let half = den / 2;
+    let q = if num >= 0 { (num + half) / den } else { (num - half) / den };
+    i64::try_from(q).ok()
+}
+
+impl Ratio {
+    /// Steps for `micro` millionths of a host unit (µm on a linear axis, µ° on a turntable),
+    /// rounded to the nearest step (ties away from zero). Exact integer arithmetic, so a
+    /// position planned in units lands on the same step every time. `None` if `den` is zero
+    /// or the result does not fit.
+    pub fn steps_from_micro(&self, micro: i64) -> Option<i64> {
+        div_round(i128::from(micro) * i128::from(self.num), i128::from(self.den) * 1_000_000)
+    }
+
+    /// Millionths of a host unit at `steps`, rounded to the nearest (ties away from zero).
+    pub fn micro_from_steps(&self, steps: i64) -> Option<i64> {
+        div_round(i128::from(steps) * i128::from(self.den) * 1_000_000, i128::from(self.num))
+    }
+}
+
+#[cfg(test)]
+mod ratio_tests {
+    use super::Ratio;
+
+    #[test]
+    fn unit_conversion_is_exact_and_rounds_to_nearest() {
+        // A gantry with 80 steps per mm: 1 mm = 80 steps, 12.5 µm = 1 step.
+        let mm = Ratio { num: 80, den: 1 };
+        assert_eq!(mm.steps_from_micro(1_000_000), Some(80));
+        assert_eq!(mm.steps_from_micro(12_500), Some(1));
+        assert_eq!(mm.steps_from_micro(6_250), Some(1), "half a step rounds away from zero");
+        assert_eq!(mm.steps_from_micro(-6_250), Some(-1));
+        assert_eq!(mm.steps_from_micro(6_249), Some(0));
+        assert_eq!(mm.micro_from_steps(-80), Some(-1_000_000));
+        // A turntable: 200 steps × 16 microsteps × 90:1 gear per 360° = 800 steps per degree.
+        let deg = Ratio { num: 200 * 16 * 90, den: 360 };
+        assert_eq!(deg.steps_from_micro(360_000_000), Some(288_000));
+        assert_eq!(deg.micro_from_steps(288_000), Some(360_000_000));
+        // A ratio that is not a whole number of steps per unit: 1000 steps per 3 mm.
+        let odd = Ratio { num: 1000, den: 3 };
+        for steps in -10_000..10_000 {
+            let back = odd.steps_from_micro(odd.micro_from_steps(steps).unwrap()).unwrap();
+            assert_eq!(back, steps, "round trip");
+        }
+        assert_eq!(Ratio { num: 1, den: 0 }.steps_from_micro(1), None);
+        assert_eq!(Ratio { num: u32::MAX, den: 1 }.steps_from_micro(i64::MAX), None);
+    }
+}
+
 /// What a stepper axis moves, which fixes its host-side unit.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Schema)]
 #[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]

@@ -186,6 +186,8 @@ pub struct Rig<B: Board> {
     fault: Option<FaultCause>,
     seq: Sequencer,
     events: Events,
+    /// The `now` of the poll in progress: how late due work runs.
+    polled_at: u64,
 }
 
 /// The bit of channel `ch` in a laser mask (none for a channel beyond the mask).
@@ -195,6 +197,12 @@ fn bit(ch: u8) -> u8 {
 
 fn level(polarity: Polarity, active: bool) -> bool {
     active == (polarity == Polarity::ActiveHigh)
+}
+
+/// How late a sequence item may run before the rig gives up on the schedule: 1 ms. Outputs
+/// still carry their exact tick, so hardware-timed outputs stay exact within this slack.
+fn late_limit(tick_hz: u32) -> u64 {
+    u64::from(tick_hz / 1000)
 }
 
 fn ms_to_ticks(ms: u32, tick_hz: u32) -> u64 {
@@ -258,6 +266,7 @@ impl<B: Board> Rig<B> {
             fault: None,
             seq: Sequencer::new(),
             events: Events { queue: Deque::new(), dropped: 0 },
+            polled_at: 0,
         }
     }
 
@@ -1154,6 +1163,7 @@ impl<B: Board> Rig<B> {
 
     /// Does all work due at or before `now`, in tick order.
     pub fn poll(&mut self, now: u64) {
+        self.polled_at = now;
         self.check_interlocks(now);
         while let Some(t) = self.next_due().filter(|&t| t <= now) {
             self.run_at(t);
@@ -1266,6 +1276,12 @@ impl<B: Board> Rig<B> {
             }
         }
         while self.seq.next_due() == Some(t) {
+            if self.polled_at.saturating_sub(t) > late_limit(self.tick_hz) {
+                // The run loop woke too late to honour the schedule: stop rather than drift.
+                let cause = FaultCause::Late { sequence: self.seq.id, item: self.seq.executed };
+                self.enter_safe_state(cause, self.polled_at);
+                break;
+            }
             let Some((index, item)) = self.seq.pop(t) else { break };
             self.execute(&item.action, t, Origin::Sequence(index));
             if self.seq.phase != Phase::Running {
