@@ -1,6 +1,7 @@
 //! Galvo outputs: the frame formats of the converters a galvo pair can hang on, and the
-//! [`GalvoOutput`] trait the sequencer drives. Timing is the scheduler's job; an output only
-//! turns a 16-bit position pair into bits on its interface.
+//! per-pair [`GalvoOutput`] drivers a board puts behind its [`crate::hal::Galvos`]
+//! implementation. Timing is the rig's job; an output only turns a position pair into bits on
+//! its interface.
 //!
 //! Frame formats (from the converters' datasheets):
 //! - **DAC8563** (TI, 16-bit dual): 24 bits, MSB first: `x x C2 C1 C0 A2 A1 A0 D15..D0`.

@@ -3,8 +3,9 @@
 //! change with its tick.
 //!
 //! Every output call carries `at`, the tick the change belongs to. The controller makes the
-//! call when its clock reaches `at` (so a GPIO write lands on time); hardware that can schedule
-//! the change itself (a timer compare, a DMA stream) may use `at` directly. Levels are
+//! call once its clock has reached `at` (at most the run loop's wake-up latency later, and
+//! never more than 1 ms: see `FaultCause::Late`); a board that wants the edge exactly on `at`
+//! despite that latency can latch outputs through a timer compare one slot behind. Levels are
 //! electrical (`true` = high): the controller applies each peripheral's configured polarity.
 //!
 //! Power-on levels are the board's duty: laser enables and camera triggers must come out of

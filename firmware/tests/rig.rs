@@ -541,3 +541,67 @@ fn a_run_loop_that_wakes_too_late_faults_instead_of_drifting() {
     assert_eq!(rig.fault(), Some(FaultCause::Late { sequence: 6, item: 1 }));
     assert_eq!(edges(&rig, 0).len(), 3, "second trigger never fired");
 }
+
+#[test]
+fn an_axis_resting_on_its_switch_may_leave_it_but_not_pass_it() {
+    let mut rig = rig();
+    configure_all(&mut rig);
+    let mut c = stepper(0);
+    c.homing.backoff = 0;
+    rig.configure(&ConfigItem::Stepper(c), 0).unwrap();
+    rig.board_mut().steppers[0].limit_min_at = Some(-20);
+    rig.home(AxisRef::Stepper(0), 0).unwrap();
+    rig.run_until(1_000_000);
+    assert_eq!(rig.board().steppers[0].position, -20, "rests on the switch");
+    assert_eq!(rig.axis_position(0), Some(-16_000));
+    // Away from the switch: the min limit is behind, no fault.
+    rig.host_seen(1_000_000, false);
+    rig.immediate(&Action::StepperMove { axis: 0, target: -15_000, profile: Profile::default() }, 1_000_000)
+        .unwrap();
+    rig.run_until(2_000_000);
+    assert_eq!(rig.fault(), None);
+    // Back past the homed position onto the switch: the limit ahead trips.
+    rig.host_seen(2_000_000, false);
+    rig.immediate(&Action::StepperMove { axis: 0, target: -16_000, profile: Profile::default() }, 2_000_000)
+        .unwrap();
+    rig.run_until(3_000_000);
+    assert_eq!(rig.fault(), None, "reaching the homed position is fine");
+    assert_eq!(rig.board().steppers[0].position, -20);
+}
+
+#[test]
+fn homing_interrupted_by_a_stop_leaves_the_axis_unhomed() {
+    let mut rig = rig();
+    configure_all(&mut rig);
+    rig.board_mut().steppers[0].limit_min_at = Some(-20);
+    rig.home(AxisRef::Stepper(0), 0).unwrap();
+    let mut t = 0;
+    loop {
+        t += 1_000;
+        rig.run_until(t);
+        if rig.drain_events().iter().any(|e| matches!(e, Event::Switch { .. })) {
+            break;
+        }
+        assert!(t < 1_000_000, "switch never reached");
+    }
+    rig.run_until(t + 10_000); // backing off (100 steps at 2000/s take 50 ms)
+    rig.emergency_stop(t + 10_000);
+    rig.run_until(t + 1_000_000);
+    assert!(!rig.drain_events().iter().any(|e| matches!(e, Event::Homed { .. })));
+    rig.clear_fault(t + 1_000_000).unwrap();
+    let mv = Action::StepperMove { axis: 0, target: 0, profile: Profile::default() };
+    assert_eq!(rig.immediate(&mv, t + 1_000_000), Err(Error::NotHomed { axis: AxisRef::Stepper(0) }));
+}
+
+#[test]
+fn starting_an_empty_sequence_ends_it_at_once_stamped_now() {
+    let mut rig = rig();
+    configure_all(&mut rig);
+    load_all(&mut rig, 11, &[]);
+    rig.start(11, StartAt::Tick(5_000), 100).unwrap();
+    let events = rig.drain_events();
+    assert!(events.contains(&Event::SequenceDone { sequence: 11, items: 0, tick: 100 }), "{events:?}");
+    rig.load(&chunk(12, 0, false, &[])).unwrap();
+    rig.start(12, StartAt::Now, 200).unwrap();
+    assert!(rig.drain_events().contains(&Event::Underrun { sequence: 12, item: 0, tick: 200 }));
+}

@@ -98,7 +98,8 @@ pub enum Error {
     },
     /// The firmware does not implement this command on this board.
     Unsupported,
-    /// The axis has a homing procedure and has not been homed since power-up: send `Home`.
+    /// The axis has a homing procedure and has not been homed since it was configured (or its
+    /// homing was interrupted): send `Home`.
     NotHomed {
         /// The axis.
         axis: AxisRef,

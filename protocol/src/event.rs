@@ -107,7 +107,8 @@ pub enum FaultCause {
         /// Item index.
         item: u32,
     },
-    /// A motor driver reported an error.
+    /// A motor could not run its move: the driver reported an error, or the move could not be
+    /// planned (too long for the device's tick arithmetic).
     Driver {
         /// The axis.
         axis: AxisRef,
@@ -136,7 +137,8 @@ pub enum FaultCause {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Schema)]
 #[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
 pub enum DeviceState {
-    /// Waiting for a matching `Hello`; lasers off.
+    /// Waiting for a matching `Hello` (at start, or after the host reconnected); a latched
+    /// fault is reported instead.
     AwaitingHello,
     /// Ready for configuration, commands and sequences.
     Ready,
@@ -233,7 +235,7 @@ pub enum Event {
         sequence: u32,
         /// Index of the first item that was not there in time.
         item: u32,
-        /// Tick at which it was due.
+        /// Tick at which the device found the buffer empty: when the item before it ran.
         tick: u64,
     },
     /// A sequence executed its last item.

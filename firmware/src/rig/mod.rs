@@ -360,7 +360,7 @@ impl<B: Board> Rig<B> {
     fn emit(&mut self, event: Event, now: u64) {
         if self.events.queue.len() + EVENT_RESERVE >= EVENT_QUEUE {
             self.events.dropped = self.events.dropped.saturating_add(1);
-            if self.fault != Some(FaultCause::EventOverflow) {
+            if self.fault.is_none() {
                 self.enter_safe_state(FaultCause::EventOverflow, now);
             }
             return;
@@ -412,7 +412,7 @@ impl<B: Board> Rig<B> {
                 None => None,
             };
             if let Some(p) = purpose {
-                self.motor_finished(AxisRef::Stepper(i as u8), p, now);
+                self.motor_finished(AxisRef::Stepper(i as u8), p, now, false);
             }
         }
         for i in 0..MAX_FILTER_WHEELS {
@@ -422,7 +422,7 @@ impl<B: Board> Rig<B> {
                 None => None,
             };
             if let Some(p) = purpose {
-                self.motor_finished(AxisRef::FilterWheel(i as u8), p, now);
+                self.motor_finished(AxisRef::FilterWheel(i as u8), p, now, false);
             }
         }
     }
@@ -448,9 +448,17 @@ impl<B: Board> Rig<B> {
         match *item {
             ConfigItem::Galvo(c) => {
                 let g = self.galvos.get_mut(usize::from(c.galvo)).ok_or(Error::Unsupported)?;
+                // The first configuration has no position to jump from.
+                let jumps = g.config.is_some() && g.pos != c.park;
                 g.config = Some(c);
                 g.line = None;
                 g.pos = c.park;
+                if jumps {
+                    // Going to the new park position is a jump like any other: blanked.
+                    self.blank_until = self.blank_until.max(now.saturating_add(u64::from(c.settle_ticks)));
+                    self.blanking = true;
+                    self.update_laser_outputs(now);
+                }
                 if self.board.set_galvo(c.galvo, c.park, now).is_err() {
                     self.enter_safe_state(FaultCause::GalvoOutput { galvo: c.galvo }, now);
                 }
@@ -482,6 +490,10 @@ impl<B: Board> Rig<B> {
             }
             ConfigItem::VoiceCoil(c) => {
                 let k = self.coils.get_mut(usize::from(c.channel)).ok_or(Error::Unsupported)?;
+                if !k.synth.is_silent() || !k.pending.is_empty() {
+                    // A restart would click: fade the channel first (an empty partial list).
+                    return Err(Error::InvalidState(self.state()));
+                }
                 *k = Coil {
                     config: Some(c),
                     synth: Synth::new(c.sample_rate_hz),
@@ -655,7 +667,7 @@ impl<B: Board> Rig<B> {
         self.seq.start(start);
         self.emit_state(now);
         // A sequence loaded without items ends at once; one loaded short is an underrun.
-        self.check_sequence_end(start);
+        self.check_sequence_end(now);
         Ok(())
     }
 
@@ -785,7 +797,7 @@ impl<B: Board> Rig<B> {
                 if !self.wheels.get(usize::from(wheel)).is_some_and(|w| w.homed) {
                     return Err(Error::NotHomed { axis: AxisRef::FilterWheel(wheel) });
                 }
-                if slot >= c.slots {
+                if slot >= c.slots || u64::from(c.max_speed) * 2 > u64::from(self.tick_hz) {
                     return Err(Error::OutOfRange { kind: Peripheral::FilterWheel, index: wheel });
                 }
                 Ok(())
@@ -865,6 +877,11 @@ impl<B: Board> Rig<B> {
                 let Ok(c) = self.stepper_config(axis) else { return };
                 let Some(a) = self.axes.get_mut(usize::from(axis)) else { return };
                 let id = AxisRef::Stepper(axis);
+                if !a.homed {
+                    // Reconfigured between loading and executing.
+                    self.enter_safe_state(FaultCause::HomingFailed { axis: id }, t);
+                    return;
+                }
                 if a.motor.is_moving() {
                     self.enter_safe_state(FaultCause::AxisBusy { axis: id }, t);
                     return;
@@ -1164,11 +1181,12 @@ impl<B: Board> Rig<B> {
     /// Does all work due at or before `now`, in tick order.
     pub fn poll(&mut self, now: u64) {
         self.polled_at = now;
-        self.check_interlocks(now);
         while let Some(t) = self.next_due().filter(|&t| t <= now) {
             self.run_at(t);
         }
         self.take_captures(now);
+        // An interlock seen open now acts now, after the work that was due before.
+        self.check_interlocks(now);
     }
 
     fn check_interlocks(&mut self, now: u64) {
@@ -1350,14 +1368,14 @@ impl<B: Board> Rig<B> {
                 return;
             }
         }
-        if let Stepped::Finished(p) = stepped {
-            self.motor_finished(id, p, t);
+        if let Stepped::Finished { purpose, complete } = stepped {
+            self.motor_finished(id, purpose, t, complete);
         }
     }
 
     fn motor_purpose(&self, id: AxisRef, stepped: &Stepped) -> Option<Purpose> {
-        if let Stepped::Finished(p) = stepped {
-            return Some(*p);
+        if let Stepped::Finished { purpose, .. } = stepped {
+            return Some(*purpose);
         }
         match id {
             AxisRef::Stepper(i) => {
@@ -1398,10 +1416,16 @@ impl<B: Board> Rig<B> {
                         }
                     }
                 }
-                for (input, sw) in [(c.limit_min, Switch::Min), (c.limit_max, Switch::Max)] {
-                    // The homing switch is expected while homing; any other limit is a fault.
-                    let expected = seeking || purpose == Purpose::HomeBackoff;
-                    if !expected && active(self, input, sw) {
+                // Only the limit ahead counts: an axis may rest on a switch and leave it. While
+                // homing, the switch being sought (and backed off) is expected; the other one
+                // is a fault like any limit.
+                let dir = self.axes.get(usize::from(i)).and_then(|a| a.motor.direction());
+                let homing = matches!(purpose, Purpose::HomeSeek | Purpose::HomeBackoff);
+                for (input, sw, ahead) in
+                    [(c.limit_min, Switch::Min, dir == Some(-1)), (c.limit_max, Switch::Max, dir == Some(1))]
+                {
+                    let expected = homing && target.is_some_and(|(_, s)| s == sw);
+                    if ahead && !expected && active(self, input, sw) {
                         let position = self.axes.get(usize::from(i)).map_or(0, |a| a.motor.position);
                         let position = position.clamp(i32::MIN.into(), i32::MAX.into()) as i32;
                         self.emit(Event::Switch { axis: id, switch: sw, position, tick: t }, t);
@@ -1423,7 +1447,9 @@ impl<B: Board> Rig<B> {
                 if self.board.switch_level(id, Switch::Index) != level(p, true) {
                     return false;
                 }
-                self.emit(Event::Switch { axis: id, switch: Switch::Index, position: 0, tick: t }, t);
+                let at = self.wheels.get(usize::from(i)).map_or(0, |w| w.motor.position);
+                let position = at.clamp(i32::MIN.into(), i32::MAX.into()) as i32;
+                self.emit(Event::Switch { axis: id, switch: Switch::Index, position, tick: t }, t);
                 let Some(w) = self.wheels.get_mut(usize::from(i)) else { return true };
                 w.motor.stop_now();
                 // Slot 0's centre lies `index_offset` steps past the mark.
@@ -1493,14 +1519,16 @@ impl<B: Board> Rig<B> {
         self.check_wait(t);
     }
 
-    fn motor_finished(&mut self, id: AxisRef, purpose: Purpose, t: u64) {
+    /// A move ended: `complete` when it reached its target, not when a stop cut it short.
+    fn motor_finished(&mut self, id: AxisRef, purpose: Purpose, t: u64, complete: bool) {
         match (id, purpose) {
             (AxisRef::Stepper(i), Purpose::Move) => {
                 let position = self.axes.get(usize::from(i)).map_or(0, |a| a.motor.position);
                 let position = position.clamp(i32::MIN.into(), i32::MAX.into()) as i32;
                 self.emit(Event::MoveDone { axis: id, position, tick: t }, t);
             }
-            (AxisRef::Stepper(i), Purpose::HomeBackoff) => self.stepper_homed(i, t),
+            // Homing interrupted by the safe state leaves the axis unhomed.
+            (AxisRef::Stepper(i), Purpose::HomeBackoff) if complete => self.stepper_homed(i, t),
             (_, Purpose::HomeSeek | Purpose::WheelSeek) if self.fault.is_none() => {
                 self.enter_safe_state(FaultCause::HomingFailed { axis: id }, t);
             }
@@ -1515,7 +1543,7 @@ impl<B: Board> Rig<B> {
                 let position = if arrived { i32::from(slot) } else { -1 };
                 self.emit(Event::MoveDone { axis: id, position, tick: t }, t);
             }
-            (AxisRef::FilterWheel(i), Purpose::WheelHome) => self.wheel_homed(i, t),
+            (AxisRef::FilterWheel(i), Purpose::WheelHome) if complete => self.wheel_homed(i, t),
             _ => {}
         }
         self.check_wait(t);

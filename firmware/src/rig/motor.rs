@@ -38,14 +38,17 @@ pub(crate) struct Motion {
     /// Steps made.
     done: u32,
     pub purpose: Purpose,
+    /// Cut short by a decelerating stop: the move ends before its target.
+    cut: bool,
 }
 
 /// What a due step produced.
 pub(crate) enum Stepped {
     /// More steps follow.
     Moving,
-    /// That was the last step of a move made for this purpose.
-    Finished(Purpose),
+    /// That was the last step of a move made for this purpose; `complete` unless the move was
+    /// cut short by a decelerating stop.
+    Finished { purpose: Purpose, complete: bool },
 }
 
 /// A motor's state: position in steps and the move in progress.
@@ -99,8 +102,14 @@ impl Motor {
             next,
             done: 0,
             purpose,
+            cut: false,
         });
         Ok(())
+    }
+
+    /// +1 or -1: the way the move in progress goes (logical steps).
+    pub fn direction(&self) -> Option<i64> {
+        self.motion.as_ref().map(|m| m.dir)
     }
 
     /// Tick of the next step.
@@ -118,9 +127,9 @@ impl Motor {
         if m.next.is_some() {
             return Stepped::Moving;
         }
-        let purpose = m.purpose;
+        let (purpose, complete) = (m.purpose, !m.cut);
         self.motion = None;
-        Stepped::Finished(purpose)
+        Stepped::Finished { purpose, complete }
     }
 
     /// Stops at once (e-stop, limit switch, homing switch found); returns what the move was for.
@@ -137,6 +146,7 @@ impl Motor {
         }
         let Some(plan) = m.plan.stopping_after(m.done) else { return self.stop_now() };
         m.times = plan.stepper_from(m.done);
+        m.cut = plan.steps() < m.plan.steps();
         m.plan = plan;
         m.next = m.times.next_tick().map(|dt| m.start.saturating_add(dt));
         if m.next.is_none() {
