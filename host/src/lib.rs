@@ -1,4 +1,11 @@
-//! The lightrig host toolkit. This first slice holds the protocol self-check; transports,
-//! the device client, planners, the session journal and the pipelines follow their issues.
+//! The lightrig host toolkit.
+//!
+//! - [`transport`]: bytes to and from a device (serial, the in-process virtual device).
+//! - [`client`]: the device client: handshake, requests, events, heartbeat, sequences.
+//! - [`clock`]: the host–device clock mapping.
+//! - [`selfcheck`]: the protocol self-check over a lossy simulated wire.
 
+pub mod client;
+pub mod clock;
 pub mod selfcheck;
+pub mod transport;

@@ -1,0 +1,479 @@
+//! The device client: handshake, requests, the acknowledged event stream, heartbeat, the
+//! host–device clock mapping, and sequence streaming under credit flow control.
+//!
+//! One [`Client`] talks to one device over any [`Transport`]. It is synchronous: every call
+//! pumps the link (sends, receives, retransmits, heartbeats) until its answer arrives or its
+//! time runs out. Events that arrive meanwhile queue up in order, numbered, duplicates (after
+//! a reconnection) dropped, each with a host timestamp from the clock mapping.
+
+use std::collections::{HashSet, VecDeque};
+use std::fmt;
+
+use lightrig_protocol::event::FaultCause;
+use lightrig_protocol::link::{Delivery, Link, LinkConfig, Role};
+use lightrig_protocol::sequence::{Chunk, Item, StartAt};
+use lightrig_protocol::session::DeviceInfo;
+use lightrig_protocol::{
+    Command, DeviceMsg, Error, Event, HostMsg, Reply, MAX_CHUNK_ITEMS, MAX_FRAME, PROTOCOL_VERSION,
+    SCHEMA_HASH,
+};
+
+use crate::clock::ClockMap;
+use crate::transport::Transport;
+
+/// Link window, frames in flight.
+const WINDOW: usize = 8;
+/// Retransmission timeout, µs.
+const RTO_US: u64 = 20_000;
+
+/// What went wrong talking to a device. Each message says what, where and what to do.
+#[derive(Debug)]
+pub enum ClientError {
+    /// The transport failed (port closed, cable pulled).
+    Io { device: String, error: std::io::Error },
+    /// No answer in time.
+    Timeout { device: String, what: String, waited_ms: u64 },
+    /// The device speaks another protocol version or message schema.
+    Incompatible { device: String, device_version: u16, device_schema: u64 },
+    /// The device refused a command.
+    Refused { device: String, command: String, error: Error },
+    /// The device entered the safe state.
+    Fault { device: String, cause: FaultCause, tick: u64 },
+    /// The device answered something the protocol does not allow here.
+    Protocol { device: String, detail: String },
+}
+
+impl fmt::Display for ClientError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            ClientError::Io { device, error } => {
+                write!(f, "{device}: {error}; check the cable and that no other program holds the port")
+            }
+            ClientError::Timeout { device, what, waited_ms } => write!(
+                f,
+                "{device}: no answer to {what} within {waited_ms} ms; is the device powered and running lightrig \
+                 firmware? (`lightrig devices` lists what answers)"
+            ),
+            ClientError::Incompatible { device, device_version, device_schema } => write!(
+                f,
+                "{device}: the firmware speaks protocol {device_version} (schema 0x{device_schema:016x}), this host \
+                 speaks protocol {PROTOCOL_VERSION} (schema 0x{SCHEMA_HASH:016x}); flash firmware built from the same \
+                 lightrig release as this host, or install the host matching the firmware"
+            ),
+            ClientError::Refused { device, command, error } => {
+                write!(f, "{device} refused {command}: {}", describe_error(error))
+            }
+            ClientError::Fault { device, cause, tick } => write!(
+                f,
+                "{device} entered the safe state at tick {tick}: {cause:?}; lasers are off. Fix the cause, then send \
+                 ClearFault (`lightrig` does this when you resume)"
+            ),
+            ClientError::Protocol { device, detail } => write!(f, "{device}: protocol error: {detail}"),
+        }
+    }
+}
+
+impl std::error::Error for ClientError {}
+
+/// A device error in words, with the configuration field's dotted name where there is one.
+pub fn describe_error(e: &Error) -> String {
+    match e {
+        Error::InvalidConfig(c) => format!("invalid configuration: {c}"),
+        other => format!("{other:?}"),
+    }
+}
+
+/// An event as the host keeps it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EventRecord {
+    /// The device's event number (from 0 at device start).
+    pub index: u32,
+    /// The device's boot id: with `index`, unique across device restarts.
+    pub boot_id: u32,
+    /// The event.
+    pub event: Event,
+    /// Host time of the event's tick (µs on the transport's clock), once the clock is mapped.
+    pub host_us: Option<f64>,
+}
+
+/// How a streamed sequence ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SequenceOutcome {
+    /// Items executed.
+    pub items: u32,
+    /// Tick of the last item.
+    pub tick: u64,
+}
+
+/// A connected device.
+pub struct Client<T: Transport> {
+    transport: T,
+    link: Link<HostMsg, DeviceMsg, WINDOW>,
+    info: DeviceInfo,
+    next_id: u16,
+    /// Answers not yet collected, by request id.
+    answers: Vec<(u16, Result<Reply, Error>)>,
+    /// Requests whose answers nobody waits for (heartbeats).
+    ignored: HashSet<u16>,
+    events: VecDeque<EventRecord>,
+    /// Highest event index seen from this boot.
+    last_event: Option<u32>,
+    clock: ClockMap,
+    /// Request id of the heartbeat clock sample in flight, and when it left.
+    sample: Option<(u16, u64)>,
+    heartbeat_us: u64,
+    last_request_us: u64,
+}
+
+impl<T: Transport> Client<T> {
+    /// Connects: synchronises the link, says Hello, checks protocol version and schema hash.
+    /// `nonce` must differ each time the host program starts (e.g. random).
+    pub fn connect(transport: T, nonce: u32) -> Result<Self, ClientError> {
+        Self::connect_as(transport, nonce, PROTOCOL_VERSION, SCHEMA_HASH)
+    }
+
+    /// [`Self::connect`] claiming another version and schema (for tests of the mismatch path).
+    pub fn connect_as(transport: T, nonce: u32, version: u16, schema: u64) -> Result<Self, ClientError> {
+        let now = transport.now_us();
+        let mut link = Link::new(Role::Initiator, LinkConfig { rto: RTO_US, rx_reserve: 0, nonce });
+        link.connect(now);
+        let mut client = Self {
+            transport,
+            link,
+            info: unknown_info(),
+            next_id: 0,
+            answers: Vec::new(),
+            ignored: HashSet::new(),
+            events: VecDeque::new(),
+            last_event: None,
+            clock: ClockMap::default(),
+            sample: None,
+            heartbeat_us: 200_000,
+            last_request_us: now,
+        };
+        let hello = Command::Hello { protocol_version: version, schema_hash: schema };
+        let info = match client.request_timeout(hello, 3_000_000) {
+            Ok(Reply::Hello(info)) => info,
+            Ok(other) => return Err(client.protocol(format!("Hello answered with {other:?}"))),
+            Err(e) => return Err(e),
+        };
+        client.info = info;
+        if info.protocol_version != version || info.schema_hash != schema {
+            return Err(client.incompatible());
+        }
+        // Heartbeats well inside the device's default timeout (1 s).
+        client.sync_clock(8)?;
+        Ok(client)
+    }
+
+    fn incompatible(&self) -> ClientError {
+        ClientError::Incompatible {
+            device: self.transport.describe(),
+            device_version: self.info.protocol_version,
+            device_schema: self.info.schema_hash,
+        }
+    }
+
+    fn protocol(&self, detail: String) -> ClientError {
+        ClientError::Protocol { device: self.transport.describe(), detail }
+    }
+
+    /// What the device said about itself.
+    pub fn info(&self) -> &DeviceInfo {
+        &self.info
+    }
+
+    /// The transport (to inspect a virtual device).
+    pub fn transport(&self) -> &T {
+        &self.transport
+    }
+
+    /// The transport, mutably.
+    pub fn transport_mut(&mut self) -> &mut T {
+        &mut self.transport
+    }
+
+    /// The host–device clock mapping.
+    pub fn clock(&self) -> &ClockMap {
+        &self.clock
+    }
+
+    /// Sends a command and waits for its answer (up to 2 s); a refusal is an error naming the
+    /// command.
+    pub fn request(&mut self, command: Command) -> Result<Reply, ClientError> {
+        self.request_timeout(command, 2_000_000)
+    }
+
+    fn request_timeout(&mut self, command: Command, timeout_us: u64) -> Result<Reply, ClientError> {
+        let what = command_name(&command);
+        let id = self.send(command, timeout_us)?;
+        let deadline = self.transport.now_us().saturating_add(timeout_us);
+        loop {
+            if let Some(i) = self.answers.iter().position(|(a, _)| *a == id) {
+                let (_, result) = self.answers.remove(i);
+                return result.map_err(|error| ClientError::Refused {
+                    device: self.transport.describe(),
+                    command: what,
+                    error,
+                });
+            }
+            if self.transport.now_us() >= deadline {
+                return Err(ClientError::Timeout {
+                    device: self.transport.describe(),
+                    what,
+                    waited_ms: timeout_us / 1000,
+                });
+            }
+            self.pump(deadline)?;
+        }
+    }
+
+    /// Queues a command (waiting for room in the link window); returns its request id.
+    fn send(&mut self, command: Command, timeout_us: u64) -> Result<u16, ClientError> {
+        self.next_id = self.next_id.wrapping_add(1);
+        let id = self.next_id;
+        let deadline = self.transport.now_us().saturating_add(timeout_us);
+        let mut msg = HostMsg { id, command };
+        loop {
+            match self.link.send(msg) {
+                Ok(()) => break,
+                Err(e) => {
+                    msg = e.into_inner();
+                    if self.transport.now_us() >= deadline {
+                        return Err(ClientError::Timeout {
+                            device: self.transport.describe(),
+                            what: "room in the link window".into(),
+                            waited_ms: timeout_us / 1000,
+                        });
+                    }
+                    self.pump(deadline)?;
+                }
+            }
+        }
+        self.last_request_us = self.transport.now_us();
+        Ok(id)
+    }
+
+    /// Moves bytes both ways once, waiting at most until `deadline` for something to arrive.
+    fn pump(&mut self, deadline: u64) -> Result<(), ClientError> {
+        let mut out = [0u8; MAX_FRAME];
+        let now = self.transport.now_us();
+        self.heartbeat(now)?;
+        while let Some(n) = self.link.poll_transmit(now, &mut out) {
+            let device = self.transport.describe();
+            self.transport.send(&out[..n]).map_err(|error| ClientError::Io { device, error })?;
+        }
+        let wake =
+            [Some(deadline), self.link.next_deadline(), Some(self.last_request_us + self.heartbeat_us)]
+                .into_iter()
+                .flatten()
+                .min()
+                .unwrap_or(deadline)
+                .max(now + 1);
+        let mut buf = [0u8; 4096];
+        let device = self.transport.describe();
+        let n = self.transport.recv(&mut buf, wake).map_err(|error| ClientError::Io { device, error })?;
+        let at = self.transport.now_us();
+        let mut got = Vec::new();
+        self.link.receive_all(&buf[..n], at, |d| got.push(d));
+        for d in got {
+            self.deliver(d, at)?;
+        }
+        Ok(())
+    }
+
+    /// Keeps the device's watchdog fed, and the clock mapping fresh: a heartbeat is a
+    /// `GetClock` whose answer is one more clock sample.
+    fn heartbeat(&mut self, now: u64) -> Result<(), ClientError> {
+        if self.sample.is_some() || now < self.last_request_us + self.heartbeat_us || self.link.free() == 0 {
+            return Ok(());
+        }
+        self.next_id = self.next_id.wrapping_add(1);
+        let id = self.next_id;
+        if self.link.send(HostMsg { id, command: Command::GetClock }).is_ok() {
+            self.ignored.insert(id);
+            self.sample = Some((id, now));
+            self.last_request_us = now;
+        }
+        Ok(())
+    }
+
+    fn deliver(&mut self, d: Delivery<DeviceMsg>, at: u64) -> Result<(), ClientError> {
+        match d {
+            Delivery::Message(DeviceMsg::Response { id, result }) => {
+                if let Some((sid, sent)) = self.sample {
+                    if sid == id {
+                        self.sample = None;
+                        if let Ok(Reply::Clock { tick }) = result {
+                            self.clock.add(sent, at, tick);
+                        }
+                    }
+                }
+                if !self.ignored.remove(&id) {
+                    self.answers.push((id, result));
+                }
+            }
+            Delivery::Message(DeviceMsg::Event { index, event }) => {
+                // After a reconnection the device resends what we had not acknowledged.
+                if self.last_event.is_some_and(|last| index <= last) {
+                    return Ok(());
+                }
+                self.last_event = Some(index);
+                let host_us = event_tick(&event).and_then(|t| self.clock.host_us(t));
+                self.events.push_back(EventRecord { index, boot_id: self.info.boot_id, event, host_us });
+            }
+            Delivery::Message(DeviceMsg::Rejected { seq, reason }) => {
+                return Err(self.protocol(format!("the device could not decode our frame {seq}: {reason:?}")));
+            }
+            Delivery::Incompatible { protocol_version, schema_hash, .. } => {
+                self.info.protocol_version = protocol_version;
+                self.info.schema_hash = schema_hash;
+                return Err(self.incompatible());
+            }
+            Delivery::Rejected { seq, reason } => {
+                return Err(self.protocol(format!("undecodable message {seq} from the device: {reason:?}")));
+            }
+            Delivery::Datagram(_) | Delivery::Connected { .. } => {}
+        }
+        Ok(())
+    }
+
+    /// Measures the clock mapping with `n` `GetClock` round trips.
+    pub fn sync_clock(&mut self, n: usize) -> Result<(), ClientError> {
+        for _ in 0..n {
+            let sent = self.transport.now_us();
+            if let Reply::Clock { tick } = self.request(Command::GetClock)? {
+                let got = self.transport.now_us();
+                self.clock.add(sent, got, tick);
+            }
+        }
+        Ok(())
+    }
+
+    /// The next event, waiting up to `timeout_us`.
+    pub fn next_event(&mut self, timeout_us: u64) -> Result<Option<EventRecord>, ClientError> {
+        let deadline = self.transport.now_us().saturating_add(timeout_us);
+        while self.events.is_empty() && self.transport.now_us() < deadline {
+            self.pump(deadline)?;
+        }
+        Ok(self.events.pop_front())
+    }
+
+    /// Runs the link for `us` microseconds (events queue up).
+    pub fn idle(&mut self, us: u64) -> Result<(), ClientError> {
+        let deadline = self.transport.now_us().saturating_add(us);
+        while self.transport.now_us() < deadline {
+            self.pump(deadline)?;
+        }
+        Ok(())
+    }
+
+    /// Streams `items` as sequence `id`, keeping the device's buffer topped up under its
+    /// credit, starts it at `start` once the buffer is full (or everything is loaded), and
+    /// hands every event to `on_event` until the sequence is done. A fault ends it with
+    /// [`ClientError::Fault`].
+    pub fn run_sequence(
+        &mut self,
+        id: u32,
+        items: impl IntoIterator<Item = Item>,
+        start: StartAt,
+        mut on_event: impl FnMut(&EventRecord),
+    ) -> Result<SequenceOutcome, ClientError> {
+        let capacity = u32::from(self.info.capabilities.sequence_buffer);
+        let mut items = items.into_iter().peekable();
+        let (mut sent, mut executed, mut chunk) = (0u32, 0u32, 0u32);
+        let mut started = false;
+        loop {
+            // Credit: what the device has room for, from its last report.
+            while items.peek().is_some() && capacity - (sent - executed) >= MAX_CHUNK_ITEMS as u32 {
+                let batch: heapless::Vec<Item, MAX_CHUNK_ITEMS> =
+                    items.by_ref().take(MAX_CHUNK_ITEMS).collect();
+                let n = batch.len() as u32;
+                let last = items.peek().is_none();
+                let reply =
+                    self.request(Command::SequenceLoad(Chunk { sequence: id, chunk, last, items: batch }))?;
+                if let Reply::Buffer(b) = reply {
+                    executed = executed.max(b.executed);
+                }
+                sent += n;
+                chunk += 1;
+            }
+            if chunk == 0 {
+                // An empty sequence still needs its (empty, last) chunk.
+                let empty = Chunk { sequence: id, chunk: 0, last: true, items: heapless::Vec::new() };
+                self.request(Command::SequenceLoad(empty))?;
+                chunk = 1;
+            }
+            if !started {
+                self.request(Command::SequenceStart { sequence: id, at: start })?;
+                started = true;
+            }
+            let Some(e) = self.next_event(1_000_000)? else { continue };
+            on_event(&e);
+            match e.event {
+                Event::Buffer(b) if b.sequence == id => executed = executed.max(b.executed),
+                Event::SequenceDone { sequence, items, tick } if sequence == id => {
+                    return Ok(SequenceOutcome { items, tick });
+                }
+                Event::Fault { cause, tick } => {
+                    return Err(ClientError::Fault { device: self.transport.describe(), cause, tick });
+                }
+                _ => {}
+            }
+        }
+    }
+}
+
+/// Stands in for the device's description until it answers Hello.
+fn unknown_info() -> DeviceInfo {
+    use lightrig_protocol::session::{BoardId, Capabilities, ResetCause, Version};
+    DeviceInfo {
+        protocol_version: 0,
+        schema_hash: 0,
+        firmware: Version { major: 0, minor: 0, patch: 0 },
+        board: BoardId::Other(0),
+        serial: 0,
+        tick_hz: 1,
+        reset_cause: ResetCause::Unknown,
+        boot_id: 0,
+        capabilities: Capabilities {
+            galvos: 0,
+            lasers: 0,
+            steppers: 0,
+            filter_wheels: 0,
+            voice_coils: 0,
+            partials_per_coil: 0,
+            cameras: 0,
+            sequence_buffer: 0,
+            event_queue: 0,
+            link_window: 0,
+            max_packet: 0,
+        },
+    }
+}
+
+/// The device tick an event carries, if any.
+pub fn event_tick(e: &Event) -> Option<u64> {
+    Some(match e {
+        Event::Trigger(t) => t.tick,
+        Event::Exposure { tick, .. }
+        | Event::MoveDone { tick, .. }
+        | Event::Homed { tick, .. }
+        | Event::Switch { tick, .. }
+        | Event::LaserReady { tick, .. }
+        | Event::Marker { tick, .. }
+        | Event::Underrun { tick, .. }
+        | Event::SequenceDone { tick, .. }
+        | Event::Fault { tick, .. }
+        | Event::State { tick, .. }
+        | Event::Log { tick, .. } => *tick,
+        Event::Buffer(_) => return None,
+    })
+}
+
+/// A command's name for messages.
+fn command_name(c: &Command) -> String {
+    let s = format!("{c:?}");
+    let end = s.find([' ', '(', '{']).unwrap_or(s.len());
+    s[..end].to_string()
+}

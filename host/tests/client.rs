@@ -1,0 +1,90 @@
+//! The device client against the firmware controller in-process (the virtual transport).
+
+use lightrig_firmware::sim::SimBoard;
+use lightrig_host::client::{Client, ClientError};
+use lightrig_host::selfcheck::virtual_device_info;
+use lightrig_host::transport::VirtualTransport;
+use lightrig_protocol::config::{CameraConfig, ConfigItem, Input, LaserConfig, Polarity};
+use lightrig_protocol::event::DeviceState;
+use lightrig_protocol::sequence::{Action, Item, StartAt};
+use lightrig_protocol::{Command, Event, Reply, SCHEMA_HASH};
+
+fn client() -> Client<VirtualTransport> {
+    Client::connect(VirtualTransport::new(virtual_device_info(), SimBoard::default()), 0x5eed).unwrap()
+}
+
+#[test]
+fn connects_and_maps_the_clock() {
+    let c = client();
+    assert_eq!(c.info().schema_hash, SCHEMA_HASH);
+    // Host and virtual device share simulated time: the mapping is the identity.
+    assert!((c.clock().rate().unwrap() - 1.0).abs() < 1e-9);
+    assert!(c.clock().residual().unwrap() < 1.0);
+    assert_eq!(c.clock().host_us(123_456).map(|h| h.round()), Some(123_456.0));
+}
+
+#[test]
+fn a_schema_mismatch_says_both_hashes_and_what_to_do() {
+    let t = VirtualTransport::new(virtual_device_info(), SimBoard::default());
+    let Err(e) = Client::connect_as(t, 1, 1, 0x1234) else { panic!("connected") };
+    assert!(matches!(e, ClientError::Incompatible { device_schema, .. } if device_schema == SCHEMA_HASH));
+    let msg = e.to_string();
+    assert!(msg.contains(&format!("0x{SCHEMA_HASH:016x}")), "{msg}");
+    assert!(msg.contains("flash firmware built from the same lightrig release"), "{msg}");
+}
+
+#[test]
+fn a_refused_configuration_names_the_field() {
+    let mut c = client();
+    let bad = LaserConfig {
+        channel: 0,
+        wavelength_nm: 635,
+        warmup_ticks: 0,
+        max_on_ticks: 0,
+        enable: Polarity::ActiveHigh,
+        interlock: Input::Unused,
+    };
+    let e = c.request(Command::Configure(ConfigItem::Laser(bad))).unwrap_err();
+    assert_eq!(e.to_string(), "virtual rig (in-process) refused Configure: invalid configuration: laser.max_on_ticks[0]: must not be zero");
+}
+
+#[test]
+fn heartbeats_keep_an_idle_device_out_of_the_safe_state() {
+    let mut c = client();
+    c.idle(5_000_000).unwrap();
+    assert_eq!(c.transport().device().state(), DeviceState::Ready);
+    // ... and every heartbeat was one more clock sample.
+    assert!(c.clock().counts().0 > 20);
+}
+
+#[test]
+fn streams_a_sequence_larger_than_the_buffer_and_gets_every_trigger() {
+    let mut c = client();
+    let cam = CameraConfig {
+        camera: 0,
+        pulse_ticks: 20,
+        polarity: Polarity::ActiveHigh,
+        exposure_input: Input::Unused,
+        min_interval_ticks: 0,
+    };
+    assert_eq!(c.request(Command::Configure(ConfigItem::Camera(cam))).unwrap(), Reply::Done);
+    const N: u32 = 2_000;
+    let items = (0..N).map(|_| Item { delta: 500, action: Action::Trigger { camera: 0, exposure: 0 } });
+    let start = c.transport().device().rig().next_due().unwrap_or(0).max(1) + 100_000;
+    let mut frames = Vec::new();
+    let outcome = c
+        .run_sequence(3, items, StartAt::Tick(start), |e| {
+            if let Event::Trigger(t) = &e.event {
+                frames.push((t.frame, t.tick, e.host_us));
+            }
+        })
+        .unwrap();
+    assert_eq!(outcome.items, N);
+    assert_eq!(outcome.tick, start + 500 * u64::from(N));
+    assert_eq!(frames.len(), N as usize);
+    for (k, (frame, tick, host)) in frames.iter().enumerate() {
+        assert_eq!(*frame, k as u32);
+        assert_eq!(*tick, start + 500 * (k as u64 + 1));
+        assert_eq!(host.map(|h| h.round() as u64), Some(*tick), "host time of the trigger");
+    }
+}
