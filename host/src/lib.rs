@@ -7,5 +7,6 @@
 
 pub mod client;
 pub mod clock;
+pub mod plan;
 pub mod selfcheck;
 pub mod transport;

@@ -1,0 +1,87 @@
+//! DISCO (Goesele et al. 2004): a galvo-steered laser spot visits points on a translucent
+//! object on a turntable, for each view and each laser colour; the camera records each
+//! impulse response.
+//!
+//! One step per view: the turntable goes to the view's angle; a registration frame is taken
+//! under the spotlights; then for each laser: on, warm up, and for every grid point: jump (the
+//! device blanks the lasers while the mirrors settle), wait out the settle time, expose. No
+//! frame is triggered while the mirrors move.
+
+use lightrig_protocol::config::Xy;
+use lightrig_protocol::sequence::{Action, WaitFor};
+use serde_json::json;
+
+use super::{Plan, PlanError, StepBuilder};
+
+/// Everything the DISCO planner needs, in device units.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DiscoParams {
+    /// Turntable axis.
+    pub turntable: u8,
+    /// Turntable position of each view, steps.
+    pub views: Vec<i32>,
+    /// Laser channels, in capture order (e.g. 635, 532, 476 nm).
+    pub lasers: Vec<u8>,
+    /// Galvo pair.
+    pub galvo: u8,
+    /// Spot positions, DAC codes.
+    pub grid: Vec<Xy>,
+    /// Camera.
+    pub camera: u8,
+    /// Exposure per spot, ticks.
+    pub exposure: u32,
+    /// Mirror settle time after a jump, ticks (the galvo's `settle_ticks`).
+    pub settle: u32,
+    /// Time from a trigger to the next jump, ticks (at least the exposure).
+    pub frame_gap: u32,
+    /// Light channel of the spotlights for the registration frame, if any.
+    pub spotlight: Option<u8>,
+    /// Longest a move or warm-up may take, ticks.
+    pub timeout: u32,
+    /// Bytes per frame.
+    pub frame_bytes: u64,
+    /// Device tick rate.
+    pub tick_hz: u32,
+}
+
+/// The DISCO plan: one step per view.
+pub fn plan(p: &DiscoParams) -> Result<Plan, PlanError> {
+    if p.views.is_empty() || p.lasers.is_empty() || p.grid.is_empty() {
+        return Err(PlanError("disco: views, lasers and grid must not be empty".into()));
+    }
+    if p.frame_gap < p.exposure {
+        return Err(PlanError(format!(
+            "disco: frame_gap ({} ticks) is shorter than the exposure ({} ticks): the spot would move during it",
+            p.frame_gap, p.exposure
+        )));
+    }
+    let mut steps = Vec::new();
+    for (v, &angle) in p.views.iter().enumerate() {
+        let mut b = StepBuilder::default();
+        b.move_to(p.turntable, angle, p.timeout);
+        if let Some(s) = p.spotlight {
+            b.then(Action::Laser { channel: s, on: true });
+            b.until(WaitFor::LaserReady(s), p.timeout);
+            b.shoot(p.camera, p.exposure, "registration");
+            b.wait(p.frame_gap);
+            b.then(Action::Laser { channel: s, on: false });
+        }
+        for &laser in &p.lasers {
+            b.then(Action::Laser { channel: laser, on: true });
+            b.until(WaitFor::LaserReady(laser), p.timeout);
+            for (k, &point) in p.grid.iter().enumerate() {
+                b.then(Action::GalvoPoint { galvo: p.galvo, to: point });
+                b.wait(p.settle);
+                b.shoot(p.camera, p.exposure, format!("laser {laser} point {k}"));
+                b.wait(p.frame_gap);
+            }
+            b.then(Action::Laser { channel: laser, on: false });
+        }
+        let meta = json!({
+            "view": v, "turntable": angle, "lasers": p.lasers, "registration": p.spotlight.is_some(),
+            "grid": p.grid.iter().map(|q| [q.x, q.y]).collect::<Vec<_>>(),
+        });
+        steps.push(b.build(v as u32, format!("view {v}"), meta));
+    }
+    Ok(Plan { method: "disco".into(), tick_hz: p.tick_hz, steps, frame_bytes: p.frame_bytes })
+}

@@ -1,0 +1,104 @@
+//! Linear light source reflectometry (Gardner et al. 2003): a gantry carries a linear light
+//! (and, in another pass, a laser stripe) over a flat sample; one frame per position.
+//!
+//! One step per pass, each from a known start: the gantry goes to the first position, the
+//! pass's light comes on and warms up, then for every position: move, settle, expose. The
+//! light goes off at the end of the pass (and the device turns every laser off when a sequence
+//! ends anyway).
+
+use lightrig_protocol::sequence::{Action, WaitFor};
+use serde::Serialize;
+use serde_json::json;
+
+use super::{Plan, PlanError, StepBuilder};
+
+/// What a pass lights the sample with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Pass {
+    /// The linear light: diffuse, specular and roughness.
+    Reflectance,
+    /// The laser stripe: height by triangulation.
+    Stripe,
+    /// The light box under the sample: translucency.
+    Backlit,
+}
+
+/// Everything the LLS planner needs, in device units.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct LlsParams {
+    /// Gantry axis.
+    pub axis: u8,
+    /// First position, steps.
+    pub start: i32,
+    /// Distance between frames, steps (1 mm by default).
+    pub step: i32,
+    /// Frames per pass.
+    pub count: u32,
+    /// Camera.
+    pub camera: u8,
+    /// Exposure, ticks.
+    pub exposure: u32,
+    /// Wait after the gantry stops before exposing (vibration), ticks.
+    pub settle: u32,
+    /// Time from a trigger to the next move (exposure plus readout), ticks.
+    pub frame_gap: u32,
+    /// Laser channel switching the linear light.
+    pub light: u8,
+    /// Laser channel of the stripe laser.
+    pub stripe: u8,
+    /// Laser channel of the light box, if the rig has one.
+    pub backlight: Option<u8>,
+    /// The passes, in order.
+    pub passes: Vec<Pass>,
+    /// Longest a move or warm-up may take before the device gives up, ticks.
+    pub timeout: u32,
+    /// Bytes per frame.
+    pub frame_bytes: u64,
+    /// Device tick rate.
+    pub tick_hz: u32,
+}
+
+/// The LLS plan: one step per pass.
+pub fn plan(p: &LlsParams) -> Result<Plan, PlanError> {
+    if p.count == 0 || p.step == 0 {
+        return Err(PlanError("lls: count and step must be non-zero".into()));
+    }
+    if p.frame_gap < p.exposure {
+        return Err(PlanError(format!(
+            "lls: frame_gap ({} ticks) is shorter than the exposure ({} ticks): frames would overlap the next move",
+            p.frame_gap, p.exposure
+        )));
+    }
+    let last = i64::from(p.start) + i64::from(p.step) * (i64::from(p.count) - 1);
+    let last = i32::try_from(last).map_err(|_| PlanError("lls: the pass runs past the axis range".into()))?;
+    let mut steps = Vec::new();
+    for (id, pass) in p.passes.iter().enumerate() {
+        let channel = match pass {
+            Pass::Reflectance => p.light,
+            Pass::Stripe => p.stripe,
+            Pass::Backlit => {
+                p.backlight.ok_or_else(|| PlanError("lls: a backlit pass needs a backlight".into()))?
+            }
+        };
+        let mut b = StepBuilder::default();
+        b.move_to(p.axis, p.start, p.timeout);
+        b.then(Action::Laser { channel, on: true });
+        b.until(WaitFor::LaserReady(channel), p.timeout);
+        for i in 0..p.count {
+            let pos = p.start + p.step * i as i32;
+            b.move_to(p.axis, pos, p.timeout);
+            b.wait(p.settle);
+            b.shoot(p.camera, p.exposure, format!("{pass:?} {i}").to_lowercase());
+            b.wait(p.frame_gap);
+        }
+        b.then(Action::Laser { channel, on: false });
+        let meta = json!({ "pass": pass, "axis": p.axis, "start": p.start, "step": p.step, "count": p.count, "last": last });
+        steps.push(b.build(
+            id as u32,
+            format!("pass {}", serde_json::to_value(pass).unwrap_or_default()),
+            meta,
+        ));
+    }
+    Ok(Plan { method: "linear-light-source".into(), tick_hz: p.tick_hz, steps, frame_bytes: p.frame_bytes })
+}
