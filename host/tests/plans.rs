@@ -172,3 +172,167 @@ fn disco_never_triggers_while_the_mirrors_move() {
         assert!(t.tick - last_jump >= 300, "trigger {k} {} ticks after a jump", t.tick - last_jump);
     }
 }
+
+#[test]
+fn immersion_sweeps_one_frame_per_sheet_per_orientation() {
+    use lightrig_host::plan::immersion;
+    let mut c = rig_client();
+    let p = immersion::ImmersionParams {
+        turntable: 1,
+        orientations: vec![0, 4_000],
+        laser: 0,
+        galvo: 0,
+        sweep: (10_000, 50_000, 11),
+        sheet_y: 32_768,
+        camera: 0,
+        exposure: 1_000,
+        settle: 300,
+        frame_gap: 1_200,
+        calibration: true,
+        timeout: 2_000_000,
+        frame_bytes: 1 << 20,
+        tick_hz: 1_000_000,
+    };
+    let plan = immersion::plan(&p).unwrap();
+    assert_eq!(plan.summary().triggers, (1 + 11) + 2 * 11);
+    let codes = immersion::sheet_codes(10_000, 50_000, 11);
+    assert_eq!((codes[0], codes[1], codes[10]), (10_000, 14_000, 50_000));
+    let triggers = run(&mut c, &plan);
+    assert_eq!(triggers[0].snapshot.lasers, 0, "dark frame");
+    for (k, t) in triggers[1..].iter().enumerate() {
+        let sheet = k % 11;
+        assert_eq!(t.snapshot.galvos[0], Xy { x: codes[sheet], y: 32_768 });
+        assert_eq!(t.snapshot.lasers, 0b001);
+        // Calibration and the first orientation at 0, the second at 4000.
+        assert_eq!(t.snapshot.axes[1], if k < 22 { 0 } else { 4_000 });
+    }
+}
+
+#[test]
+fn bispectral_takes_an_exposure_series_per_pair_with_the_right_slot() {
+    use lightrig_host::plan::bispectral;
+    let mut board = SimBoard::default();
+    board.wheels[0].index_at = Some((0, 1_200));
+    let mut c = Client::connect(VirtualTransport::new(virtual_device_info(), board), 4).unwrap();
+    let axis = |axis| StepperConfig {
+        axis,
+        kind: AxisKind::Rotary,
+        steps_per_unit: Ratio { num: 100, den: 1 },
+        max_speed: 20_000,
+        accel: 200_000,
+        limits: None,
+        homing: Homing { mode: HomingMode::None, speed: 1_000, backoff: 0, position: 0 },
+        invert_dir: false,
+        enable: Polarity::ActiveHigh,
+        limit_min: Input::Unused,
+        limit_max: Input::Unused,
+        index: Input::Unused,
+    };
+    let wheel = FilterWheelConfig {
+        wheel: 0,
+        slots: 6,
+        steps_per_rev: 1_200,
+        max_speed: 10_000,
+        accel: 100_000,
+        index: Input::Wired(Polarity::ActiveHigh),
+        index_offset: 0,
+        invert_dir: false,
+        enable: Polarity::ActiveHigh,
+    };
+    let cam = CameraConfig {
+        camera: 0,
+        pulse_ticks: 100,
+        polarity: Polarity::ActiveHigh,
+        exposure_input: Input::Unused,
+        min_interval_ticks: 0,
+    };
+    for item in [
+        ConfigItem::Stepper(axis(0)),
+        ConfigItem::Stepper(axis(1)),
+        ConfigItem::FilterWheel(wheel),
+        ConfigItem::Camera(cam),
+    ] {
+        c.request(Command::Configure(item)).unwrap();
+    }
+    for a in [AxisRef::Stepper(0), AxisRef::Stepper(1), AxisRef::FilterWheel(0)] {
+        c.request(Command::Home(a)).unwrap();
+    }
+    c.idle(2_000_000).unwrap();
+    let grid = [400, 500, 600];
+    // Near-UV excitation through the LED in slot 1, the rest through the open slot 0.
+    let pairs = bispectral::full_pairs(&grid, |ex| if ex < 450 { 1 } else { 0 });
+    assert_eq!(pairs.len(), 6, "excitation <= emission only");
+    let p = bispectral::BispectralParams {
+        sample_axis: 0,
+        light_axis: 1,
+        geometries: vec![(0, 3_000), (1_500, 4_500)],
+        wheel: 0,
+        pairs: pairs.clone(),
+        camera: 0,
+        exposures: vec![1_000, 4_000, 16_000],
+        readout: 2_000,
+        timeout: 3_000_000,
+        frame_bytes: 1 << 20,
+        tick_hz: 1_000_000,
+    };
+    let plan = bispectral::plan(&p).unwrap();
+    assert_eq!(plan.summary().triggers, 2 * 6 * 3);
+    let triggers = run(&mut c, &plan);
+    for (k, t) in triggers.iter().enumerate() {
+        let (step, e) = (k / 3, k % 3);
+        let (g, pair) = (step / 6, pairs[step % 6]);
+        assert_eq!(t.width, [1_000, 4_000, 16_000][e]);
+        assert_eq!(t.snapshot.axes.as_slice(), [[0, 3_000], [1_500, 4_500]][g]);
+        assert_eq!(t.snapshot.filters[0], Some(pair.slot));
+    }
+}
+
+#[test]
+fn brdf_display_ramps_the_coils_then_captures_then_fades() {
+    use lightrig_host::plan::brdf_display::{self, ward_partials, Target};
+    let mut c = rig_client();
+    for ch in 0..2 {
+        let coil = VoiceCoilConfig { channel: ch, sample_rate_hz: 48_000, max_amplitude: u16::MAX };
+        c.request(Command::Configure(ConfigItem::VoiceCoil(coil))).unwrap();
+    }
+    let targets: Vec<Target> = [0.05, 0.2]
+        .iter()
+        .map(|&alpha| Target {
+            name: format!("alpha {alpha}"),
+            channels: (0..2)
+                .map(|ch| (ch, ward_partials(alpha, 7_000 + 1_000 * u32::from(ch), 8, 2.0)))
+                .collect(),
+        })
+        .collect();
+    // Rougher target, larger amplitudes; frequencies at prime ratios.
+    assert!(targets[1].channels[0].1[0].amplitude > targets[0].channels[0].1[0].amplitude);
+    assert_eq!(
+        targets[0].channels[0].1.iter().map(|p| p.freq_mhz).collect::<Vec<_>>()[..3],
+        [14_000, 21_000, 35_000]
+    );
+    let p = brdf_display::DisplayParams {
+        targets,
+        ramp: 50_000,
+        settle: 200_000,
+        camera: 0,
+        captures: 3,
+        exposure: 5_000,
+        frame_gap: 10_000,
+        frame_bytes: 1 << 20,
+        tick_hz: 1_000_000,
+    };
+    let plan = brdf_display::plan(&p).unwrap();
+    let triggers = run(&mut c, &plan);
+    assert_eq!(triggers.len(), 6);
+    // Samples leave with a fixed latency of two blocks: let the last ones out.
+    c.idle(20_000).unwrap();
+    let board = c.transport().device().rig().board();
+    // The coil is sounding at every capture and silent at the end.
+    for t in &triggers {
+        let sample = (t.tick * 48_000 / 1_000_000) as usize;
+        let window = &board.samples[0][sample..sample + 480];
+        assert!(window.iter().any(|&v| v.unsigned_abs() > 10), "sounding at tick {}", t.tick);
+    }
+    let tail = &board.samples[0][board.samples[0].len() - 64..];
+    assert!(tail.iter().all(|&v| v == 0), "faded to silence");
+}

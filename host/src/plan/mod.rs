@@ -10,7 +10,10 @@
 //! before a planner sees them. Planners are plain functions of their parameters: no device, no
 //! I/O, so they are tested alone and their output is deterministic.
 
+pub mod bispectral;
+pub mod brdf_display;
 pub mod disco;
+pub mod immersion;
 pub mod lls;
 
 use lightrig_protocol::sequence::{Action, Item, Profile, WaitFor};
@@ -131,8 +134,10 @@ impl StepBuilder {
         self
     }
 
-    /// The finished step.
-    pub fn build(self, id: u32, name: impl Into<String>, meta: serde_json::Value) -> Step {
+    /// The finished step. It ends with a `Marker { id }` after any pending delay, so a delay
+    /// after the last trigger (exposure, readout) still separates this step from the next.
+    pub fn build(mut self, id: u32, name: impl Into<String>, meta: serde_json::Value) -> Step {
+        self.then(Action::Marker { id });
         Step { id, name: name.into(), items: self.items, shots: self.shots, min_ticks: self.ticks, meta }
     }
 }

@@ -1,0 +1,99 @@
+//! Bispectral BRRDF (Hullin et al. 2010): a turntable gonioreflectometer measures reflected
+//! radiance for pairs of (illumination, observation) wavelengths, with tunable filters on the
+//! light and the camera and an LED filter wheel for the near-UV; each measurement is an HDR
+//! exposure series.
+//!
+//! One step per (geometry, wavelength pair). The tunable filters are host instruments: the
+//! engine sets them from the step's `meta` before running the step; the device sequence moves
+//! the sample turntable and the light arm, turns the filter wheel to the pair's slot and takes
+//! the exposure series. Full mode takes every pair of the grid with excitation ≤ emission (the
+//! bispectral matrix is zero above the diagonal: no anti-Stokes emission); sparse mode takes
+//! the pairs the PCA step of the pipeline chose.
+
+use lightrig_protocol::sequence::{Action, AxisRef, WaitFor};
+use serde_json::json;
+
+use super::{Plan, PlanError, StepBuilder};
+
+/// An (illumination, observation) wavelength pair, nm, and the filter-wheel slot that lights it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Pair {
+    /// Illumination wavelength, nm.
+    pub excitation: u16,
+    /// Observed wavelength, nm.
+    pub emission: u16,
+    /// Filter-wheel slot for the light path (an LED slot for the near-UV, "open" otherwise).
+    pub slot: u8,
+}
+
+/// Everything the bispectral planner needs, in device units.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BispectralParams {
+    /// Sample turntable axis.
+    pub sample_axis: u8,
+    /// Light arm axis.
+    pub light_axis: u8,
+    /// (sample, light) positions, steps.
+    pub geometries: Vec<(i32, i32)>,
+    /// Filter wheel.
+    pub wheel: u8,
+    /// Wavelength pairs, in capture order.
+    pub pairs: Vec<Pair>,
+    /// Camera.
+    pub camera: u8,
+    /// Exposure series, ticks, shortest first.
+    pub exposures: Vec<u32>,
+    /// Gap after each exposure (readout), ticks.
+    pub readout: u32,
+    /// Longest a move may take, ticks.
+    pub timeout: u32,
+    /// Bytes per frame.
+    pub frame_bytes: u64,
+    /// Device tick rate.
+    pub tick_hz: u32,
+}
+
+/// All pairs of a wavelength grid with excitation ≤ emission (full mode), each lit through
+/// `slot_for(excitation)`.
+pub fn full_pairs(grid: &[u16], slot_for: impl Fn(u16) -> u8) -> Vec<Pair> {
+    let mut out = Vec::new();
+    for &ex in grid {
+        for &em in grid.iter().filter(|&&em| em >= ex) {
+            out.push(Pair { excitation: ex, emission: em, slot: slot_for(ex) });
+        }
+    }
+    out
+}
+
+/// The bispectral plan: one step per geometry and pair.
+pub fn plan(p: &BispectralParams) -> Result<Plan, PlanError> {
+    if p.geometries.is_empty() || p.pairs.is_empty() || p.exposures.is_empty() {
+        return Err(PlanError("bispectral: geometries, pairs and exposures must not be empty".into()));
+    }
+    let mut steps = Vec::new();
+    for (g, &(sample, light)) in p.geometries.iter().enumerate() {
+        for pair in &p.pairs {
+            let mut b = StepBuilder::default();
+            // Both axes and the wheel move together; wait for all three.
+            b.then(Action::StepperMove { axis: p.sample_axis, target: sample, profile: Default::default() });
+            b.then(Action::StepperMove { axis: p.light_axis, target: light, profile: Default::default() });
+            b.then(Action::FilterWheel { wheel: p.wheel, slot: pair.slot });
+            b.until(WaitFor::MoveDone(AxisRef::Stepper(p.sample_axis)), p.timeout);
+            b.until(WaitFor::MoveDone(AxisRef::Stepper(p.light_axis)), p.timeout);
+            b.until(WaitFor::MoveDone(AxisRef::FilterWheel(p.wheel)), p.timeout);
+            for (e, &exposure) in p.exposures.iter().enumerate() {
+                b.shoot(p.camera, exposure, format!("exposure {e}"));
+                b.wait(exposure.saturating_add(p.readout));
+            }
+            let meta = json!({
+                "geometry": g, "sample": sample, "light": light,
+                "excitation_nm": pair.excitation, "emission_nm": pair.emission, "slot": pair.slot,
+                "exposures": p.exposures,
+                "host": { "light_filter_nm": pair.excitation, "camera_filter_nm": pair.emission },
+            });
+            let id = steps.len() as u32;
+            steps.push(b.build(id, format!("geometry {g} {}→{} nm", pair.excitation, pair.emission), meta));
+        }
+    }
+    Ok(Plan { method: "bispectral".into(), tick_hz: p.tick_hz, steps, frame_bytes: p.frame_bytes })
+}

@@ -1,0 +1,95 @@
+//! Fluorescent immersion range scanning (Hullin et al. 2008): the object sits in a tank of
+//! fluorescent liquid; a galvo sweeps a laser sheet through the tank front to back, one frame
+//! per sheet position; the sheet glows in the liquid and is cut off where it meets the object.
+//!
+//! One step per turntable orientation: turn, laser on and warm, then for every sheet position:
+//! jump the sheet (blanked while the mirror settles), wait out the settle time, expose. A
+//! calibration step first: a dark frame (laser off) and a sweep with the calibration target in
+//! the tank (the operator places it; the step's `meta` says so).
+
+use lightrig_protocol::config::Xy;
+use lightrig_protocol::sequence::{Action, WaitFor};
+use serde_json::json;
+
+use super::{Plan, PlanError, StepBuilder};
+
+/// Everything the immersion planner needs, in device units.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ImmersionParams {
+    /// Turntable axis.
+    pub turntable: u8,
+    /// Turntable position of each orientation, steps.
+    pub orientations: Vec<i32>,
+    /// Sheet laser channel.
+    pub laser: u8,
+    /// Galvo pair; the sheet sweeps along X, Y stays at `sheet_y`.
+    pub galvo: u8,
+    /// Sweep: first X code, last X code, number of sheets (≥ 2).
+    pub sweep: (u16, u16, u32),
+    /// Fixed Y code.
+    pub sheet_y: u16,
+    /// Camera.
+    pub camera: u8,
+    /// Exposure per sheet, ticks.
+    pub exposure: u32,
+    /// Mirror settle time after a jump, ticks.
+    pub settle: u32,
+    /// Trigger to next jump, ticks.
+    pub frame_gap: u32,
+    /// Add the calibration step.
+    pub calibration: bool,
+    /// Longest a move or warm-up may take, ticks.
+    pub timeout: u32,
+    /// Bytes per frame.
+    pub frame_bytes: u64,
+    /// Device tick rate.
+    pub tick_hz: u32,
+}
+
+/// X codes of the sheets: evenly spaced, exact integers, first and last included.
+pub fn sheet_codes(from: u16, to: u16, n: u32) -> Vec<u16> {
+    let (a, b) = (i64::from(from), i64::from(to));
+    let d = i64::from(n.max(2)) - 1;
+    (0..i64::from(n)).map(|k| (a + (b - a) * k / d) as u16).collect()
+}
+
+/// The immersion plan: calibration (optional), then one step per orientation.
+pub fn plan(p: &ImmersionParams) -> Result<Plan, PlanError> {
+    let (from, to, n) = p.sweep;
+    if n < 2 || p.orientations.is_empty() {
+        return Err(PlanError("immersion: need at least 2 sheets and 1 orientation".into()));
+    }
+    if p.frame_gap < p.exposure {
+        return Err(PlanError("immersion: frame_gap is shorter than the exposure".into()));
+    }
+    let codes = sheet_codes(from, to, n);
+    let sweep = |b: &mut StepBuilder, tag: &str| {
+        b.then(Action::Laser { channel: p.laser, on: true });
+        b.until(WaitFor::LaserReady(p.laser), p.timeout);
+        for (k, &x) in codes.iter().enumerate() {
+            b.then(Action::GalvoPoint { galvo: p.galvo, to: Xy { x, y: p.sheet_y } });
+            b.wait(p.settle);
+            b.shoot(p.camera, p.exposure, format!("{tag} sheet {k}"));
+            b.wait(p.frame_gap);
+        }
+        b.then(Action::Laser { channel: p.laser, on: false });
+    };
+    let mut steps = Vec::new();
+    if p.calibration {
+        let mut b = StepBuilder::default();
+        b.move_to(p.turntable, p.orientations[0], p.timeout);
+        b.shoot(p.camera, p.exposure, "dark");
+        b.wait(p.frame_gap);
+        sweep(&mut b, "calibration");
+        let meta = json!({ "kind": "calibration", "operator": "place the calibration target in the tank", "codes": codes });
+        steps.push(b.build(0, "calibration", meta));
+    }
+    for (o, &angle) in p.orientations.iter().enumerate() {
+        let mut b = StepBuilder::default();
+        b.move_to(p.turntable, angle, p.timeout);
+        sweep(&mut b, "scan");
+        let meta = json!({ "kind": "scan", "orientation": o, "turntable": angle, "codes": codes, "sheet_y": p.sheet_y });
+        steps.push(b.build(steps.len() as u32, format!("orientation {o}"), meta));
+    }
+    Ok(Plan { method: "fluorescent-immersion".into(), tick_hz: p.tick_hz, steps, frame_bytes: p.frame_bytes })
+}
