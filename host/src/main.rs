@@ -3,7 +3,9 @@
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
+use lightrig_host::client::Client;
 use lightrig_host::selfcheck;
+use lightrig_host::transport::{candidates, Connect, Transport};
 use lightrig_protocol::{link::LinkStats, MAX_FRAME, MAX_PACKET, PROTOCOL_VERSION, SCHEMA_HASH};
 
 #[derive(Parser)]
@@ -32,6 +34,61 @@ enum Cmd {
     },
     /// Print this build's protocol version, schema hash and frame limits.
     Schema,
+    /// List serial ports and USB controllers; with --probe, ask each what it is.
+    Devices {
+        /// Say Hello to every port (a port that is not a lightrig controller costs a 3 s timeout).
+        #[arg(long)]
+        probe: bool,
+        /// Machine-readable output.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Connect to a device and print what it says about itself and how its clock maps.
+    Info {
+        /// `virtual`, `serial:PATH[@BAUD]`, `usb` or `usb:SERIAL`.
+        #[arg(long, default_value = "virtual")]
+        connect: Connect,
+        /// Machine-readable output.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+/// Exit codes: scripts can tell a usage error from an unreachable device from a fault.
+mod exit {
+    pub const FAILURE: u8 = 1;
+    pub const USAGE: u8 = 2;
+    pub const DEVICE: u8 = 3;
+}
+
+fn connect(spec: &Connect) -> Result<Client<Box<dyn Transport>>, (u8, String)> {
+    let transport = spec.open().map_err(|e| (exit::DEVICE, e.to_string()))?;
+    let nonce = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.subsec_nanos() ^ (d.as_secs() as u32))
+        .unwrap_or(1);
+    Client::connect(transport, nonce).map_err(|e| (exit::DEVICE, e.to_string()))
+}
+
+fn info_json(c: &Client<Box<dyn Transport>>) -> serde_json::Value {
+    let i = c.info();
+    serde_json::json!({
+        "device": c.transport().describe(),
+        "board": format!("{:?}", i.board),
+        "firmware": format!("{}.{}.{}", i.firmware.major, i.firmware.minor, i.firmware.patch),
+        "protocol_version": i.protocol_version,
+        "schema_hash": format!("0x{:016x}", i.schema_hash),
+        "serial": i.serial,
+        "tick_hz": i.tick_hz,
+        "reset_cause": format!("{:?}", i.reset_cause),
+        "boot_id": i.boot_id,
+        "capabilities": format!("{:?}", i.capabilities),
+        "clock": {
+            "rate_ppm": c.clock().rate().map(|r| (r * 1e6 / f64::from(i.tick_hz) - 1.0) * 1e6),
+            "residual_ticks": c.clock().residual(),
+            "min_rtt_us": c.clock().min_rtt_us(),
+        },
+    })
 }
 
 fn per_mille(percent: f64, flag: &str) -> Result<u32, String> {
@@ -63,6 +120,55 @@ fn stats_line(name: &str, s: &LinkStats) -> String {
 
 fn main() -> ExitCode {
     match Cli::parse().command {
+        Cmd::Devices { probe, json } => {
+            let mut rows = Vec::new();
+            for c in candidates() {
+                let answer = if probe {
+                    match c.connect.parse::<Connect>().map_err(|e| (exit::USAGE, e)).and_then(|s| connect(&s))
+                    {
+                        Ok(client) => Some(info_json(&client)),
+                        Err((_, e)) => Some(serde_json::json!({ "error": e })),
+                    }
+                } else {
+                    None
+                };
+                rows.push(serde_json::json!({ "connect": c.connect, "description": c.description, "hello": answer }));
+            }
+            if json {
+                println!("{}", serde_json::Value::Array(rows));
+            } else if rows.is_empty() {
+                println!("no serial ports or USB controllers found (the virtual rig is always there: --connect virtual)");
+            } else {
+                for r in &rows {
+                    println!(
+                        "{:<28} {}",
+                        r["connect"].as_str().unwrap_or(""),
+                        r["description"].as_str().unwrap_or("")
+                    );
+                    if !r["hello"].is_null() {
+                        println!("    {}", r["hello"]);
+                    }
+                }
+            }
+            ExitCode::SUCCESS
+        }
+        Cmd::Info { connect: spec, json } => match connect(&spec) {
+            Ok(client) => {
+                let v = info_json(&client);
+                if json {
+                    println!("{v}");
+                } else if let Some(map) = v.as_object() {
+                    for (k, val) in map {
+                        println!("{k:<16} {val}");
+                    }
+                }
+                ExitCode::SUCCESS
+            }
+            Err((code, e)) => {
+                eprintln!("error: {e}");
+                ExitCode::from(code)
+            }
+        },
         Cmd::Schema => {
             println!("protocol version {PROTOCOL_VERSION}");
             println!("schema hash      0x{SCHEMA_HASH:016x}");
@@ -76,7 +182,7 @@ fn main() -> ExitCode {
                 }
                 (Err(e), _) | (_, Err(e)) => {
                     eprintln!("error: {e}");
-                    return ExitCode::from(2);
+                    return ExitCode::from(exit::USAGE);
                 }
             };
             println!(
@@ -104,7 +210,7 @@ fn main() -> ExitCode {
                 }
                 Err(e) => {
                     eprintln!("selfcheck FAILED: {e:#}");
-                    ExitCode::FAILURE
+                    ExitCode::from(exit::FAILURE)
                 }
             }
         }

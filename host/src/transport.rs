@@ -69,6 +69,90 @@ impl Transport for SerialTransport {
     }
 }
 
+/// USB vendor id of lightrig controllers (pid.codes open-source VID).
+pub const USB_VID: u16 = 0x1209;
+/// USB product id of lightrig controllers (to be registered with pid.codes before release).
+pub const USB_PID: u16 = 0x4C52;
+/// The vendor-class interface carrying the protocol, and its bulk endpoints.
+pub const USB_INTERFACE: u8 = 0;
+/// Bulk OUT endpoint (host to device).
+pub const USB_EP_OUT: u8 = 0x01;
+/// Bulk IN endpoint (device to host).
+pub const USB_EP_IN: u8 = 0x81;
+
+/// The vendor bulk interface of a controller, through nusb (no kernel driver needed).
+pub struct UsbTransport {
+    tx: nusb::io::EndpointWrite<nusb::transfer::Bulk>,
+    rx: nusb::io::EndpointRead<nusb::transfer::Bulk>,
+    name: String,
+    epoch: Instant,
+}
+
+impl UsbTransport {
+    /// Opens the first controller (or the one with `serial`) on the bus.
+    pub fn open(serial: Option<&str>) -> io::Result<Self> {
+        use nusb::transfer::{Bulk, In, Out};
+        use nusb::MaybeFuture;
+        let info = usb_devices()?
+            .into_iter()
+            .find(|d| serial.is_none_or(|s| d.serial_number() == Some(s)))
+            .ok_or_else(|| {
+                io::Error::new(
+                    io::ErrorKind::NotFound,
+                    format!(
+                        "no lightrig controller on USB (VID {USB_VID:04x}, PID {USB_PID:04x}{}); is it plugged in and \
+                         are the udev rules installed (docs/boards)?",
+                        serial.map(|s| format!(", serial {s}")).unwrap_or_default()
+                    ),
+                )
+            })?;
+        let name = format!(
+            "usb {}:{} ({})",
+            info.bus_id(),
+            info.device_address(),
+            info.serial_number().unwrap_or("?")
+        );
+        let device = info.open().wait().map_err(io::Error::other)?;
+        let interface = device.claim_interface(USB_INTERFACE).wait().map_err(io::Error::other)?;
+        let tx = interface.endpoint::<Bulk, Out>(USB_EP_OUT).map_err(io::Error::other)?.writer(512);
+        let rx = interface.endpoint::<Bulk, In>(USB_EP_IN).map_err(io::Error::other)?.reader(512);
+        Ok(Self { tx, rx, name, epoch: Instant::now() })
+    }
+}
+
+/// The lightrig controllers on the USB bus.
+pub fn usb_devices() -> io::Result<Vec<nusb::DeviceInfo>> {
+    use nusb::MaybeFuture;
+    let all = nusb::list_devices().wait().map_err(io::Error::other)?;
+    Ok(all.filter(|d| d.vendor_id() == USB_VID && d.product_id() == USB_PID).collect())
+}
+
+impl Transport for UsbTransport {
+    fn send(&mut self, bytes: &[u8]) -> io::Result<()> {
+        self.tx.write_all(bytes)?;
+        // Frames are latency-bound: end the transfer now rather than fill a packet.
+        self.tx.flush_end()
+    }
+
+    fn recv(&mut self, buf: &mut [u8], deadline: u64) -> io::Result<usize> {
+        let wait = Duration::from_micros(deadline.saturating_sub(self.now_us()).max(1));
+        self.rx.set_read_timeout(wait);
+        match self.rx.read(buf) {
+            Ok(n) => Ok(n),
+            Err(e) if e.kind() == io::ErrorKind::TimedOut => Ok(0),
+            Err(e) => Err(e),
+        }
+    }
+
+    fn now_us(&self) -> u64 {
+        self.epoch.elapsed().as_micros() as u64
+    }
+
+    fn describe(&self) -> String {
+        self.name.clone()
+    }
+}
+
 /// The firmware controller in this process on a simulated board, under simulated time that the
 /// host and the device share (1 tick = 1 µs). `recv` moves time forward to the device's next
 /// deadline or the host's, so a run is fast and exactly repeatable.
@@ -143,5 +227,131 @@ impl Transport for VirtualTransport {
 impl fmt::Debug for VirtualTransport {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.debug_struct("VirtualTransport").field("now", &self.clock.now()).finish()
+    }
+}
+
+impl<T: Transport + ?Sized> Transport for Box<T> {
+    fn send(&mut self, bytes: &[u8]) -> io::Result<()> {
+        (**self).send(bytes)
+    }
+
+    fn recv(&mut self, buf: &mut [u8], deadline: u64) -> io::Result<usize> {
+        (**self).recv(buf, deadline)
+    }
+
+    fn now_us(&self) -> u64 {
+        (**self).now_us()
+    }
+
+    fn describe(&self) -> String {
+        (**self).describe()
+    }
+}
+
+/// Where to find a device, as written on the command line or in a rig file:
+/// `virtual`, `serial:/dev/ttyACM0`, `serial:/dev/ttyUSB0@115200`, `usb`, `usb:SERIAL`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Connect {
+    /// The in-process virtual device.
+    Virtual,
+    /// A serial port at a baud rate.
+    Serial { path: String, baud: u32 },
+    /// A USB controller, optionally by serial number.
+    Usb { serial: Option<String> },
+}
+
+impl std::str::FromStr for Connect {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        let bad =
+            || format!("`{s}`: expected `virtual`, `serial:PATH`, `serial:PATH@BAUD`, `usb` or `usb:SERIAL`");
+        match s.split_once(':') {
+            None if s == "virtual" => Ok(Connect::Virtual),
+            None if s == "usb" => Ok(Connect::Usb { serial: None }),
+            Some(("usb", serial)) if !serial.is_empty() => Ok(Connect::Usb { serial: Some(serial.into()) }),
+            Some(("serial", rest)) if !rest.is_empty() => {
+                let (path, baud) = match rest.rsplit_once('@') {
+                    Some((p, b)) => {
+                        (p, b.parse().map_err(|_| format!("{}: baud `{b}` is not a number", bad()))?)
+                    }
+                    None => (rest, 115_200),
+                };
+                Ok(Connect::Serial { path: path.into(), baud })
+            }
+            _ => Err(bad()),
+        }
+    }
+}
+
+impl Connect {
+    /// Opens the transport.
+    pub fn open(&self) -> io::Result<Box<dyn Transport>> {
+        Ok(match self {
+            Connect::Virtual => Box::new(VirtualTransport::new(
+                crate::selfcheck::virtual_device_info(),
+                lightrig_firmware::sim::SimBoard::default(),
+            )),
+            Connect::Serial { path, baud } => Box::new(SerialTransport::open(path, *baud).map_err(|e| {
+                io::Error::other(format!(
+                    "serial {path}: {e}; check the path (`lightrig devices`) and permissions (dialout group)"
+                ))
+            })?),
+            Connect::Usb { serial } => Box::new(UsbTransport::open(serial.as_deref())?),
+        })
+    }
+}
+
+/// A candidate device port.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct Candidate {
+    /// How to connect to it.
+    pub connect: String,
+    /// What the system says it is.
+    pub description: String,
+}
+
+/// Serial ports and USB controllers attached to this machine.
+pub fn candidates() -> Vec<Candidate> {
+    let mut out = Vec::new();
+    for p in serialport::available_ports().unwrap_or_default() {
+        let description = match &p.port_type {
+            serialport::SerialPortType::UsbPort(u) => {
+                format!("USB serial {:04x}:{:04x} {}", u.vid, u.pid, u.product.clone().unwrap_or_default())
+            }
+            other => format!("{other:?}"),
+        };
+        out.push(Candidate { connect: format!("serial:{}", p.port_name), description });
+    }
+    for d in usb_devices().unwrap_or_default() {
+        let serial = d.serial_number().unwrap_or("").to_string();
+        out.push(Candidate {
+            connect: if serial.is_empty() { "usb".into() } else { format!("usb:{serial}") },
+            description: format!("lightrig USB {} {}", d.bus_id(), d.product_string().unwrap_or("")),
+        });
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Connect;
+
+    #[test]
+    fn connect_specs_parse_or_say_what_is_expected() {
+        assert_eq!("virtual".parse(), Ok(Connect::Virtual));
+        assert_eq!("usb".parse(), Ok(Connect::Usb { serial: None }));
+        assert_eq!("usb:LR0042".parse(), Ok(Connect::Usb { serial: Some("LR0042".into()) }));
+        assert_eq!(
+            "serial:/dev/ttyACM0".parse(),
+            Ok(Connect::Serial { path: "/dev/ttyACM0".into(), baud: 115_200 })
+        );
+        assert_eq!(
+            "serial:/dev/ttyUSB1@921600".parse(),
+            Ok(Connect::Serial { path: "/dev/ttyUSB1".into(), baud: 921_600 })
+        );
+        let e = "tcp:1.2.3.4".parse::<Connect>().unwrap_err();
+        assert!(e.contains("expected `virtual`, `serial:PATH`"), "{e}");
+        assert!("serial:/dev/x@fast".parse::<Connect>().unwrap_err().contains("baud `fast`"));
     }
 }
