@@ -3,10 +3,13 @@
 //! - [`transport`]: bytes to and from a device (serial, the in-process virtual device).
 //! - [`client`]: the device client: handshake, requests, events, heartbeat, sequences.
 //! - [`clock`]: the host–device clock mapping.
+//! - [`frames`]: frame sources (a watched directory of numbered files).
+//! - [`plan`]: acquisition planners, one per rig.
 //! - [`selfcheck`]: the protocol self-check over a lossy simulated wire.
 
 pub mod client;
 pub mod clock;
+pub mod frames;
 pub mod plan;
 pub mod selfcheck;
 pub mod transport;
