@@ -7,5 +7,6 @@
 
 pub mod client;
 pub mod clock;
+pub mod rigfile;
 pub mod selfcheck;
 pub mod transport;
