@@ -5,11 +5,13 @@
 //! - [`clock`]: the host–device clock mapping.
 //! - [`frames`]: frame sources (a watched directory of numbered files).
 //! - [`plan`]: acquisition planners, one per rig.
+//! - [`rigfile`]: the TOML rig description, validated with file:line:field errors.
 //! - [`selfcheck`]: the protocol self-check over a lossy simulated wire.
 
 pub mod client;
 pub mod clock;
 pub mod frames;
 pub mod plan;
+pub mod rigfile;
 pub mod selfcheck;
 pub mod transport;
