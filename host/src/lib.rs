@@ -8,4 +8,5 @@
 pub mod client;
 pub mod clock;
 pub mod selfcheck;
+pub mod session;
 pub mod transport;
