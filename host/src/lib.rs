@@ -14,4 +14,5 @@ pub mod frames;
 pub mod plan;
 pub mod rigfile;
 pub mod selfcheck;
+pub mod session;
 pub mod transport;
