@@ -193,6 +193,11 @@ impl<T: Transport> Client<T> {
         &mut self.transport
     }
 
+    /// Gives the transport back (to reconnect over it after an unplug).
+    pub fn into_transport(self) -> T {
+        self.transport
+    }
+
     /// The host–device clock mapping.
     pub fn clock(&self) -> &ClockMap {
         &self.clock

@@ -1,5 +1,6 @@
 //! The lightrig host toolkit.
 //!
+//! - [`acquire`]: the acquisition engine: plan steps → device → journaled, paired frames.
 //! - [`transport`]: bytes to and from a device (serial, the in-process virtual device).
 //! - [`client`]: the device client: handshake, requests, events, heartbeat, sequences.
 //! - [`clock`]: the host–device clock mapping.
@@ -8,6 +9,7 @@
 //! - [`rigfile`]: the TOML rig description, validated with file:line:field errors.
 //! - [`selfcheck`]: the protocol self-check over a lossy simulated wire.
 
+pub mod acquire;
 pub mod client;
 pub mod clock;
 pub mod frames;

@@ -161,14 +161,110 @@ pub struct VirtualTransport {
     device: Controller<SimClock, SimBoard>,
     /// Device frames not yet handed to the host.
     pending: Vec<u8>,
+    impairment: Impairment,
+    rng: u64,
+    /// Unplugged: every call fails until [`VirtualTransport::replug`].
+    unplugged: bool,
+    /// Pull the cable when the clock reaches this tick.
+    unplug_at: Option<u64>,
+}
+
+/// Byte-level damage on the virtual wire, per mille of bytes, each direction.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Impairment {
+    /// Bytes lost.
+    pub drop: u32,
+    /// Bytes with one bit flipped.
+    pub corrupt: u32,
+    /// Bytes sent twice.
+    pub duplicate: u32,
+    /// Seed of the damage pattern.
+    pub seed: u64,
+}
+
+fn splitmix(state: &mut u64) -> u64 {
+    *state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    let mut z = *state;
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+fn impair(bytes: &[u8], imp: &Impairment, rng: &mut u64) -> Vec<u8> {
+    if imp.drop == 0 && imp.corrupt == 0 && imp.duplicate == 0 {
+        return bytes.to_vec();
+    }
+    let mut out = Vec::with_capacity(bytes.len());
+    for &b in bytes {
+        let r = splitmix(rng);
+        let roll = (r % 1000) as u32;
+        if roll < imp.drop {
+            continue;
+        }
+        let b = if roll < imp.drop + imp.corrupt { b ^ (1 << ((r >> 20) % 8)) } else { b };
+        out.push(b);
+        if roll >= imp.drop + imp.corrupt && roll < imp.drop + imp.corrupt + imp.duplicate {
+            out.push(b);
+        }
+    }
+    out
+}
+
+/// A boot id for a virtual device: different at every start, as on a real one.
+fn fresh_boot_id() -> u32 {
+    use std::hash::{BuildHasher, Hasher};
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u32(std::process::id());
+    h.finish() as u32
 }
 
 impl VirtualTransport {
-    /// A virtual device described by `info` (its `tick_hz` must be 1 MHz: host µs = ticks).
-    pub fn new(info: DeviceInfo, board: SimBoard) -> Self {
+    /// A virtual device described by `info` (its `tick_hz` must be 1 MHz: host µs = ticks). A
+    /// `boot_id` of 0 is replaced by a fresh one, as a real device's differs at every start.
+    pub fn new(mut info: DeviceInfo, board: SimBoard) -> Self {
+        if info.boot_id == 0 {
+            info.boot_id = fresh_boot_id();
+        }
         let clock = SimClock::default();
         let device = Controller::new(clock.clone(), board, info, 2_000);
-        Self { clock, device, pending: Vec::new() }
+        Self {
+            clock,
+            device,
+            pending: Vec::new(),
+            impairment: Impairment::default(),
+            rng: 0,
+            unplugged: false,
+            unplug_at: None,
+        }
+    }
+
+    /// Damages bytes on the wire from now on.
+    pub fn impair(&mut self, impairment: Impairment) {
+        self.rng = impairment.seed;
+        self.impairment = impairment;
+    }
+
+    /// Pulls the cable when simulated time reaches `tick`.
+    pub fn unplug_at(&mut self, tick: u64) {
+        self.unplug_at = Some(tick);
+    }
+
+    /// Plugs the cable back in. Bytes in flight were lost; the device kept running meanwhile.
+    pub fn replug(&mut self) {
+        self.unplugged = false;
+        self.unplug_at = None;
+        self.pending.clear();
+    }
+
+    fn check_plugged(&mut self) -> io::Result<()> {
+        if self.unplug_at.is_some_and(|t| self.clock.now() >= t) {
+            self.unplugged = true;
+            self.unplug_at = None;
+        }
+        if self.unplugged {
+            return Err(io::Error::new(io::ErrorKind::BrokenPipe, "device unplugged"));
+        }
+        Ok(())
     }
 
     /// The device, for inspection (its simulated board's record).
@@ -185,19 +281,23 @@ impl VirtualTransport {
         let mut out = [0u8; MAX_FRAME];
         self.device.poll();
         while let Some(n) = self.device.poll_transmit(&mut out) {
-            self.pending.extend_from_slice(&out[..n]);
+            let bytes = impair(&out[..n], &self.impairment, &mut self.rng);
+            self.pending.extend_from_slice(&bytes);
         }
     }
 }
 
 impl Transport for VirtualTransport {
     fn send(&mut self, bytes: &[u8]) -> io::Result<()> {
-        self.device.receive(bytes);
+        self.check_plugged()?;
+        let bytes = impair(bytes, &self.impairment, &mut self.rng);
+        self.device.receive(&bytes);
         Ok(())
     }
 
     fn recv(&mut self, buf: &mut [u8], deadline: u64) -> io::Result<usize> {
         loop {
+            self.check_plugged()?;
             self.collect();
             if !self.pending.is_empty() {
                 let n = self.pending.len().min(buf.len());

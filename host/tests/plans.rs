@@ -2,6 +2,9 @@
 //! right order, the right count.
 
 use lightrig_firmware::sim::{Output, SimBoard};
+mod common;
+
+use common::rig_client;
 use lightrig_host::client::Client;
 use lightrig_host::plan::{disco, lls, Plan};
 use lightrig_host::selfcheck::virtual_device_info;
@@ -9,66 +12,6 @@ use lightrig_host::transport::VirtualTransport;
 use lightrig_protocol::config::*;
 use lightrig_protocol::sequence::{AxisRef, StartAt};
 use lightrig_protocol::{Command, Event};
-
-fn laser(channel: u8) -> ConfigItem {
-    ConfigItem::Laser(LaserConfig {
-        channel,
-        wavelength_nm: 635,
-        warmup_ticks: 2_000,
-        max_on_ticks: 600_000_000,
-        enable: Polarity::ActiveHigh,
-        interlock: Input::Unused,
-    })
-}
-
-fn rig_client() -> Client<VirtualTransport> {
-    let mut c =
-        Client::connect(VirtualTransport::new(virtual_device_info(), SimBoard::default()), 9).unwrap();
-    let axis = |axis, kind| StepperConfig {
-        axis,
-        kind,
-        steps_per_unit: Ratio { num: 80, den: 1 },
-        max_speed: 16_000,
-        accel: 160_000,
-        limits: Some(StepRange { min: -40_000, max: 40_000 }),
-        homing: Homing { mode: HomingMode::None, speed: 1_000, backoff: 0, position: 0 },
-        invert_dir: false,
-        enable: Polarity::ActiveHigh,
-        limit_min: Input::Unused,
-        limit_max: Input::Unused,
-        index: Input::Unused,
-    };
-    let g = GalvoAxis { min_code: 0, max_code: 65535, zero_code: 32768, nanorad_per_code: 10_000 };
-    let items = [
-        ConfigItem::Stepper(axis(0, AxisKind::Linear)),
-        ConfigItem::Stepper(axis(1, AxisKind::Rotary)),
-        laser(0),
-        laser(1),
-        laser(2),
-        ConfigItem::Galvo(GalvoConfig {
-            galvo: 0,
-            dac: DacKind::Dac8563,
-            x: g,
-            y: g,
-            park: Xy { x: 32768, y: 32768 },
-            settle_ticks: 300,
-        }),
-        ConfigItem::Camera(CameraConfig {
-            camera: 0,
-            pulse_ticks: 100,
-            polarity: Polarity::ActiveHigh,
-            exposure_input: Input::Unused,
-            min_interval_ticks: 1_000,
-        }),
-    ];
-    for item in items {
-        c.request(Command::Configure(item)).unwrap();
-    }
-    c.request(Command::Home(AxisRef::Stepper(0))).unwrap();
-    c.request(Command::Home(AxisRef::Stepper(1))).unwrap();
-    c.request(Command::Arm { lasers: 0b111 }).unwrap();
-    c
-}
 
 /// Runs every step; returns the trigger events.
 fn run(c: &mut Client<VirtualTransport>, plan: &Plan) -> Vec<lightrig_protocol::event::TriggerEvent> {

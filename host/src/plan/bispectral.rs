@@ -74,6 +74,13 @@ pub fn plan(p: &BispectralParams) -> Result<Plan, PlanError> {
     for (g, &(sample, light)) in p.geometries.iter().enumerate() {
         for pair in &p.pairs {
             let mut b = StepBuilder::default();
+            for axis in [
+                AxisRef::Stepper(p.sample_axis),
+                AxisRef::Stepper(p.light_axis),
+                AxisRef::FilterWheel(p.wheel),
+            ] {
+                b.settle(axis, p.timeout);
+            }
             // Both axes and the wheel move together; wait for all three.
             b.then(Action::StepperMove { axis: p.sample_axis, target: sample, profile: Default::default() });
             b.then(Action::StepperMove { axis: p.light_axis, target: light, profile: Default::default() });

@@ -16,7 +16,7 @@ pub mod disco;
 pub mod immersion;
 pub mod lls;
 
-use lightrig_protocol::sequence::{Action, Item, Profile, WaitFor};
+use lightrig_protocol::sequence::{Action, AxisRef, Item, Profile, WaitFor};
 use serde::Serialize;
 
 /// One trigger a step fires, in firing order.
@@ -94,6 +94,8 @@ pub struct StepBuilder {
     shots: Vec<Shot>,
     ticks: u64,
     pending_delta: u32,
+    /// Axes this step has already waited on.
+    settled: Vec<AxisRef>,
 }
 
 impl StepBuilder {
@@ -121,10 +123,21 @@ impl StepBuilder {
         self.then(Action::Wait { until, timeout })
     }
 
+    /// Waits until `axis` is at rest, the first time the step uses it: a step runs from a
+    /// known state even right after an aborted one whose axes are still decelerating.
+    pub fn settle(&mut self, axis: AxisRef, timeout: u32) -> &mut Self {
+        if !self.settled.contains(&axis) {
+            self.settled.push(axis);
+            self.until(WaitFor::MoveDone(axis), timeout);
+        }
+        self
+    }
+
     /// Moves a stepper and waits until it is there.
     pub fn move_to(&mut self, axis: u8, target: i32, timeout: u32) -> &mut Self {
+        self.settle(AxisRef::Stepper(axis), timeout);
         self.then(Action::StepperMove { axis, target, profile: Profile::default() });
-        self.until(WaitFor::MoveDone(lightrig_protocol::sequence::AxisRef::Stepper(axis)), timeout)
+        self.until(WaitFor::MoveDone(AxisRef::Stepper(axis)), timeout)
     }
 
     /// Fires camera `camera` with `exposure` ticks and records what the frame shows.

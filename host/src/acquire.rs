@@ -1,0 +1,293 @@
+//! The acquisition engine: runs a [`Plan`] on a device, step by step, journaling everything to
+//! a [`Session`] as it happens, pairing every frame with its trigger.
+//!
+//! A step is atomic. For each pending step the engine opens a new attempt in the journal,
+//! streams the step's sequence, journals each device event as it arrives, waits for the
+//! step's frames, pairs them with the triggers (missing, duplicate and late frames are
+//! recorded as such), stores them, and closes the attempt. Anything that stops a step midway
+//! (a device fault, an unplug, the host dying) leaves the attempt open or abandoned; `resume`
+//! runs the step again as the next attempt, so the finished session holds exactly one frame
+//! (or one `FrameMissing`) per planned trigger.
+
+use std::io;
+
+use lightrig_protocol::event::DeviceState;
+use lightrig_protocol::event::TriggerEvent;
+use lightrig_protocol::sequence::StartAt;
+use lightrig_protocol::{Command, Event, Reply};
+
+use crate::client::{Client, ClientError};
+use crate::frames::{DirectorySource, Pattern};
+use crate::plan::{Plan, Step};
+use crate::session::{pair, Arrival, CameraTriggers, PlanStep, PlanSummary, StepId, Trigger};
+use crate::session::{Session, SessionError};
+use crate::transport::Transport;
+
+/// A frame as a source delivers it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Captured {
+    /// Camera.
+    pub camera: u8,
+    /// Frame number counted from the step's start on this camera, if the source knows it.
+    pub frame: Option<u32>,
+    /// File extension to store it under (`png`, `exr`, `pgm`…).
+    pub ext: String,
+    /// The file's bytes.
+    pub data: Vec<u8>,
+    /// Host time of arrival, µs on the transport's clock.
+    pub host_us: f64,
+}
+
+/// Where a camera's frames come from.
+pub trait FrameInput {
+    /// A step is about to start: frames from now on count from 0.
+    fn begin_step(&mut self) -> io::Result<()>;
+    /// The device fired a trigger (a rendering camera renders it here).
+    fn on_trigger(&mut self, _trigger: &TriggerEvent, _host_us: Option<f64>) -> io::Result<()> {
+        Ok(())
+    }
+    /// Frames that arrived since the last call.
+    fn poll(&mut self, now_us: f64) -> io::Result<Vec<Captured>>;
+}
+
+/// A camera whose software writes numbered files into a directory.
+pub struct DirectoryInput {
+    camera: u8,
+    source: DirectorySource,
+    ext: String,
+    /// File number of the step's first frame.
+    base: Option<u64>,
+}
+
+impl DirectoryInput {
+    /// Watches `dir` for `pattern` (e.g. `img_{frame:06}.png`) for `camera`.
+    pub fn new(camera: u8, dir: &std::path::Path, pattern: &str) -> Result<Self, String> {
+        let ext =
+            pattern.rsplit_once('.').map(|(_, e)| e.to_ascii_lowercase()).unwrap_or_else(|| "raw".into());
+        let pattern = Pattern::parse(pattern)?;
+        let source = DirectorySource::new(dir, pattern).map_err(|e| format!("{}: {e}", dir.display()))?;
+        Ok(Self { camera, source, ext, base: None })
+    }
+}
+
+impl FrameInput for DirectoryInput {
+    fn begin_step(&mut self) -> io::Result<()> {
+        // The camera numbers its files on; the step's first new file is its frame 0.
+        self.base = None;
+        Ok(())
+    }
+
+    fn poll(&mut self, now_us: f64) -> io::Result<Vec<Captured>> {
+        let mut out = Vec::new();
+        for a in self.source.poll()? {
+            let base = *self.base.get_or_insert(a.frame);
+            let data = std::fs::read(&a.path)?;
+            let frame = a.frame.checked_sub(base).and_then(|f| u32::try_from(f).ok());
+            out.push(Captured { camera: self.camera, frame, ext: self.ext.clone(), data, host_us: now_us });
+        }
+        Ok(out)
+    }
+}
+
+/// What went wrong in an acquisition; each says what to do next.
+#[derive(Debug)]
+pub enum AcquireError {
+    /// The device or the link failed; the step in progress was abandoned.
+    Device(ClientError),
+    /// The session could not be written.
+    Session(SessionError),
+    /// The frame source failed.
+    Frames(io::Error),
+}
+
+impl std::fmt::Display for AcquireError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            AcquireError::Device(e) => {
+                write!(f, "{e}\nThe step in progress was abandoned; `lightrig resume` acquires it again.")
+            }
+            AcquireError::Session(e) => write!(f, "session: {e}"),
+            AcquireError::Frames(e) => write!(f, "frame source: {e}"),
+        }
+    }
+}
+
+impl std::error::Error for AcquireError {}
+
+impl From<SessionError> for AcquireError {
+    fn from(e: SessionError) -> Self {
+        AcquireError::Session(e)
+    }
+}
+
+/// The session's view of a plan: steps with their triggers per camera, and each step's `meta`.
+pub fn plan_summary(plan: &Plan) -> PlanSummary {
+    PlanSummary {
+        steps: plan
+            .steps
+            .iter()
+            .map(|s| {
+                let mut per: Vec<CameraTriggers> = Vec::new();
+                for shot in &s.shots {
+                    match per.iter_mut().find(|c| c.camera == shot.camera) {
+                        Some(c) => c.count += 1,
+                        None => per.push(CameraTriggers { camera: shot.camera, count: 1 }),
+                    }
+                }
+                PlanStep {
+                    id: s.id,
+                    name: s.name.clone(),
+                    triggers: per,
+                    extra: serde_json::json!({ "meta": s.meta, "shots": s.shots }),
+                }
+            })
+            .collect(),
+        extra: serde_json::json!({ "method": plan.method, "tick_hz": plan.tick_hz }),
+    }
+}
+
+/// Progress of a run, for a progress bar.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Progress {
+    /// Steps done (including earlier runs).
+    pub steps_done: usize,
+    /// Steps in the plan.
+    pub steps: usize,
+    /// Frames stored in this run.
+    pub frames: u64,
+}
+
+/// How long to wait for a step's last frames after its sequence ended, µs.
+pub const FRAME_WAIT_US: u64 = 2_000_000;
+/// A frame later than this after its trigger is flagged late (still paired), µs.
+pub const LATE_US: f64 = 1_000_000.0;
+
+/// Device sequence id of a step attempt: unique within a session.
+pub fn sequence_id(step: StepId, attempt: u32) -> u32 {
+    step.wrapping_mul(1_000).wrapping_add(attempt)
+}
+
+/// Runs every step the session has not finished. Returns when the session is done.
+pub fn run<T: Transport>(
+    client: &mut Client<T>,
+    session: &mut Session,
+    plan: &Plan,
+    input: &mut dyn FrameInput,
+    mut progress: impl FnMut(Progress),
+) -> Result<(), AcquireError> {
+    session.device_connected(client.info())?;
+    // A run cut short (host crash, unplug) may have left its sequence running on the device,
+    // or a fault latched: stop the one, clear the other (lasers stay disarmed until armed
+    // below).
+    if let Reply::Status(s) = client.request(Command::GetStatus).map_err(AcquireError::Device)? {
+        if let DeviceState::Running { sequence } = s.state {
+            client.request(Command::SequenceAbort { sequence }).map_err(AcquireError::Device)?;
+        }
+    }
+    client.request(Command::ClearFault).map_err(AcquireError::Device)?;
+    let lasers = lasers_used(plan);
+    if lasers != 0 {
+        client.request(Command::Arm { lasers }).map_err(AcquireError::Device)?;
+    }
+    let total = plan.steps.len();
+    let mut frames = 0u64;
+    for step in &plan.steps {
+        if session.steps_done().contains(&step.id) {
+            continue;
+        }
+        frames += run_step(client, session, step, input)?;
+        progress(Progress { steps_done: session.steps_done().len(), steps: total, frames });
+    }
+    client.request(Command::Disarm).map_err(AcquireError::Device)?;
+    session.finish()?;
+    Ok(())
+}
+
+fn lasers_used(plan: &Plan) -> u8 {
+    use lightrig_protocol::sequence::Action;
+    let mut mask = 0u8;
+    for s in &plan.steps {
+        for i in &s.items {
+            if let Action::Laser { channel, on: true } = i.action {
+                mask |= 1u8.checked_shl(u32::from(channel)).unwrap_or(0);
+            }
+        }
+    }
+    mask
+}
+
+/// One attempt of one step; returns the frames stored.
+fn run_step<T: Transport>(
+    client: &mut Client<T>,
+    session: &mut Session,
+    step: &Step,
+    input: &mut dyn FrameInput,
+) -> Result<u64, AcquireError> {
+    let attempt = session.next_attempt(step.id);
+    let seq = sequence_id(step.id, attempt);
+    // Frames still on their way from an attempt that was cut short belong to nobody now: drain
+    // them, and below ignore anything stamped before this attempt began.
+    let start_us = client.transport().now_us() as f64;
+    let _stale = input.poll(start_us).map_err(AcquireError::Frames)?;
+    session.start_step(step.id, seq)?;
+    input.begin_step().map_err(AcquireError::Frames)?;
+    let mut triggers = Vec::new();
+    let mut arrivals: Vec<Captured> = Vec::new();
+    let mut failure: Option<AcquireError> = None;
+    let result = client.run_sequence(seq, step.items.clone(), StartAt::Now, |e| {
+        if failure.is_some() {
+            return;
+        }
+        if let Err(err) = session.record_event(e) {
+            failure = Some(err.into());
+            return;
+        }
+        if let Event::Trigger(t) = &e.event {
+            if t.sequence == seq {
+                triggers.push(Trigger::from_event(t, e.host_us));
+                if let Err(err) = input.on_trigger(t, e.host_us) {
+                    failure = Some(AcquireError::Frames(err));
+                }
+            }
+        }
+    });
+    if let Some(f) = failure {
+        return Err(f);
+    }
+    if let Err(e) = result {
+        // The device is in its safe state (or gone): this attempt is void.
+        session.abandon_step(&e.to_string())?;
+        return Err(AcquireError::Device(e));
+    }
+    // Collect the frames: until every trigger has one, or the wait runs out.
+    let expected = step.shots.len();
+    let wait_until = client.transport().now_us() + FRAME_WAIT_US;
+    loop {
+        let now = client.transport().now_us() as f64;
+        arrivals.extend(
+            input.poll(now).map_err(AcquireError::Frames)?.into_iter().filter(|c| c.host_us >= start_us),
+        );
+        if arrivals.len() >= expected || client.transport().now_us() >= wait_until {
+            break;
+        }
+        client.idle(10_000).map_err(AcquireError::Device)?;
+    }
+    let numbered: Vec<Arrival> =
+        arrivals.iter().map(|c| Arrival { camera: c.camera, frame: c.frame, host_us: c.host_us }).collect();
+    let pairing = pair(&triggers, &numbered, LATE_US);
+    let mut stored = 0;
+    for p in &pairing.pairs {
+        let c = &arrivals[p.arrival];
+        session.store_frame(p, &c.ext, &c.data)?;
+        stored += 1;
+    }
+    for m in &pairing.missing {
+        session.frame_missing(m, "no frame arrived within the wait")?;
+    }
+    for x in &pairing.extra {
+        let c = &arrivals[x.arrival];
+        session.store_extra(x, &c.ext, &c.data)?;
+    }
+    session.finish_step()?;
+    Ok(stored)
+}
