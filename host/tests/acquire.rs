@@ -71,7 +71,7 @@ fn lls_plan() -> Plan {
         step: 80,
         count: 21,
         camera: 0,
-        exposure: 2_000,
+        exposures: vec![2_000],
         settle: 5_000,
         frame_gap: 3_000,
         light: 1,

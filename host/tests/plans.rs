@@ -38,7 +38,7 @@ fn lls_passes_take_one_frame_per_millimetre_at_rest() {
         step: 80,
         count: 21,
         camera: 0,
-        exposure: 2_000,
+        exposures: vec![2_000],
         settle: 5_000,
         frame_gap: 3_000,
         light: 1,

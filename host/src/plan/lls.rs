@@ -37,11 +37,12 @@ pub struct LlsParams {
     pub count: u32,
     /// Camera.
     pub camera: u8,
-    /// Exposure, ticks.
-    pub exposure: u32,
+    /// Exposures taken at every position (an HDR bracket), ticks.
+    pub exposures: Vec<u32>,
     /// Wait after the gantry stops before exposing (vibration), ticks.
     pub settle: u32,
-    /// Time from a trigger to the next move (exposure plus readout), ticks.
+    /// Time from a trigger to the next trigger or move, ticks: at least the longest exposure
+    /// plus readout, and the camera's shortest frame interval.
     pub frame_gap: u32,
     /// Laser channel switching the linear light.
     pub light: u8,
@@ -61,13 +62,14 @@ pub struct LlsParams {
 
 /// The LLS plan: one step per pass.
 pub fn plan(p: &LlsParams) -> Result<Plan, PlanError> {
-    if p.count == 0 || p.step == 0 {
-        return Err(PlanError("lls: count and step must be non-zero".into()));
+    if p.count == 0 || p.step == 0 || p.exposures.is_empty() {
+        return Err(PlanError("lls: count, step and exposures must be non-zero".into()));
     }
-    if p.frame_gap < p.exposure {
+    let longest = p.exposures.iter().copied().max().unwrap_or(0);
+    if p.frame_gap < longest {
         return Err(PlanError(format!(
-            "lls: frame_gap ({} ticks) is shorter than the exposure ({} ticks): frames would overlap the next move",
-            p.frame_gap, p.exposure
+            "lls: frame_gap ({} ticks) is shorter than the longest exposure ({longest} ticks): frames would overlap",
+            p.frame_gap
         )));
     }
     let last = i64::from(p.start) + i64::from(p.step) * (i64::from(p.count) - 1);
@@ -89,11 +91,16 @@ pub fn plan(p: &LlsParams) -> Result<Plan, PlanError> {
             let pos = p.start + p.step * i as i32;
             b.move_to(p.axis, pos, p.timeout);
             b.wait(p.settle);
-            b.shoot(p.camera, p.exposure, format!("{pass:?} {i}").to_lowercase());
-            b.wait(p.frame_gap);
+            for (e, &exposure) in p.exposures.iter().enumerate() {
+                b.shoot(p.camera, exposure, format!("{pass:?} {i} e{e}").to_lowercase());
+                b.wait(p.frame_gap);
+            }
         }
         b.then(Action::Laser { channel, on: false });
-        let meta = json!({ "pass": pass, "axis": p.axis, "start": p.start, "step": p.step, "count": p.count, "last": last });
+        let meta = json!({
+            "pass": pass, "axis": p.axis, "start": p.start, "step": p.step, "count": p.count, "last": last,
+            "exposures": p.exposures,
+        });
         steps.push(b.build(
             id as u32,
             format!("pass {}", serde_json::to_value(pass).unwrap_or_default()),

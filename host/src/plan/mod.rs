@@ -13,6 +13,7 @@
 pub mod bispectral;
 pub mod brdf_display;
 pub mod disco;
+pub mod from_rig;
 pub mod immersion;
 pub mod lls;
 

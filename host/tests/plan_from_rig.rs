@@ -1,0 +1,69 @@
+//! Plans made from the example rig files: counts and device units.
+
+use std::path::PathBuf;
+
+use lightrig_host::plan::from_rig;
+use lightrig_host::rigfile::RigFile;
+use lightrig_host::selfcheck::virtual_device_info;
+use lightrig_protocol::sequence::Action;
+
+fn example(name: &str) -> PathBuf {
+    PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../docs/rigs")).join(name)
+}
+
+#[test]
+fn the_gantry_example_plans_one_bracket_per_half_millimetre() {
+    let rig = RigFile::load(&example("lls-gantry.toml")).unwrap();
+    let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
+    // -180..=180 mm every 0.5 mm = 721 positions; 3 exposures; light tube and stripe passes.
+    let s = plan.summary();
+    assert_eq!((s.steps, s.triggers), (2, 721 * 3 * 2));
+    let moves: Vec<i32> = plan.steps[0]
+        .items
+        .iter()
+        .filter_map(|i| match i.action {
+            Action::StepperMove { target, .. } => Some(target),
+            _ => None,
+        })
+        .collect();
+    // 80 steps/mm: the first move goes to the start, then every 40 steps.
+    assert_eq!(&moves[..3], [-14_400, -14_400, -14_360]);
+    assert_eq!(*moves.last().unwrap(), 14_400);
+    let widths: Vec<u32> = plan.steps[0]
+        .items
+        .iter()
+        .filter_map(|i| match i.action {
+            Action::Trigger { exposure, .. } => Some(exposure),
+            _ => None,
+        })
+        .take(3)
+        .collect();
+    assert_eq!(widths, [500, 2_000, 8_000]);
+    assert_eq!(plan.steps[1].meta["pass"], "stripe");
+}
+
+#[test]
+fn a_small_disco_rig_plans_views_lasers_and_spots() {
+    let text = std::fs::read_to_string(example("disco.toml")).unwrap();
+    let text = text.replace("views = 72", "views = 4").replace("spot_grid = [64, 64]", "spot_grid = [3, 2]");
+    let rig = RigFile::parse(&text, &example("disco.toml")).unwrap();
+    let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
+    assert_eq!(plan.summary().steps, 4);
+    assert_eq!(plan.summary().triggers, 4 * 3 * 6);
+}
+
+#[test]
+fn plan_mistakes_point_at_the_rig_file() {
+    let path = example("lls-gantry.toml");
+    let text = std::fs::read_to_string(&path).unwrap().replace("step_mm = 0.5", "step_mm = -1");
+    let rig = RigFile::parse(&text, &path).unwrap();
+    let Err(e) = from_rig::plan(&rig, &virtual_device_info()) else { panic!("planned") };
+    let e = e.to_string();
+    assert!(e.contains("lls-gantry.toml:") && e.contains("plan.step_mm: must be positive"), "{e}");
+    let text =
+        std::fs::read_to_string(&path).unwrap().replace("pass_mm = [-180, 180]", "pass_mm = [-180, 900]");
+    let rig = RigFile::parse(&text, &path).unwrap();
+    let Err(e) = from_rig::plan(&rig, &virtual_device_info()) else { panic!("planned beyond the limits") };
+    let e = e.to_string();
+    assert!(e.contains("plan.pass_mm") && e.contains("200"), "beyond the soft limits: {e}");
+}
