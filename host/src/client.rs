@@ -198,6 +198,12 @@ impl<T: Transport> Client<T> {
         self.transport
     }
 
+    /// Sends a heartbeat (a clock sample) whenever the host has been quiet for `us`; keep it
+    /// well under the device's heartbeat timeout (a quarter, say).
+    pub fn set_heartbeat_us(&mut self, us: u64) {
+        self.heartbeat_us = us.max(1_000);
+    }
+
     /// The host–device clock mapping.
     pub fn clock(&self) -> &ClockMap {
         &self.clock

@@ -10,6 +10,7 @@
 //! - [`selfcheck`]: the protocol self-check over a lossy simulated wire.
 
 pub mod acquire;
+pub mod cli_acquire;
 pub mod client;
 pub mod clock;
 pub mod frames;

@@ -43,6 +43,28 @@ enum Cmd {
         #[arg(long)]
         json: bool,
     },
+    /// Run a rig file's acquisition plan into a new session directory.
+    Acquire {
+        /// The rig file (see docs/rigs).
+        rig: std::path::PathBuf,
+        /// Session directory to create.
+        #[arg(long)]
+        session: std::path::PathBuf,
+        /// Override the rig file's `[device] connect`.
+        #[arg(long)]
+        connect: Option<Connect>,
+    },
+    /// Continue an interrupted session: re-acquire the steps not finished.
+    Resume {
+        /// Session directory.
+        session: std::path::PathBuf,
+        /// The original rig file (for its relative paths; must be unchanged).
+        #[arg(long)]
+        rig: Option<std::path::PathBuf>,
+        /// Override the rig file's `[device] connect`.
+        #[arg(long)]
+        connect: Option<Connect>,
+    },
     /// Connect to a device and print what it says about itself and how its clock maps.
     Info {
         /// `virtual`, `serial:PATH[@BAUD]`, `usb` or `usb:SERIAL`.
@@ -120,6 +142,24 @@ fn stats_line(name: &str, s: &LinkStats) -> String {
 
 fn main() -> ExitCode {
     match Cli::parse().command {
+        Cmd::Acquire { rig, session, connect } => {
+            match lightrig_host::cli_acquire::acquire(&rig, &session, connect.as_ref()) {
+                Ok(()) => ExitCode::SUCCESS,
+                Err(e) => {
+                    eprintln!("error: {}", e.message);
+                    ExitCode::from(e.code)
+                }
+            }
+        }
+        Cmd::Resume { session, rig, connect } => {
+            match lightrig_host::cli_acquire::resume(&session, rig.as_deref(), connect.as_ref()) {
+                Ok(()) => ExitCode::SUCCESS,
+                Err(e) => {
+                    eprintln!("error: {}", e.message);
+                    ExitCode::from(e.code)
+                }
+            }
+        }
         Cmd::Devices { probe, json } => {
             let mut rows = Vec::new();
             for c in candidates() {
