@@ -605,3 +605,19 @@ fn starting_an_empty_sequence_ends_it_at_once_stamped_now() {
     rig.start(12, StartAt::Now, 200).unwrap();
     assert!(rig.drain_events().contains(&Event::Underrun { sequence: 12, item: 0, tick: 200 }));
 }
+
+#[test]
+fn a_late_fault_keeps_outputs_in_tick_order() {
+    // Found by the controller fuzz target: the safe state was stamped with the wake-up tick,
+    // then earlier work of the same catch-up (voice-coil blocks) followed with earlier ticks.
+    let mut rig = rig();
+    rig.configure(&ConfigItem::Galvo(galvo()), 0).unwrap();
+    rig.configure(&ConfigItem::VoiceCoil(coil(0)), 0).unwrap();
+    load_all(&mut rig, 1, &[item(2_000, Action::Marker { id: 1 })]);
+    rig.start(1, StartAt::Now, 0).unwrap();
+    rig.poll(5_000); // the run loop woke 3 ms late
+    assert_eq!(rig.fault(), Some(FaultCause::Late { sequence: 1, item: 0 }));
+    let ticks: Vec<u64> = rig.board().record.iter().map(|c| c.tick).collect();
+    assert!(ticks.windows(2).all(|w| w[0] <= w[1]), "{ticks:?}");
+    assert!(rig.drain_events().contains(&Event::Fault { cause: FaultCause::Late { sequence: 1, item: 0 }, tick: 2_000 }));
+}

@@ -6,7 +6,9 @@
 # Each target runs on a temporary copy of fuzz/seeds/<target>/ (the seeds stay untouched), with
 # debug assertions and overflow checks on (-a). Prints one line per target:
 #     <target>  runs=<executions>  corpus=<files>  ok|CRASH
-# and exits non-zero if any target crashed (its artifact path and log are printed). Set
+# and exits non-zero if any target crashed (its artifact path and log are printed). An input
+# that runs longer than FUZZ_TIMEOUT seconds (default 30) counts as a crash: a hang (libFuzzer's
+# own default is 20 minutes, and -max_total_time does not interrupt a running input). Set
 # FUZZ_KEEP_CORPUS=1 to keep the grown corpora (their paths are printed).
 set -uo pipefail
 
@@ -22,7 +24,7 @@ cd "$fuzz_dir/.." # protocol/: cargo fuzz finds fuzz/ from here
 
 targets=("$@")
 if [[ ${#targets[@]} -eq 0 ]]; then
-    targets=(decode_raw roundtrip link)
+    targets=(decode_raw roundtrip link controller)
 fi
 
 # Build first (same flags as the runs below, so they do not rebuild), showing errors.
@@ -44,7 +46,8 @@ for t in "${targets[@]}"; do
     fi
     log="$work/fuzz.log"
     cargo +nightly fuzz run -a "$t" "$corpus" -- \
-        -max_total_time="$seconds" -rss_limit_mb=2048 -print_final_stats=1 >"$log" 2>&1
+        -max_total_time="$seconds" -timeout="${FUZZ_TIMEOUT:-30}" -rss_limit_mb=2048 \
+        -print_final_stats=1 >"$log" 2>&1
     rc=$?
     runs=$(grep -oE 'stat::number_of_executed_units: *[0-9]+' "$log" | grep -oE '[0-9]+$' | tail -1)
     if [[ -z $runs ]]; then

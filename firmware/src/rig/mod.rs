@@ -1296,8 +1296,10 @@ impl<B: Board> Rig<B> {
         while self.seq.next_due() == Some(t) {
             if self.polled_at.saturating_sub(t) > late_limit(self.tick_hz) {
                 // The run loop woke too late to honour the schedule: stop rather than drift.
+                // Stamped with the item's tick, so outputs and events stay in tick order with
+                // the rest of this catch-up (the pins change now, as late as the wake-up).
                 let cause = FaultCause::Late { sequence: self.seq.id, item: self.seq.executed };
-                self.enter_safe_state(cause, self.polled_at);
+                self.enter_safe_state(cause, t);
                 break;
             }
             let Some((index, item)) = self.seq.pop(t) else { break };

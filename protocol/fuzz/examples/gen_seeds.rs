@@ -432,11 +432,340 @@ fn link_scripts(dir: &Path) {
     write(dir, "premature_confirm", &premature.0);
 }
 
+/// `controller` scripts (layout: the module doc of fuzz_targets/controller.rs; the op and
+/// setup numbers are its `op`, `setup`, `cop` and `csetup` modules).
+mod ctl {
+    // Rig-mode ops.
+    pub const CONFIG: u8 = 0;
+    pub const ARM: u8 = 2;
+    pub const DISARM: u8 = 3;
+    pub const IMMEDIATE: u8 = 4;
+    pub const HOME: u8 = 6;
+    pub const LOAD: u8 = 8;
+    pub const START: u8 = 10;
+    pub const ABORT: u8 = 11;
+    pub const ESTOP: u8 = 12;
+    pub const CLEAR_FAULT: u8 = 13;
+    pub const HOST_SEEN: u8 = 14;
+    pub const ADVANCE: u8 = 15;
+    pub const INTERLOCK: u8 = 16;
+    pub const SWITCH: u8 = 17;
+    pub const GALVO_FAILS: u8 = 19;
+    pub const DRAIN: u8 = 20;
+    pub const LATE_WAKE: u8 = 21;
+    // Rig-mode setup flags.
+    pub const GALVO: u16 = 1 << 0;
+    pub const LASERS: u16 = 1 << 1;
+    pub const CAMERAS: u16 = 1 << 2;
+    pub const STEPPERS: u16 = 1 << 3;
+    pub const WHEEL: u16 = 1 << 4;
+    pub const COILS: u16 = 1 << 5;
+    pub const SWITCHES: u16 = 1 << 6;
+    pub const EXPOSURE: u16 = 1 << 7;
+    pub const WATCHDOG: u16 = 1 << 8;
+    pub const ARMED: u16 = 1 << 9;
+    pub const HOMED: u16 = 1 << 10;
+    // Controller-mode ops and setup flags.
+    pub const C_SEND: u8 = 0;
+    pub const C_DATAGRAM: u8 = 2;
+    pub const C_ADVANCE: u8 = 3;
+    pub const C_INTERLOCK: u8 = 4;
+    pub const C_HELLO: u8 = 1 << 0;
+    pub const C_CONFIGURE: u8 = 1 << 1;
+    pub const C_SWITCHES: u8 = 1 << 2;
+    pub const C_EXPOSURE: u8 = 1 << 3;
+    // Friendly commands (controller mode).
+    pub const GET_STATUS: u8 = 1;
+    pub const HEARTBEAT: u8 = 2;
+    pub const CONFIGURE: u8 = 3;
+    pub const ARM_CMD: u8 = 4;
+    pub const IMMEDIATE_CMD: u8 = 6;
+    pub const HOME_CMD: u8 = 7;
+    pub const LOAD_CMD: u8 = 8;
+    pub const START_CMD: u8 = 9;
+    pub const ESTOP_CMD: u8 = 11;
+    pub const CLEAR_FAULT_CMD: u8 = 12;
+}
+
+/// A friendly action for the `controller` target, as bytes (see its `friendly_action`).
+#[derive(Clone, Copy)]
+enum Act {
+    /// Galvo 0 to (x, y) (codes; must be 1000..=64000).
+    Point(u16, u16),
+    /// Galvo 0 sweep to (x, y) over `duration` ticks in `steps` (1..=256) updates.
+    Line(u16, u16, u16, u16),
+    Laser(u8, bool),
+    /// Axis, target, optional (speed, accel / 8).
+    Move(u8, i16, Option<(u16, u16)>),
+    Wheel(u8),
+    /// Channel, ramp ticks, partials (mHz, amplitude).
+    Coil(u8, u16, &'static [(u32, u16)]),
+    /// Camera, exposure ticks (0: the camera's pulse).
+    Trigger(u8, u16),
+    /// 0: MoveDone(stepper i), 1: MoveDone(wheel), 2: LaserReady(i), 3: ExposureEnd(i); timeout.
+    Wait(u8, u8, u32),
+    Marker(u8),
+}
+
+impl Act {
+    fn bytes(self) -> Vec<u8> {
+        let mut b = Vec::new();
+        let xy = |b: &mut Vec<u8>, x: u16, y: u16| {
+            b.extend_from_slice(&(x - 1000).to_le_bytes());
+            b.extend_from_slice(&(y - 1000).to_le_bytes());
+        };
+        match self {
+            Act::Point(x, y) => {
+                b.extend_from_slice(&[0, 0]);
+                xy(&mut b, x, y);
+            }
+            Act::Line(x, y, duration, steps) => {
+                b.extend_from_slice(&[1, 0]);
+                xy(&mut b, x, y);
+                b.extend_from_slice(&duration.to_le_bytes());
+                b.push((steps - 1) as u8);
+            }
+            Act::Laser(ch, on) => b.extend_from_slice(&[2, ch | if on { 0 } else { 0x80 }]),
+            Act::Move(axis, target, profile) => {
+                b.extend_from_slice(&[3, axis | if profile.is_some() { 0x80 } else { 0 }]);
+                b.extend_from_slice(&target.to_le_bytes());
+                if let Some((speed, accel)) = profile {
+                    b.extend_from_slice(&speed.to_le_bytes());
+                    b.extend_from_slice(&accel.to_le_bytes());
+                }
+            }
+            Act::Wheel(slot) => b.extend_from_slice(&[4, 0, slot]),
+            Act::Coil(ch, ramp, partials) => {
+                b.extend_from_slice(&[5, ch]);
+                b.extend_from_slice(&ramp.to_le_bytes());
+                b.push(partials.len() as u8);
+                for &(mhz, amplitude) in partials {
+                    b.extend_from_slice(&(mhz - 1000).to_le_bytes());
+                    b.extend_from_slice(&(amplitude * 4).to_le_bytes());
+                    b.extend_from_slice(&0u16.to_le_bytes());
+                }
+            }
+            Act::Trigger(cam, exposure) => {
+                b.extend_from_slice(&[6, cam | if exposure > 0 { 0x80 } else { 0 }]);
+                if exposure > 0 {
+                    b.extend_from_slice(&exposure.to_le_bytes());
+                }
+            }
+            Act::Wait(kind, i, timeout) => {
+                b.extend_from_slice(&[7, i, kind]);
+                b.extend_from_slice(&timeout.to_le_bytes());
+            }
+            Act::Marker(id) => b.extend_from_slice(&[8, 0, id]),
+        }
+        b
+    }
+}
+
+/// A friendly chunk: the next chunk of the loaded sequence (`next`) or chunk 0 of sequence
+/// `id` (0..=3); `last`; items as (delta, action).
+fn chunk_bytes(next: bool, id: u8, last: bool, items: &[(u16, Act)]) -> Vec<u8> {
+    let mut b = vec![u8::from(next) | u8::from(last) << 1 | id << 2, items.len() as u8];
+    for &(delta, act) in items {
+        b.extend_from_slice(&delta.to_le_bytes());
+        b.extend_from_slice(&act.bytes());
+    }
+    b
+}
+
+struct Ctl(Vec<u8>);
+
+impl Ctl {
+    fn rig(setup: u16) -> Self {
+        let mut b = vec![0];
+        b.extend_from_slice(&setup.to_le_bytes());
+        Ctl(b)
+    }
+    fn controller(setup: u8) -> Self {
+        Ctl(vec![1, setup])
+    }
+    fn op(mut self, op: u8, args: &[u8]) -> Self {
+        self.0.push(op);
+        self.0.extend_from_slice(args);
+        self
+    }
+    fn act(self, op: u8, act: Act) -> Self {
+        self.op(op, &act.bytes())
+    }
+    /// Advances `ticks` (rig or controller mode: `op`).
+    fn advance(self, op: u8, ticks: u32) -> Self {
+        match ticks {
+            0..=0xff => self.op(op, &[0, ticks as u8]),
+            0x100..=0xffff => self.op(op, &[1, ticks as u8, (ticks >> 8) as u8]),
+            _ => self.op(op, &[&[2][..], &ticks.to_le_bytes()].concat()),
+        }
+    }
+    /// Starts the loaded sequence now.
+    fn start_now(self) -> Self {
+        self.op(ctl::START, &[1])
+    }
+    /// Controller mode: a friendly command (reliable, or as a datagram).
+    fn send(self, datagram: bool, command: u8, args: &[u8]) -> Self {
+        let op = if datagram { ctl::C_DATAGRAM } else { ctl::C_SEND };
+        self.op(op, &[&[command][..], args].concat())
+    }
+}
+
+fn controller_scripts(dir: &Path) {
+    use ctl::*;
+    use Act::*;
+
+    // A scan line: galvo jump, laser on, wait for its warm-up, a triggered exposure waited for,
+    // a galvo sweep, laser off; then the heartbeat keeps the watchdog quiet.
+    let items = [
+        (0, Point(30_000, 31_000)),
+        (10, Laser(0, true)),
+        (0, Wait(2, 0, 100_000)),
+        (250, Trigger(0, 500)),
+        (0, Wait(3, 0, 10_000)),
+        (100, Line(40_000, 31_000, 2_000, 20)),
+        (2_500, Laser(0, false)),
+        (10, Marker(7)),
+    ];
+    let scan = Ctl::rig(GALVO | LASERS | CAMERAS | EXPOSURE | ARMED | WATCHDOG)
+        .op(LOAD, &chunk_bytes(false, 1, true, &items))
+        .start_now()
+        .advance(ADVANCE, 50_000)
+        .op(DRAIN, &[])
+        .op(HOST_SEEN, &[1])
+        .advance(ADVANCE, 500_000)
+        .op(DISARM, &[]);
+    write(dir, "rig_scan_line", &scan.0);
+
+    // Homed axes: a jog, a filter change, a sequence of a move and a filter change waited for,
+    // then a max limit placed ahead of axis 0 and a move into it (a limit fault), cleared and
+    // homed again.
+    let items = [
+        (0, Move(1, -14_000, Some((5_000, 5_000)))),
+        (0, Wait(0, 1, 1_000_000)),
+        (0, Wheel(5)),
+        (0, Wait(1, 0, 1_000_000)),
+        (100, Move(0, 0, None)),
+    ];
+    let motion = Ctl::rig(STEPPERS | WHEEL | SWITCHES | HOMED)
+        .act(IMMEDIATE, Move(0, 1_000, None))
+        .advance(ADVANCE, 1_000_000)
+        .act(IMMEDIATE, Wheel(3))
+        .advance(ADVANCE, 60_000)
+        .op(LOAD, &chunk_bytes(false, 2, true, &items))
+        .start_now()
+        .advance(ADVANCE, 1_000_000)
+        .op(DRAIN, &[])
+        .op(SWITCH, &[1 << 3, 50, 0, 1, 0])
+        .act(IMMEDIATE, Move(0, 5_000, None))
+        .advance(ADVANCE, 60_000)
+        .op(CLEAR_FAULT, &[])
+        .op(HOME, &[0])
+        .advance(ADVANCE, 300_000);
+    write(dir, "rig_motion", &motion.0);
+
+    // Voice coils: a chord on coil 0, a sequence that starts coil 1, fades coil 0 and
+    // triggers camera 1, then an emergency stop (every coil fades).
+    let items =
+        [(0, Coil(1, 500, &[(220_000, 10_000)])), (5_000, Coil(0, 2_000, &[])), (5_000, Trigger(1, 0))];
+    let coils = Ctl::rig(COILS | CAMERAS)
+        .act(IMMEDIATE, Coil(0, 1_000, &[(440_000, 8_000), (1_000_000, 4_000)]))
+        .advance(ADVANCE, 20_000)
+        .op(LOAD, &chunk_bytes(false, 0, true, &items))
+        .start_now()
+        .advance(ADVANCE, 30_000)
+        .op(ESTOP, &[])
+        .advance(ADVANCE, 30_000)
+        .op(DRAIN, &[]);
+    write(dir, "rig_coils", &coils.0);
+
+    // One fault after another: an interlock opening under a lit laser, the on-time limit of an
+    // active-low laser, an underrun, a late wake-up in a sequence, a failing galvo converter and
+    // a lapsed heartbeat.
+    let markers = [(1_000, Marker(1)), (1_000, Marker(2)), (1_000, Marker(3)), (1_000, Marker(4))];
+    let faults = Ctl::rig(GALVO | LASERS | ARMED | WATCHDOG)
+        .act(IMMEDIATE, Laser(1, true))
+        .advance(ADVANCE, 10_000)
+        .op(INTERLOCK, &[0x81])
+        .op(CLEAR_FAULT, &[])
+        .op(INTERLOCK, &[0x01])
+        .op(CONFIG, &[12, 0])
+        .op(ARM, &[0b111])
+        .act(IMMEDIATE, Laser(2, true))
+        .advance(ADVANCE, 30_000)
+        .op(CLEAR_FAULT, &[])
+        .op(LOAD, &chunk_bytes(false, 3, false, &markers[..2]))
+        .start_now()
+        .advance(ADVANCE, 5_000)
+        .op(CLEAR_FAULT, &[])
+        .op(LOAD, &chunk_bytes(false, 3, true, &markers))
+        .start_now()
+        .op(LATE_WAKE, &[0x88, 0x13])
+        .op(CLEAR_FAULT, &[])
+        .op(GALVO_FAILS, &[1])
+        .act(IMMEDIATE, Point(5_000, 5_000))
+        .op(CLEAR_FAULT, &[])
+        .op(GALVO_FAILS, &[0])
+        .op(HOST_SEEN, &[1])
+        .advance(ADVANCE, 1_000_000)
+        .op(DRAIN, &[]);
+    write(dir, "rig_faults", &faults.0);
+
+    // A long sequence streamed in chunks under credit, then aborted.
+    let train = [(1_000, Trigger(0, 0)); 32];
+    let mut stream = Ctl::rig(CAMERAS | EXPOSURE).op(LOAD, &chunk_bytes(false, 1, false, &train)).start_now();
+    for _ in 0..6 {
+        stream = stream
+            .advance(ADVANCE, 20_000)
+            .op(DRAIN, &[])
+            .op(LOAD, &chunk_bytes(true, 0, false, &train[..20]));
+    }
+    let stream = stream.advance(ADVANCE, 10_000).op(ABORT, &[1]).op(DRAIN, &[]);
+    write(dir, "rig_stream", &stream.0);
+
+    // The controller: a session (Hello, every preset configured), arm, a lit laser, a sequence,
+    // status, an emergency stop as a datagram, clear, home, heartbeats.
+    let items =
+        [(100, Laser(1, true)), (0, Wait(2, 1, 100_000)), (200, Trigger(0, 0)), (1_000, Laser(1, false))];
+    let session = Ctl::controller(C_HELLO | C_CONFIGURE | C_SWITCHES | C_EXPOSURE)
+        .send(false, ARM_CMD, &[0b11])
+        .send(false, IMMEDIATE_CMD, &Laser(0, true).bytes())
+        .advance(C_ADVANCE, 10_000)
+        .send(false, GET_STATUS, &[])
+        .send(false, LOAD_CMD, &chunk_bytes(false, 2, true, &items))
+        .send(false, START_CMD, &[0])
+        .advance(C_ADVANCE, 50_000)
+        .send(true, ESTOP_CMD, &[])
+        .advance(C_ADVANCE, 100)
+        .send(false, CLEAR_FAULT_CMD, &[])
+        .send(false, HOME_CMD, &[0])
+        .advance(C_ADVANCE, 300_000)
+        .send(false, HEARTBEAT, &[])
+        .advance(C_ADVANCE, 300_000)
+        .send(false, GET_STATUS, &[]);
+    write(dir, "controller_session", &session.0);
+
+    // The controller with a 50 ms heartbeat timeout (preset 11) that lapses, an interlock
+    // opening, and the fault cleared.
+    let watchdog = Ctl::controller(C_HELLO | C_CONFIGURE)
+        .send(false, CONFIGURE, &[11, 0])
+        .send(false, ARM_CMD, &[0b1])
+        .send(false, IMMEDIATE_CMD, &Laser(0, true).bytes())
+        .op(C_INTERLOCK, &[0x80])
+        .advance(C_ADVANCE, 200_000)
+        .send(false, CLEAR_FAULT_CMD, &[])
+        .send(false, GET_STATUS, &[]);
+    write(dir, "controller_watchdog", &watchdog.0);
+}
+
 fn main() {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("seeds");
-    for (target, gen) in
-        [("decode_raw", decode_raw as fn(&Path)), ("roundtrip", roundtrip), ("link", link_scripts)]
-    {
+    let targets = [
+        ("decode_raw", decode_raw as fn(&Path)),
+        ("roundtrip", roundtrip),
+        ("link", link_scripts),
+        ("controller", controller_scripts),
+    ];
+    for (target, gen) in targets {
         let dir = root.join(target);
         let _ = fs::remove_dir_all(&dir);
         fs::create_dir_all(&dir).unwrap();
