@@ -767,8 +767,17 @@ fn main() {
     ];
     for (target, gen) in targets {
         let dir = root.join(target);
-        let _ = fs::remove_dir_all(&dir);
+        // Generated seeds are rewritten; minimised crash reproducers (`regression-*`, copied
+        // from artifacts/ once fixed) stay.
         fs::create_dir_all(&dir).unwrap();
+        for entry in fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            let keep =
+                path.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.starts_with("regression-"));
+            if !keep {
+                fs::remove_file(&path).unwrap();
+            }
+        }
         gen(&dir);
         let total: u64 = fs::read_dir(&dir).unwrap().map(|e| e.unwrap().metadata().unwrap().len()).sum();
         println!("{target}: {} seeds, {total} bytes", fs::read_dir(&dir).unwrap().count());
