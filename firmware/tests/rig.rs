@@ -619,5 +619,7 @@ fn a_late_fault_keeps_outputs_in_tick_order() {
     assert_eq!(rig.fault(), Some(FaultCause::Late { sequence: 1, item: 0 }));
     let ticks: Vec<u64> = rig.board().record.iter().map(|c| c.tick).collect();
     assert!(ticks.windows(2).all(|w| w[0] <= w[1]), "{ticks:?}");
-    assert!(rig.drain_events().contains(&Event::Fault { cause: FaultCause::Late { sequence: 1, item: 0 }, tick: 2_000 }));
+    assert!(rig
+        .drain_events()
+        .contains(&Event::Fault { cause: FaultCause::Late { sequence: 1, item: 0 }, tick: 2_000 }));
 }
