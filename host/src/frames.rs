@@ -35,11 +35,15 @@ impl Pattern {
         let field = &s[open + 1..close];
         let width = match field.strip_prefix("frame") {
             Some("") => 0,
-            Some(w) => w.strip_prefix(":0").and_then(|w| w.parse().ok()).ok_or_else(err)?,
+            Some(w) => w
+                .strip_prefix(":0")
+                .and_then(|w| w.parse().ok())
+                .filter(|&w: &usize| w <= 20)
+                .ok_or_else(err)?,
             None => return Err(err()),
         };
         let suffix = &s[close + 1..];
-        if suffix.contains('{') {
+        if suffix.contains(['{', '}']) || s[..open].contains('}') {
             return Err(err());
         }
         Ok(Self { prefix: s[..open].into(), suffix: suffix.into(), width })

@@ -293,27 +293,10 @@ impl FrameSource {
         match self {
             FrameSource::Virtual => None,
             FrameSource::Directory { dir, pattern } => {
-                let (before, width, after) = split_pattern(pattern)?;
-                Some(dir.join(format!("{before}{frame:0width$}{after}")))
+                Some(dir.join(crate::frames::Pattern::parse(pattern).ok()?.name_of(frame)))
             }
         }
     }
-}
-
-/// `(text before, zero-pad width, text after)` of a pattern with exactly one placeholder.
-fn split_pattern(pattern: &str) -> Option<(&str, usize, &str)> {
-    let start = pattern.find("{frame")?;
-    let close = start + pattern[start..].find('}')?;
-    let spec = &pattern[start + "{frame".len()..close];
-    let width = match spec {
-        "" => 0,
-        s => s.strip_prefix(":0").filter(|w| !w.is_empty())?.parse::<usize>().ok().filter(|w| *w <= 20)?,
-    };
-    let after = &pattern[close + 1..];
-    if after.contains('{') || after.contains('}') || pattern[..start].contains(['{', '}']) {
-        return None;
-    }
-    Some((&pattern[..start], width, after))
 }
 
 /// A camera trigger output (`[[camera]]`).
@@ -1267,7 +1250,7 @@ fn build_source(cx: &Cx<'_>, i: usize, s: Option<RawSource>) -> Result<FrameSour
         let message = format!("required for kind = \"directory\": the file name of frame N, {EXAMPLE}");
         return Err(cx.err(&k("pattern"), message));
     };
-    if split_pattern(&pattern).is_none() {
+    if crate::frames::Pattern::parse(&pattern).is_err() {
         let message = format!(
             "\"{pattern}\" needs exactly one {{frame}} or {{frame:0N}} placeholder (N digits, zero-padded), \
              {EXAMPLE}"
@@ -2004,9 +1987,9 @@ mod tests {
         assert_eq!(s.frame_path(42), Some(PathBuf::from("frames/img_000042.png")));
         let s = FrameSource::Directory { dir: "f".into(), pattern: "{frame}.exr".into() };
         assert_eq!(s.frame_path(7), Some(PathBuf::from("f/7.exr")));
-        assert!(split_pattern("img.png").is_none());
-        assert!(split_pattern("{frame}{frame}.png").is_none());
-        assert!(split_pattern("{frame:6}.png").is_none());
+        assert!(crate::frames::Pattern::parse("img.png").is_err());
+        assert!(crate::frames::Pattern::parse("{frame}{frame}.png").is_err());
+        assert!(crate::frames::Pattern::parse("{frame:6}.png").is_err());
     }
 
     #[test]

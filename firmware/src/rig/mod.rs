@@ -694,69 +694,49 @@ impl<B: Board> Rig<B> {
     // ---------------------------------------------------------------- checks
 
     fn laser_config(&self, ch: u8) -> Result<LaserConfig, Error> {
-        let count = self.caps.lasers;
-        if ch >= count {
-            return Err(Error::NoSuchPeripheral { kind: Peripheral::Laser, index: ch, count });
-        }
-        self.lasers
-            .get(usize::from(ch))
-            .and_then(|l| l.config)
-            .ok_or(Error::NotConfigured { kind: Peripheral::Laser, index: ch })
+        configured(
+            Peripheral::Laser,
+            ch,
+            self.caps.lasers,
+            self.lasers.get(usize::from(ch)).and_then(|l| l.config),
+        )
     }
 
     fn stepper_config(&self, i: u8) -> Result<StepperConfig, Error> {
-        let count = self.caps.steppers;
-        if i >= count {
-            return Err(Error::NoSuchPeripheral { kind: Peripheral::Stepper, index: i, count });
-        }
-        self.axes
-            .get(usize::from(i))
-            .and_then(|a| a.config)
-            .ok_or(Error::NotConfigured { kind: Peripheral::Stepper, index: i })
+        configured(
+            Peripheral::Stepper,
+            i,
+            self.caps.steppers,
+            self.axes.get(usize::from(i)).and_then(|a| a.config),
+        )
     }
 
     fn wheel_config(&self, i: u8) -> Result<FilterWheelConfig, Error> {
-        let count = self.caps.filter_wheels;
-        if i >= count {
-            return Err(Error::NoSuchPeripheral { kind: Peripheral::FilterWheel, index: i, count });
-        }
-        self.wheels
-            .get(usize::from(i))
-            .and_then(|w| w.config)
-            .ok_or(Error::NotConfigured { kind: Peripheral::FilterWheel, index: i })
+        let c = self.wheels.get(usize::from(i)).and_then(|w| w.config);
+        configured(Peripheral::FilterWheel, i, self.caps.filter_wheels, c)
     }
 
     fn galvo_config(&self, i: u8) -> Result<GalvoConfig, Error> {
-        let count = self.caps.galvos;
-        if i >= count {
-            return Err(Error::NoSuchPeripheral { kind: Peripheral::Galvo, index: i, count });
-        }
-        self.galvos
-            .get(usize::from(i))
-            .and_then(|g| g.config)
-            .ok_or(Error::NotConfigured { kind: Peripheral::Galvo, index: i })
+        configured(
+            Peripheral::Galvo,
+            i,
+            self.caps.galvos,
+            self.galvos.get(usize::from(i)).and_then(|g| g.config),
+        )
     }
 
     fn camera_config(&self, i: u8) -> Result<CameraConfig, Error> {
-        let count = self.caps.cameras;
-        if i >= count {
-            return Err(Error::NoSuchPeripheral { kind: Peripheral::Camera, index: i, count });
-        }
-        self.cameras
-            .get(usize::from(i))
-            .and_then(|c| c.config)
-            .ok_or(Error::NotConfigured { kind: Peripheral::Camera, index: i })
+        configured(
+            Peripheral::Camera,
+            i,
+            self.caps.cameras,
+            self.cameras.get(usize::from(i)).and_then(|c| c.config),
+        )
     }
 
     fn coil_config(&self, i: u8) -> Result<VoiceCoilConfig, Error> {
-        let count = self.caps.voice_coils;
-        if i >= count {
-            return Err(Error::NoSuchPeripheral { kind: Peripheral::VoiceCoil, index: i, count });
-        }
-        self.coils
-            .get(usize::from(i))
-            .and_then(|c| c.config)
-            .ok_or(Error::NotConfigured { kind: Peripheral::VoiceCoil, index: i })
+        let c = self.coils.get(usize::from(i)).and_then(|c| c.config);
+        configured(Peripheral::VoiceCoil, i, self.caps.voice_coils, c)
     }
 
     /// Whether `action` is acceptable for the configuration (not the timing): the peripheral
@@ -1550,6 +1530,15 @@ impl<B: Board> Rig<B> {
         }
         self.check_wait(t);
     }
+}
+
+/// A peripheral's configuration, or the error that says why there is none: an index beyond
+/// the device's `count`, or one never configured.
+fn configured<T>(kind: Peripheral, index: u8, count: u8, config: Option<T>) -> Result<T, Error> {
+    if index >= count {
+        return Err(Error::NoSuchPeripheral { kind, index, count });
+    }
+    config.ok_or(Error::NotConfigured { kind, index })
 }
 
 fn apply_coil(synth: &mut Synth, setting: CoilSetting) {
