@@ -1,0 +1,10 @@
+//! Imaging foundation for the pipelines.
+//!
+//! - [`io`]: reading and writing 8/16-bit PNG and TIFF and half/float EXR, linear vs sRGB made
+//!   explicit, errors that name the file and the problem.
+//! - [`hdr`]: camera response recovery from exposure series and merging to linear radiance.
+//! - [`calib`]: chessboard detection, intrinsics with distortion, pose, per-pixel rays.
+
+pub mod calib;
+pub mod hdr;
+pub mod io;
