@@ -189,8 +189,8 @@ fn read_layers(path: &Path) -> Result<(Vec<Layer>, u8), IoError> {
                 Some(AttributeValue::Text(t)) => t.to_string().split(',').map(str::to_owned).collect(),
                 _ => Vec::new(),
             };
-        // Group channels by the prefix before their last dot; `(prefix, short name, channel)`.
-        let mut groups: Vec<(String, Vec<(String, &AnyChannel<FlatSamples>)>)> = Vec::new();
+        // Group channels by the prefix before their last dot (single-part multi-layer convention).
+        let mut groups: Vec<ChannelGroup> = Vec::new();
         for channel in &part.channel_data.list {
             if channel.sampling != x::Vec2(1, 1) {
                 return Err(unsupported(format!("subsampled channel `{}`", channel.name)));
@@ -237,6 +237,9 @@ fn read_layers(path: &Path) -> Result<(Vec<Layer>, u8), IoError> {
     }
     Ok((layers, bits))
 }
+
+/// Channels sharing a `prefix.` in a part: `(prefix, [(short name, channel)])`.
+type ChannelGroup<'a> = (String, Vec<(String, &'a AnyChannel<FlatSamples>)>);
 
 /// Sort key: the recorded order if the name is in it, else the conventional rank, else alphabetical.
 fn rank(name: &str, order: &[String]) -> (usize, String) {
