@@ -166,14 +166,40 @@ pub(super) fn read_single(path: &Path) -> Result<(Image, u8), IoError> {
     Ok((layers.remove(0).image, bits))
 }
 
+/// No EXR compression in the `exr` crate expands data by more than deflate's ~1032:1, so a header
+/// promising more pixels than that is corrupt; checking first keeps a damaged file from making the
+/// decoder allocate gigabytes.
+const MAX_EXPANSION: u64 = 1100;
+/// Decoded size always allowed, whatever the file size.
+const MIN_BUDGET: u64 = 64 << 20;
+
 fn read_layers(path: &Path) -> Result<(Vec<Layer>, u8), IoError> {
-    let file = x::read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .all_layers()
-        .all_attributes()
-        .from_file(path)
+    let meta = x::MetaData::read_from_file(path, false).map_err(|e| map_exr_error(path, e))?;
+    let file_len =
+        std::fs::metadata(path).map_err(|source| IoError::Open { path: path.into(), source })?.len();
+    let decoded: u64 = meta
+        .headers
+        .iter()
+        .map(|h| (h.layer_size.area() as u64).saturating_mul(h.channels.bytes_per_pixel as u64))
+        .fold(0, u64::saturating_add);
+    if decoded > file_len.saturating_mul(MAX_EXPANSION).max(MIN_BUDGET) {
+        return Err(IoError::Decode {
+            path: path.into(),
+            detail: format!(
+                "header promises {decoded} bytes of pixels, impossible for a {file_len}-byte file (corrupt or \
+                 truncated)"
+            ),
+        });
+    }
+    if meta.headers.iter().any(|h| h.deep) {
+        return Err(IoError::Unsupported { path: path.into(), what: "deep EXR data".into() });
+    }
+    // The decoder is third-party code fed untrusted bytes: a panic in it is a bad file, not a crash.
+    let file = std::panic::catch_unwind(|| read_file(path))
+        .map_err(|_| IoError::Decode {
+            path: path.into(),
+            detail: "EXR decoder failed (corrupt file?)".into(),
+        })?
         .map_err(|e| map_exr_error(path, e))?;
     let unsupported = |what: String| IoError::Unsupported { path: path.into(), what };
     let mut bits = 16;
@@ -240,6 +266,18 @@ fn read_layers(path: &Path) -> Result<(Vec<Layer>, u8), IoError> {
 
 /// Channels sharing a `prefix.` in a part: `(prefix, [(short name, channel)])`.
 type ChannelGroup<'a> = (String, Vec<(String, &'a AnyChannel<FlatSamples>)>);
+
+type ExrFile = x::Image<x::Layers<AnyChannels<FlatSamples>>>;
+
+fn read_file(path: &Path) -> x::Result<ExrFile> {
+    x::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .from_file(path)
+}
 
 /// Sort key: the recorded order if the name is in it, else the conventional rank, else alphabetical.
 fn rank(name: &str, order: &[String]) -> (usize, String) {
