@@ -155,7 +155,7 @@ fn write_atomically(
 ) -> Result<(), IoError> {
     let tmp = temp_path(path);
     let result = (|| {
-        let file = File::create(&tmp).map_err(|source| IoError::Open { path: tmp.clone(), source })?;
+        let file = File::create(&tmp).map_err(|source| IoError::Open { path: path.into(), source })?;
         let mut out = BufWriter::new(file);
         write(&mut out).map_err(|detail| IoError::Encode { path: path.into(), detail })?;
         let file = out

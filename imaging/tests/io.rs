@@ -377,6 +377,9 @@ fn writes_replace_atomically_and_leave_no_temp_files() {
     assert_eq!(read(&path).unwrap(), white);
     let entries: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name()).collect();
     assert_eq!(entries, vec![std::ffi::OsString::from("out.png")]);
+    let nowhere = dir.join("no-such-dir").join("out.png");
+    let err = write_png(&nowhere, &white, BitDepth::Eight).unwrap_err();
+    assert!(matches!(err, IoError::Open { .. }) && err.path() == nowhere, "{err}");
 }
 
 #[test]
