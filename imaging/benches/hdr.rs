@@ -25,7 +25,7 @@ fn hash(mut z: u64) -> u64 {
 /// Radiance gradient over 5 decades with texture, gamma-2.2 response, 1-stop exposures.
 fn stack() -> (Vec<Vec<u8>>, Vec<f32>, Vec<Response>) {
     let times: Vec<f32> = (0..P).map(|j| (0.9e-5 * 2f64.powi(j as i32)) as f32).collect();
-    let mut imgs = vec![Vec::with_capacity(W * H * 3); P];
+    let mut imgs: Vec<Vec<u8>> = (0..P).map(|_| Vec::with_capacity(W * H * 3)).collect();
     for y in 0..H {
         for x in 0..W {
             for c in 0..3 {
@@ -68,9 +68,11 @@ fn bench(c: &mut Criterion) {
     let st = Stack::new(W, H, 3, imgs.iter().map(|v| v.as_slice()).collect(), times).unwrap();
     let mut g = c.benchmark_group("hdr_merge");
     g.throughput(Throughput::Elements((W * H * P) as u64));
-    for (name, shape, threads) in
-        [("hat_2_threads", WeightShape::Hat, 2), ("hat_1_thread", WeightShape::Hat, 1), ("snr_2_threads", WeightShape::Snr, 2)]
-    {
+    for (name, shape, threads) in [
+        ("hat_2_threads", WeightShape::Hat, 2),
+        ("hat_1_thread", WeightShape::Hat, 1),
+        ("snr_2_threads", WeightShape::Snr, 2),
+    ] {
         let o = MergeOptions { weights: Weights { shape, ..Weights::full(256) }, threads };
         // A plain figure in input Mpx/s besides criterion's estimate.
         let runs = 10;

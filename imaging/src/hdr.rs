@@ -217,9 +217,9 @@ impl Response {
 pub enum WeightShape {
     /// Debevec's hat: `w(z) = min(z − black, saturation − z)` (normalised to peak 1).
     Hat,
-    /// Hat times `1/g'(z)²`, i.e. the inverse variance of `ln f⁻¹` for constant noise in `z`
-    /// (Mitsunaga–Nayar style, tapered by the hat so the clipping edges still go to zero).
-    /// Lower noise than [`WeightShape::Hat`] for strongly non-linear curves.
+    /// `1/g'(z)²`, the inverse variance of `ln f⁻¹` for constant noise in `z` (Mitsunaga–Nayar
+    /// style), tapered linearly to zero over the outer 1/16 of `(black, saturation)` at either
+    /// end. Much lower noise than [`WeightShape::Hat`] for non-linear curves.
     Snr,
 }
 
@@ -239,6 +239,13 @@ impl Weights {
         Weights { black: 0, saturation: levels.saturating_sub(1) as u32, shape: WeightShape::Hat }
     }
 
+    /// [`WeightShape::Snr`] weights with the black level at 0 and saturation at `levels − 1`;
+    /// the better choice for merging in the linear domain (the hat lets dark samples of short
+    /// exposures, whose `f⁻¹(Z)/Δt` is very noisy, pull the result).
+    pub fn snr(levels: usize) -> Self {
+        Weights { shape: WeightShape::Snr, ..Self::full(levels) }
+    }
+
     fn check(&self) -> Result<(), HdrError> {
         if self.saturation < self.black + 2 {
             return Err(HdrError::InvalidParameter("saturation must exceed black + 1"));
@@ -246,13 +253,17 @@ impl Weights {
         Ok(())
     }
 
-    /// The hat part, normalised to peak 1.
+    /// The hat (or, for [`WeightShape::Snr`], the edge taper), peak 1.
     fn hat(&self, z: usize) -> f64 {
         let (b, s, z) = (self.black as f64, self.saturation as f64, z as f64);
+        let ramp = match self.shape {
+            WeightShape::Hat => 0.5 * (s - b),
+            WeightShape::Snr => (s - b) / 16.0,
+        };
         if z <= b || z >= s {
             0.0
         } else {
-            (z - b).min(s - z) / (0.5 * (s - b))
+            ((z - b).min(s - z) / ramp).min(1.0)
         }
     }
 
@@ -614,7 +625,7 @@ fn cholesky_solve(m: &mut [f64], b: &mut [f64], n: usize) -> Option<Vec<f64>> {
         for k in 0..j {
             d -= m[j * n + k] * m[j * n + k];
         }
-        if !(d > 0.0) {
+        if d.is_nan() || d <= 0.0 {
             return None;
         }
         let d = d.sqrt();
@@ -656,6 +667,8 @@ impl RobertsonOptions {
 }
 
 /// Recovers one response per channel with Robertson's iteration; `f⁻¹(levels/2) = 1`.
+/// The weights are the fixed table of `options.weights` (use [`WeightShape::Hat`]; the
+/// response-dependent [`WeightShape::Snr`] falls back to its edge taper here).
 /// Uses every pixel (on a grid of at most ~256 k pixels). Levels never observed are
 /// interpolated between observed neighbours.
 pub fn robertson<T: Sample>(
@@ -714,7 +727,8 @@ pub fn robertson<T: Sample>(
                 return Err(HdrError::NoUsablePixels);
             }
             new.iter_mut().for_each(|v| *v /= norm);
-            let change: f64 = new.iter().zip(&inv).map(|(a, b)| (a - b) * (a - b)).sum::<f64>() / levels as f64;
+            let change: f64 =
+                new.iter().zip(&inv).map(|(a, b)| (a - b) * (a - b)).sum::<f64>() / levels as f64;
             inv = new;
             if change < options.tolerance {
                 break;
