@@ -16,6 +16,7 @@
 //! absolute conic `B = K⁻ᵀK⁻¹` from `V·b = 0`, per-view extrinsics from `K⁻¹H`, then
 //! Levenberg–Marquardt over all intrinsics, distortion and poses minimising the reprojection error.
 
+use std::collections::HashMap;
 use std::fmt;
 
 /// Why a calibration step failed.
@@ -707,4 +708,407 @@ pub fn pose_from_board(
         return Err(CalibError::Degenerate("pose refinement diverged"));
     }
     Ok((Pose::from_array(&poses[0]), rms))
+}
+
+// ---------------------------------------------------------------------------------------------
+// Chessboard detection.
+
+/// A grey image as `f64`, row-major, with bilinear sampling (clamped at the border).
+struct Img {
+    w: usize,
+    h: usize,
+    px: Vec<f64>,
+}
+
+impl Img {
+    fn at(&self, x: usize, y: usize) -> f64 {
+        self.px[y * self.w + x]
+    }
+
+    fn sample(&self, x: f64, y: f64) -> f64 {
+        let x = x.clamp(0.0, (self.w - 1) as f64);
+        let y = y.clamp(0.0, (self.h - 1) as f64);
+        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let (x1, y1) = ((x0 + 1).min(self.w - 1), (y0 + 1).min(self.h - 1));
+        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+        let top = self.at(x0, y0) * (1.0 - fx) + self.at(x1, y0) * fx;
+        let bot = self.at(x0, y1) * (1.0 - fx) + self.at(x1, y1) * fx;
+        top * (1.0 - fy) + bot * fy
+    }
+
+    /// Separable Gaussian blur with standard deviation `sigma` (edges clamped).
+    fn blur(&self, sigma: f64) -> Img {
+        let r = (3.0 * sigma).ceil() as isize;
+        let k: Vec<f64> = (-r..=r).map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp()).collect();
+        let s: f64 = k.iter().sum();
+        let k: Vec<f64> = k.iter().map(|x| x / s).collect();
+        let (w, h) = (self.w as isize, self.h as isize);
+        let mut tmp = vec![0.0; self.px.len()];
+        for y in 0..h {
+            for x in 0..w {
+                tmp[(y * w + x) as usize] = (-r..=r)
+                    .map(|i| k[(i + r) as usize] * self.px[(y * w + (x + i).clamp(0, w - 1)) as usize])
+                    .sum();
+            }
+        }
+        let mut out = vec![0.0; self.px.len()];
+        for y in 0..h {
+            for x in 0..w {
+                out[(y * w + x) as usize] = (-r..=r)
+                    .map(|i| k[(i + r) as usize] * tmp[((y + i).clamp(0, h - 1) * w + x) as usize])
+                    .sum();
+            }
+        }
+        Img { w: self.w, h: self.h, px: out }
+    }
+}
+
+/// Saddle-point candidates: local maxima of `Ixy² − Ixx·Iyy` (negative Hessian determinant, large at
+/// X-junctions) on the blurred image, strongest first.
+fn saddle_candidates(b: &Img, max: usize) -> Vec<([f64; 2], f64)> {
+    let (w, h) = (b.w, b.h);
+    let mut resp = vec![0.0; w * h];
+    for y in 1..h - 1 {
+        for x in 1..w - 1 {
+            let c = b.at(x, y);
+            let ixx = b.at(x + 1, y) - 2.0 * c + b.at(x - 1, y);
+            let iyy = b.at(x, y + 1) - 2.0 * c + b.at(x, y - 1);
+            let ixy =
+                (b.at(x + 1, y + 1) - b.at(x - 1, y + 1) - b.at(x + 1, y - 1) + b.at(x - 1, y - 1)) / 4.0;
+            resp[y * w + x] = (ixy * ixy - ixx * iyy).max(0.0);
+        }
+    }
+    let peak = resp.iter().cloned().fold(0.0, f64::max);
+    if peak <= 0.0 {
+        return Vec::new();
+    }
+    let r = 3usize;
+    let mut out = Vec::new();
+    for y in r..h.saturating_sub(r) {
+        for x in r..w.saturating_sub(r) {
+            let v = resp[y * w + x];
+            if v < 0.01 * peak {
+                continue;
+            }
+            let mut is_max = true;
+            'n: for yy in y - r..=y + r {
+                for xx in x - r..=x + r {
+                    let o = resp[yy * w + xx];
+                    if o > v || (o == v && (yy, xx) < (y, x)) {
+                        is_max = false;
+                        break 'n;
+                    }
+                }
+            }
+            if is_max {
+                out.push(([x as f64, y as f64], v));
+            }
+        }
+    }
+    out.sort_by(|a, b| b.1.total_cmp(&a.1));
+    out.truncate(max);
+    out
+}
+
+/// Polarity of an X-junction at `p` in the local grid basis `(ei, ej)` (steps to the neighbouring
+/// corners): `Some(+1)` when the squares at `p + (±ei ± ej)/2` on the diagonal `(+,+)/(−,−)` are
+/// both clearly brighter than those on `(+,−)/(−,+)`, `Some(−1)` for the reverse, `None` otherwise.
+fn x_polarity(img: &Img, p: [f64; 2], ei: [f64; 2], ej: [f64; 2]) -> Option<i32> {
+    let s = |a: f64, b: f64| {
+        img.sample(p[0] + 0.5 * (a * ei[0] + b * ej[0]), p[1] + 0.5 * (a * ei[1] + b * ej[1]))
+    };
+    let (pp, mm, pm, mp) = (s(1.0, 1.0), s(-1.0, -1.0), s(1.0, -1.0), s(-1.0, 1.0));
+    let hi = pp.max(mm).max(pm).max(mp);
+    let lo = pp.min(mm).min(pm).min(mp);
+    let range = hi - lo;
+    if range < 10.0 {
+        return None;
+    }
+    if pp.min(mm) - pm.max(mp) > 0.4 * range {
+        Some(1)
+    } else if pm.min(mp) - pp.max(mm) > 0.4 * range {
+        Some(-1)
+    } else {
+        None
+    }
+}
+
+/// Spatial hash of the candidates for nearest-neighbour queries.
+struct Buckets {
+    cell: f64,
+    map: HashMap<(i64, i64), Vec<usize>>,
+}
+
+impl Buckets {
+    fn new(pts: &[[f64; 2]], cell: f64) -> Self {
+        let mut map: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
+        for (i, p) in pts.iter().enumerate() {
+            map.entry(((p[0] / cell) as i64, (p[1] / cell) as i64)).or_default().push(i);
+        }
+        Buckets { cell, map }
+    }
+
+    fn within(&self, pts: &[[f64; 2]], q: [f64; 2], r: f64) -> Vec<(usize, f64)> {
+        let (x0, x1) = (((q[0] - r) / self.cell).floor() as i64, ((q[0] + r) / self.cell).floor() as i64);
+        let (y0, y1) = (((q[1] - r) / self.cell).floor() as i64, ((q[1] + r) / self.cell).floor() as i64);
+        let mut out = Vec::new();
+        for cy in y0..=y1 {
+            for cx in x0..=x1 {
+                for &i in self.map.get(&(cx, cy)).into_iter().flatten() {
+                    let d = ((pts[i][0] - q[0]).powi(2) + (pts[i][1] - q[1]).powi(2)).sqrt();
+                    if d <= r {
+                        out.push((i, d));
+                    }
+                }
+            }
+        }
+        out.sort_by(|a, b| a.1.total_cmp(&b.1));
+        out
+    }
+}
+
+type Grid = HashMap<(i32, i32), ([f64; 2], [f64; 2], [f64; 2])>;
+
+/// Grows a grid of X-junctions from `seed` with basis `(ei, ej)`: each new node is predicted from a
+/// neighbour's local basis, snapped to the nearest candidate within 0.3 of a step, and accepted if it
+/// is an X-junction of the alternating polarity. Gives up beyond `limit` nodes.
+#[allow(clippy::too_many_arguments)]
+fn grow(
+    img: &Img,
+    pts: &[[f64; 2]],
+    strength: &[f64],
+    bk: &Buckets,
+    seed: usize,
+    ei: [f64; 2],
+    ej: [f64; 2],
+    limit: usize,
+) -> Option<Grid> {
+    let pol0 = x_polarity(img, pts[seed], ei, ej)?;
+    let mut grid: Grid = HashMap::new();
+    let mut used = std::collections::HashSet::new();
+    grid.insert((0, 0), (pts[seed], ei, ej));
+    used.insert(seed);
+    let mut queue = std::collections::VecDeque::from([(0, 0)]);
+    while let Some((i, j)) = queue.pop_front() {
+        let (p, ei, ej) = grid[&(i, j)];
+        for (di, dj) in [(1, 0), (-1, 0), (0, 1), (0, -1)] {
+            let t = (i + di, j + dj);
+            if grid.contains_key(&t) {
+                continue;
+            }
+            let step = [di as f64 * ei[0] + dj as f64 * ej[0], di as f64 * ei[1] + dj as f64 * ej[1]];
+            let len = (step[0] * step[0] + step[1] * step[1]).sqrt();
+            let pred = [p[0] + step[0], p[1] + step[1]];
+            // The strongest unused candidate near the prediction (weak ones are noise on edges),
+            // then sub-pixel refinement from there (or from the prediction when there is none).
+            let near = bk.within(pts, pred, 0.3 * len);
+            let c = near
+                .iter()
+                .filter(|(c, _)| !used.contains(c))
+                .max_by(|a, b| strength[a.0].total_cmp(&strength[b.0]))
+                .map(|a| a.0);
+            let Some(c) = c.filter(|&c| strength[c] >= 0.05 * strength[seed]) else { continue };
+            let q = corner_subpix(img, pts[c], 3);
+            if (q[0] - pts[c][0]).hypot(q[1] - pts[c][1]) > 3.0 {
+                continue;
+            }
+            let d = [q[0] - p[0], q[1] - p[1]];
+            let (mut ni, mut nj) =
+                if di != 0 { (d.map(|x| x * di as f64), ej) } else { (ei, d.map(|x| x * dj as f64)) };
+            // Prefer bases measured at the new node from any neighbours already in the grid.
+            for (s, other) in [((1, 0), true), ((-1, 0), true), ((0, 1), false), ((0, -1), false)] {
+                if let Some(&(o, _, _)) = grid.get(&(t.0 + s.0, t.1 + s.1)) {
+                    let sg = (s.0 + s.1) as f64;
+                    let v = [(o[0] - q[0]) * sg, (o[1] - q[1]) * sg];
+                    if other {
+                        ni = v;
+                    } else {
+                        nj = v;
+                    }
+                }
+            }
+            let want = if (t.0 + t.1).rem_euclid(2) == 0 { pol0 } else { -pol0 };
+            if std::env::var_os("LR_DEBUG").is_some() {
+                eprintln!("{t:?} {q:?} pol {:?} want {want}", x_polarity(img, q, ni, nj));
+            }
+            if x_polarity(img, q, ni, nj) != Some(want) {
+                continue;
+            }
+            grid.insert(t, (q, ni, nj));
+            used.insert(c);
+            if grid.len() > limit {
+                return None;
+            }
+            queue.push_back(t);
+        }
+    }
+    Some(grid)
+}
+
+/// Iterative sub-pixel corner refinement (OpenCV's cornerSubPix): at the true corner `q` every
+/// image gradient `g(p)` in the window is orthogonal to `p − q`, so `q = (Σ w·g·gᵀ)⁻¹ Σ w·g·gᵀ·p`,
+/// iterated with bilinear resampling around the current estimate and Gaussian weights.
+fn corner_subpix(img: &Img, mut c: [f64; 2], win: i32) -> [f64; 2] {
+    let start = c;
+    for _ in 0..40 {
+        let (mut a, mut b, mut d, mut bx, mut by) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for iy in -win..=win {
+            for ix in -win..=win {
+                let (x, y) = (c[0] + ix as f64, c[1] + iy as f64);
+                let gx = (img.sample(x + 1.0, y) - img.sample(x - 1.0, y)) / 2.0;
+                let gy = (img.sample(x, y + 1.0) - img.sample(x, y - 1.0)) / 2.0;
+                let (fx, fy) = (ix as f64 / win as f64, iy as f64 / win as f64);
+                let wgt = (-(fx * fx) - fy * fy).exp();
+                let (gxx, gxy, gyy) = (wgt * gx * gx, wgt * gx * gy, wgt * gy * gy);
+                a += gxx;
+                b += gxy;
+                d += gyy;
+                bx += gxx * ix as f64 + gxy * iy as f64;
+                by += gxy * ix as f64 + gyy * iy as f64;
+            }
+        }
+        let det = a * d - b * b;
+        if det.abs() < 1e-12 {
+            break;
+        }
+        let (sx, sy) = ((d * bx - b * by) / det, (a * by - b * bx) / det);
+        c = [c[0] + sx, c[1] + sy];
+        if (c[0] - start[0]).abs() > win as f64 || (c[1] - start[1]).abs() > win as f64 {
+            return start;
+        }
+        if sx * sx + sy * sy < 1e-8 {
+            break;
+        }
+    }
+    c
+}
+
+/// Finds the `cols × rows` inner corners of a chessboard in an 8-bit grey image (`w·h` bytes,
+/// row-major) with sub-pixel accuracy. Corners come row-major (`cols` per row) from the corner
+/// nearest the image's top-left, ordered so that the board axes (col, row) have the image's
+/// handedness (x right, y down) — matching [`Board::chessboard`] viewed from the front.
+///
+/// Method: saddle points of the blurred image (`Ixy² − Ixx·Iyy` maxima), a grid grown from strong
+/// seeds through neighbours verified as X-junctions of alternating polarity, accepted when it is
+/// exactly `cols × rows`, then [`cornerSubPix`-style](corner_subpix) refinement on the raw image.
+pub fn find_chessboard(
+    gray: &[u8],
+    w: usize,
+    h: usize,
+    pattern: (usize, usize),
+) -> Result<Vec<(f64, f64)>, CalibError> {
+    let (cols, rows) = pattern;
+    if gray.len() != w * h || w < 16 || h < 16 {
+        return Err(CalibError::InvalidInput(format!(
+            "image of {} bytes is not {w}×{h} (≥ 16×16)",
+            gray.len()
+        )));
+    }
+    if cols < 2 || rows < 2 {
+        return Err(CalibError::InvalidInput(format!("pattern {cols}×{rows} needs ≥ 2 corners each way")));
+    }
+    let raw = Img { w, h, px: gray.iter().map(|&v| v as f64).collect() };
+    for sigma in [1.5, 3.0] {
+        let blurred = raw.blur(sigma);
+        let cand = saddle_candidates(&blurred, 600);
+        let pts: Vec<[f64; 2]> = cand.iter().map(|c| c.0).collect();
+        let strength: Vec<f64> = cand.iter().map(|c| c.1).collect();
+        let bk = Buckets::new(&pts, 16.0);
+        let verify = raw.blur(1.0);
+        for seed in 0..pts.len().min(40) {
+            let near: Vec<(usize, f64)> = bk
+                .within(&pts, pts[seed], (w.max(h) / 4) as f64)
+                .into_iter()
+                .filter(|&(i, _)| i != seed)
+                .take(6)
+                .collect();
+            let dir = |i: usize| [pts[i][0] - pts[seed][0], pts[i][1] - pts[seed][1]];
+            for a in 0..near.len() {
+                for b in 0..near.len() {
+                    let (d1, d2) = (dir(near[a].0), dir(near[b].0));
+                    let (l1, l2) = (near[a].1, near[b].1);
+                    let cos = (d1[0] * d2[0] + d1[1] * d2[1]) / (l1 * l2);
+                    let cross = d1[0] * d2[1] - d1[1] * d2[0];
+                    if a == b || cos.abs() > 0.6 || cross <= 0.0 || l1 > 2.0 * l2 || l2 > 2.0 * l1 || l1 < 4.0
+                    {
+                        continue;
+                    }
+                    let Some(grid) = grow(&verify, &pts, &strength, &bk, seed, d1, d2, 2 * cols * rows)
+                    else {
+                        continue;
+                    };
+                    if std::env::var_os("LR_DEBUG").is_some() {
+                        eprintln!("seed {:?} grid {}", pts[seed], grid.len());
+                    }
+                    if let Some(c) = order_grid(&grid, cols, rows) {
+                        let spacing = min_spacing(&c, cols, rows);
+                        let win = ((0.4 * spacing).floor() as i32).clamp(2, 5);
+                        return Ok(c
+                            .iter()
+                            .map(|&p| corner_subpix(&raw, p, win))
+                            .map(|p| (p[0], p[1]))
+                            .collect());
+                    }
+                }
+            }
+        }
+    }
+    if std::env::var_os("LR_DEBUG").is_some() {
+        eprintln!("not found");
+    }
+    Err(CalibError::BoardNotFound)
+}
+
+fn min_spacing(c: &[[f64; 2]], cols: usize, rows: usize) -> f64 {
+    let d = |a: [f64; 2], b: [f64; 2]| ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt();
+    let mut m = f64::INFINITY;
+    for r in 0..rows {
+        for col in 0..cols {
+            if col + 1 < cols {
+                m = m.min(d(c[r * cols + col], c[r * cols + col + 1]));
+            }
+            if r + 1 < rows {
+                m = m.min(d(c[r * cols + col], c[(r + 1) * cols + col]));
+            }
+        }
+    }
+    m
+}
+
+/// Orders a grown grid as `cols × rows` row-major (see [`find_chessboard`]); `None` unless the grid
+/// is exactly that pattern (either way round).
+fn order_grid(grid: &Grid, cols: usize, rows: usize) -> Option<Vec<[f64; 2]>> {
+    if grid.len() != cols * rows {
+        return None;
+    }
+    let (i0, i1) = (grid.keys().map(|k| k.0).min()?, grid.keys().map(|k| k.0).max()?);
+    let (j0, j1) = (grid.keys().map(|k| k.1).min()?, grid.keys().map(|k| k.1).max()?);
+    let (ni, nj) = ((i1 - i0 + 1) as usize, (j1 - j0 + 1) as usize);
+    let at = |i: i32, j: i32| grid.get(&(i0 + i, j0 + j)).map(|e| e.0);
+    let mut out = Vec::with_capacity(cols * rows);
+    for r in 0..rows as i32 {
+        for c in 0..cols as i32 {
+            out.push(if (ni, nj) == (cols, rows) {
+                at(c, r)?
+            } else if (ni, nj) == (rows, cols) {
+                at(r, c)?
+            } else {
+                return None;
+            });
+        }
+    }
+    let idx = |r: usize, c: usize| r * cols + c;
+    let (o, a, b) = (out[0], out[idx(0, 1)], out[idx(1, 0)]);
+    let cross = (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]);
+    if cross < 0.0 {
+        // Mirror the columns to restore the image's handedness.
+        for r in 0..rows {
+            out[r * cols..(r + 1) * cols].reverse();
+        }
+    }
+    let (f, l) = (out[0], out[cols * rows - 1]);
+    if f[0] + f[1] > l[0] + l[1] {
+        out.reverse();
+    }
+    Some(out)
 }
