@@ -67,3 +67,21 @@ fn plan_mistakes_point_at_the_rig_file() {
     let e = e.to_string();
     assert!(e.contains("plan.pass_mm") && e.contains("200"), "beyond the soft limits: {e}");
 }
+
+#[test]
+fn the_immersion_and_display_examples_plan() {
+    let rig = RigFile::load(&example("fluorescent-immersion.toml")).unwrap();
+    let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
+    // Calibration (a dark frame and one sweep), then 36 orientations of 400 sheets.
+    assert_eq!(plan.summary().steps, 37);
+    assert_eq!(plan.summary().triggers, (1 + 400) + 36 * 400);
+    let rig = RigFile::load(&example("brdf-display.toml")).unwrap();
+    let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
+    assert_eq!(plan.steps.len(), 2, "one step per pattern");
+    let coils = plan.steps[0]
+        .items
+        .iter()
+        .filter(|i| matches!(i.action, Action::VoiceCoil { ref partials, .. } if !partials.is_empty()))
+        .count();
+    assert_eq!(coils, rig.voice_coils.len(), "every coil gets the pattern");
+}

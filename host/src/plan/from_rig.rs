@@ -10,12 +10,19 @@
 //!   galvo range, `lasers` (names, in order), `registration` (name of a spotlight output),
 //!   `exposure_us`, `readout_us`, `frame_bytes`.
 //!
-//! The other methods are planned through the library API for now (`lightrig_host::plan::*`).
+//! - fluorescent-immersion: `views` (turntable positions over a full turn), `sheet_positions`
+//!   (spread over the galvo's X range; Y at its zero code), `laser` (name; the first laser),
+//!   `exposure_us`, `readout_us`, `calibration` (true), `frame_bytes`.
+//! - brdf-display: `patterns.NAME = { frequencies_hz = […], amplitudes = […] }` (amplitudes as
+//!   fractions of full scale, the same on every voice coil), `captures` (3), `ramp_ms` (200),
+//!   `settle_ms` (2000), `exposure_us`, `readout_us`, `frame_bytes`.
+//!
+//! Bispectral plans are built through the library API for now (`lightrig_host::plan::bispectral`).
 
 use lightrig_protocol::config::{AxisKind, Xy};
 use lightrig_protocol::session::DeviceInfo;
 
-use super::{disco, lls, Plan};
+use super::{brdf_display, disco, immersion, lls, Plan};
 use crate::rigfile::{ticks_from_ms, ticks_from_us, Method, RigError, RigFile};
 
 /// Default bytes per frame for the data-volume estimate: a 5 MP 16-bit frame.
@@ -26,6 +33,8 @@ pub fn plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
     match rig.method {
         Method::LinearLightSource => lls_plan(rig, info),
         Method::Disco => disco_plan(rig, info),
+        Method::FluorescentImmersion => immersion_plan(rig, info),
+        Method::BrdfDisplay => display_plan(rig, info),
         other => Err(rig.error(
             "rig.method",
             format!(
@@ -161,17 +170,7 @@ fn lls_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
 
 fn disco_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
     let hz = info.tick_hz;
-    let table = rig
-        .stepper_named("turntable")
-        .or_else(|| rig.steppers.iter().find(|s| s.kind == AxisKind::Rotary))
-        .ok_or_else(|| rig.error("stepper", "a DISCO rig needs a rotary stepper (named `turntable`)"))?;
-    let views = num(rig, "views", None)? as u32;
-    if views == 0 {
-        return Err(rig.error("plan.views", "must be at least 1"));
-    }
-    let view_steps = (0..views)
-        .map(|v| rig.stepper_steps(table.axis, 360.0 * f64::from(v) / f64::from(views)))
-        .collect::<Result<Vec<_>, _>>()?;
+    let (turntable, view_steps) = turntable_views(rig)?;
     let galvo = rig.galvos.first().ok_or_else(|| rig.error("galvo", "a DISCO rig needs a [[galvo]]"))?;
     let grid =
         nums(rig, "spot_grid")?.ok_or_else(|| rig.error("plan", "`spot_grid = [nx, ny]` is required"))?;
@@ -207,7 +206,7 @@ fn disco_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
     let readout = us(rig, "readout_us", num(rig, "readout_us", Some(1000.0))?, hz)?;
     let min_interval = us(rig, "camera.min_interval_us", camera.min_interval_us, hz)?;
     let p = disco::DiscoParams {
-        turntable: table.axis,
+        turntable,
         views: view_steps,
         lasers,
         galvo: galvo.galvo,
@@ -222,4 +221,127 @@ fn disco_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         tick_hz: hz,
     };
     disco::plan(&p).map_err(|e| rig.error("plan", e.0))
+}
+
+fn turntable_views(rig: &RigFile) -> Result<(u8, Vec<i32>), RigError> {
+    let table = rig
+        .stepper_named("turntable")
+        .or_else(|| rig.steppers.iter().find(|s| s.kind == AxisKind::Rotary))
+        .ok_or_else(|| rig.error("stepper", "the plan needs a rotary stepper (named `turntable`)"))?;
+    let views = num(rig, "views", None)? as u32;
+    if views == 0 {
+        return Err(rig.error("plan.views", "must be at least 1"));
+    }
+    let steps = (0..views)
+        .map(|v| rig.stepper_steps(table.axis, 360.0 * f64::from(v) / f64::from(views)))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok((table.axis, steps))
+}
+
+fn immersion_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
+    let hz = info.tick_hz;
+    let (turntable, orientations) = turntable_views(rig)?;
+    let galvo = rig.galvos.first().ok_or_else(|| rig.error("galvo", "the sheet needs a [[galvo]]"))?;
+    let sheets = num(rig, "sheet_positions", None)? as u32;
+    if sheets < 2 {
+        return Err(rig.error("plan.sheet_positions", "must be at least 2"));
+    }
+    let laser = match rig.plan.get("laser").and_then(|v| v.as_str()) {
+        Some(n) => laser_named(rig, "plan.laser", n)?,
+        None => rig
+            .lasers
+            .first()
+            .map(|l| l.channel)
+            .ok_or_else(|| rig.error("laser", "the sheet needs a [[laser]]"))?,
+    };
+    let camera = first_camera(rig)?;
+    let exposure = us(rig, "exposure_us", num(rig, "exposure_us", Some(camera.pulse_us))?, hz)?;
+    let readout = us(rig, "readout_us", num(rig, "readout_us", Some(1000.0))?, hz)?;
+    let min_interval = us(rig, "camera.min_interval_us", camera.min_interval_us, hz)?;
+    let calibration = match rig.plan.get("calibration") {
+        None => true,
+        Some(v) => v.as_bool().ok_or_else(|| rig.error("plan.calibration", "must be true or false"))?,
+    };
+    let p = immersion::ImmersionParams {
+        turntable,
+        orientations,
+        laser,
+        galvo: galvo.galvo,
+        sweep: (galvo.x.min_code, galvo.x.max_code, sheets),
+        sheet_y: galvo.y.zero_code,
+        camera: camera.camera,
+        exposure,
+        settle: us(rig, "galvo.settle_us", galvo.settle_us, hz)?,
+        frame_gap: exposure.saturating_add(readout).max(min_interval),
+        calibration,
+        timeout: hz.saturating_mul(60),
+        frame_bytes: num(rig, "frame_bytes", Some(DEFAULT_FRAME_BYTES as f64))? as u64,
+        tick_hz: hz,
+    };
+    immersion::plan(&p).map_err(|e| rig.error("plan", e.0))
+}
+
+fn display_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
+    use lightrig_protocol::sequence::Partial;
+    let hz = info.tick_hz;
+    let patterns = rig.plan.get("patterns").and_then(|v| v.as_table()).ok_or_else(|| {
+        rig.error(
+            "plan",
+            "`[plan.patterns]` is required: NAME = { frequencies_hz = [...], amplitudes = [...] }",
+        )
+    })?;
+    if rig.voice_coils.is_empty() {
+        return Err(rig.error("voice_coil", "a BRDF display needs at least one [[voice_coil]]"));
+    }
+    let mut targets = Vec::new();
+    for (name, v) in patterns {
+        let key = format!("plan.patterns.{name}");
+        let list = |field: &str| -> Result<Vec<f64>, RigError> {
+            let bad = || rig.error(&key, format!("`{field}` must be a list of numbers"));
+            let arr = v.get(field).and_then(|a| a.as_array()).ok_or_else(bad)?;
+            arr.iter()
+                .map(|x| x.as_float().or_else(|| x.as_integer().map(|i| i as f64)).ok_or_else(bad))
+                .collect()
+        };
+        let (freqs, amps) = (list("frequencies_hz")?, list("amplitudes")?);
+        if freqs.len() != amps.len() || freqs.is_empty() {
+            return Err(
+                rig.error(&key, "frequencies_hz and amplitudes must be non-empty lists of the same length")
+            );
+        }
+        let partials: Vec<Partial> = freqs
+            .iter()
+            .zip(&amps)
+            .enumerate()
+            .map(|(i, (&f, &a))| Partial {
+                freq_mhz: (f * 1000.0).round().clamp(0.0, f64::from(u32::MAX)) as u32,
+                amplitude: (a.clamp(0.0, 1.0) * f64::from(u16::MAX)).round() as u16,
+                // Spread the starting phases (golden angle) so the partials do not peak together.
+                phase: ((i as f64 * 0.381_966_011_250_105).fract() * 65536.0) as u16,
+            })
+            .collect();
+        let channels = rig.voice_coils.iter().map(|c| (c.channel, partials.clone())).collect();
+        targets.push(brdf_display::Target { name: name.clone(), channels });
+    }
+    let camera = first_camera(rig)?;
+    let exposure = us(rig, "exposure_us", num(rig, "exposure_us", Some(camera.pulse_us))?, hz)?;
+    let readout = us(rig, "readout_us", num(rig, "readout_us", Some(1000.0))?, hz)?;
+    let min_interval = us(rig, "camera.min_interval_us", camera.min_interval_us, hz)?;
+    let ms = |key: &str, default: f64| -> Result<u32, RigError> {
+        let v = num(rig, key, Some(default))?;
+        ticks_from_ms(v, hz)
+            .ok_or_else(|| rig.error(&format!("plan.{key}"), format!("{v} ms is out of range")))
+    };
+    let p = brdf_display::DisplayParams {
+        targets,
+        ramp: ms("ramp_ms", 200.0)?,
+        settle: ms("settle_ms", 2000.0)?,
+        camera: camera.camera,
+        captures: num(rig, "captures", Some(3.0))? as u32,
+        exposure,
+        frame_gap: exposure.saturating_add(readout).max(min_interval),
+        frame_bytes: num(rig, "frame_bytes", Some(DEFAULT_FRAME_BYTES as f64))? as u64,
+        tick_hz: hz,
+    };
+    brdf_display::plan(&p).map_err(|e| rig.error("plan", e.0))
 }
