@@ -85,3 +85,25 @@ fn the_immersion_and_display_examples_plan() {
         .count();
     assert_eq!(coils, rig.voice_coils.len(), "every coil gets the pattern");
 }
+
+#[test]
+fn the_bispectral_example_plans_every_pair_above_the_diagonal() {
+    let path = example("bispectral.toml");
+    let rig = RigFile::load(&path).unwrap();
+    let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
+    // LEDs 365..470 nm excite; the camera's tunable filter covers 400..=720 nm in 10 nm steps:
+    // emissions at or above each excitation.
+    let per_geometry: usize = [365u32, 385, 405, 420, 450, 470]
+        .iter()
+        .map(|&ex| (400..=720).step_by(10).filter(|&em| em >= ex).count())
+        .sum();
+    assert_eq!(plan.summary().steps, 6 * 11 * per_geometry);
+    assert_eq!(plan.steps[0].meta["host"]["camera_filter_nm"], 400);
+    // Sparse mode: only the chosen pairs.
+    let text = std::fs::read_to_string(&path)
+        .unwrap()
+        .replace("[plan.tunable_filter]", "pairs = [[365, 450], [405, 600]]\n[plan.tunable_filter]");
+    let rig = RigFile::parse(&text, &path).unwrap();
+    let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
+    assert_eq!(plan.summary().steps, 6 * 11 * 2);
+}

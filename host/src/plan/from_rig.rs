@@ -17,7 +17,12 @@
 //!   fractions of full scale, the same on every voice coil), `captures` (3), `ramp_ms` (200),
 //!   `settle_ms` (2000), `exposure_us`, `readout_us`, `frame_bytes`.
 //!
-//! Bispectral plans are built through the library API for now (`lightrig_host::plan::bispectral`).
+//! - bispectral: `gonio.sample_angles` and `gonio.light_angles` (degrees, on the rotary axes
+//!   named `sample` and `light-arm`), `tunable_filter.range_nm = [from, to]` and `step_nm` (the
+//!   camera's emission grid), excitation from the filter wheel's `led-NNN` slots; every pair with
+//!   excitation ≤ emission (full mode), or `pairs = [[ex, em], …]` (sparse mode);
+//!   `exposures_us` (the camera's pulse), `readout_us`, `frame_bytes`. The host sets the tunable
+//!   filter from each step's `meta.host` before running it.
 
 use lightrig_protocol::config::{AxisKind, Xy};
 use lightrig_protocol::session::DeviceInfo;
@@ -35,14 +40,7 @@ pub fn plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         Method::Disco => disco_plan(rig, info),
         Method::FluorescentImmersion => immersion_plan(rig, info),
         Method::BrdfDisplay => display_plan(rig, info),
-        other => Err(rig.error(
-            "rig.method",
-            format!(
-                "planning `{}` from a rig file is not available yet; build the plan with the library \
-                 (lightrig_host::plan) instead",
-                other.as_str()
-            ),
-        )),
+        Method::Bispectral => bispectral_plan(rig, info),
     }
 }
 
@@ -344,4 +342,111 @@ fn display_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         tick_hz: hz,
     };
     brdf_display::plan(&p).map_err(|e| rig.error("plan", e.0))
+}
+
+fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
+    use super::bispectral::{self, Pair};
+    let hz = info.tick_hz;
+    let axis = |name: &str| {
+        rig.stepper_named(name).ok_or_else(|| {
+            rig.error("stepper", format!("a bispectral rig needs a rotary stepper named `{name}`"))
+        })
+    };
+    let (sample, light) = (axis("sample")?, axis("light-arm")?);
+    let gonio = rig.plan.get("gonio").and_then(|v| v.as_table());
+    let angles = |key: &str| -> Result<Vec<f64>, RigError> {
+        let full = format!("plan.gonio.{key}");
+        let bad = || rig.error(&full, "must be a list of angles in degrees");
+        let arr = gonio.and_then(|g| g.get(key)).and_then(|a| a.as_array()).ok_or_else(bad)?;
+        arr.iter()
+            .map(|x| x.as_float().or_else(|| x.as_integer().map(|i| i as f64)).ok_or_else(bad))
+            .collect()
+    };
+    let mut geometries = Vec::new();
+    for s_deg in angles("sample_angles")? {
+        for l_deg in angles("light_angles")? {
+            geometries.push((rig.stepper_steps(sample.axis, s_deg)?, rig.stepper_steps(light.axis, l_deg)?));
+        }
+    }
+    let wheel = rig
+        .filter_wheels
+        .first()
+        .ok_or_else(|| rig.error("filter_wheel", "the excitation needs a [[filter_wheel]]"))?;
+    // Excitation wavelengths: the wheel's `led-NNN` slots.
+    let leds: Vec<(u16, u8)> = wheel
+        .filters
+        .iter()
+        .enumerate()
+        .filter_map(|(slot, n)| n.strip_prefix("led-").and_then(|w| w.parse().ok()).map(|w| (w, slot as u8)))
+        .collect();
+    if leds.is_empty() {
+        return Err(rig.error("filter_wheel", "no `led-NNN` filters on the wheel: nothing to excite with"));
+    }
+    let slot_of = |ex: u16| leds.iter().find(|(w, _)| *w == ex).map(|(_, s)| *s);
+    let pairs: Vec<Pair> = match rig.plan.get("pairs").and_then(|v| v.as_array()) {
+        Some(list) => list
+            .iter()
+            .map(|p| {
+                let bad = || {
+                    rig.error(
+                        "plan.pairs",
+                        "each pair is [excitation_nm, emission_nm] with an led-NNN slot for the excitation",
+                    )
+                };
+                let a = p.as_array().ok_or_else(bad)?;
+                let (ex, em) = match a.as_slice() {
+                    [x, y] => {
+                        (x.as_integer().ok_or_else(bad)? as u16, y.as_integer().ok_or_else(bad)? as u16)
+                    }
+                    _ => return Err(bad()),
+                };
+                Ok(Pair { excitation: ex, emission: em, slot: slot_of(ex).ok_or_else(bad)? })
+            })
+            .collect::<Result<_, _>>()?,
+        None => {
+            let filter = rig.plan.get("tunable_filter").and_then(|v| v.as_table());
+            let bad = || rig.error("plan.tunable_filter", "needs range_nm = [from, to] and step_nm");
+            let range = filter.and_then(|f| f.get("range_nm")).and_then(|v| v.as_array()).ok_or_else(bad)?;
+            let (from, to) = match range.as_slice() {
+                [a, b] => (a.as_integer().ok_or_else(bad)?, b.as_integer().ok_or_else(bad)?),
+                _ => return Err(bad()),
+            };
+            let step = filter
+                .and_then(|f| f.get("step_nm"))
+                .and_then(|v| v.as_integer())
+                .filter(|s| *s > 0)
+                .ok_or_else(bad)?;
+            let mut out = Vec::new();
+            for &(ex, slot) in &leds {
+                let mut em = from;
+                while em <= to {
+                    if em >= i64::from(ex) {
+                        out.push(Pair { excitation: ex, emission: em as u16, slot });
+                    }
+                    em += step;
+                }
+            }
+            out
+        }
+    };
+    let camera = first_camera(rig)?;
+    let exposures: Vec<u32> = match nums(rig, "exposures_us")? {
+        Some(v) => v.iter().map(|&e| us(rig, "exposures_us", e, hz)).collect::<Result<_, _>>()?,
+        None => vec![us(rig, "camera.pulse_us", camera.pulse_us, hz)?],
+    };
+    let readout = us(rig, "readout_us", num(rig, "readout_us", Some(1000.0))?, hz)?;
+    let p = bispectral::BispectralParams {
+        sample_axis: sample.axis,
+        light_axis: light.axis,
+        geometries,
+        wheel: wheel.wheel,
+        pairs,
+        camera: camera.camera,
+        exposures,
+        readout,
+        timeout: hz.saturating_mul(60),
+        frame_bytes: num(rig, "frame_bytes", Some(DEFAULT_FRAME_BYTES as f64))? as u64,
+        tick_hz: hz,
+    };
+    bispectral::plan(&p).map_err(|e| rig.error("plan", e.0))
 }
