@@ -11,6 +11,7 @@
 
 pub mod acquire;
 pub mod cli_acquire;
+pub mod cli_hdr;
 pub mod client;
 pub mod clock;
 pub mod frames;

@@ -3,6 +3,7 @@
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
+use lightrig_host::cli_hdr;
 use lightrig_host::client::Client;
 use lightrig_host::selfcheck;
 use lightrig_host::transport::{candidates, Connect, Transport};
@@ -65,6 +66,9 @@ enum Cmd {
         #[arg(long)]
         connect: Option<Connect>,
     },
+    /// High dynamic range from exposure series.
+    #[command(subcommand)]
+    Hdr(HdrCmd),
     /// Connect to a device and print what it says about itself and how its clock maps.
     Info {
         /// `virtual`, `serial:PATH[@BAUD]`, `usb` or `usb:SERIAL`.
@@ -74,6 +78,45 @@ enum Cmd {
         #[arg(long)]
         json: bool,
     },
+}
+
+#[derive(Subcommand)]
+enum HdrCmd {
+    /// Recover the camera response (Debevec–Malik) from an exposure series; write it as JSON.
+    Calibrate {
+        /// Exposures as FILE:SECONDS.
+        exposures: Vec<String>,
+        /// A sidecar file of `FILE SECONDS` lines instead.
+        #[arg(long)]
+        times: Option<std::path::PathBuf>,
+        /// Response file to write.
+        #[arg(long)]
+        out: std::path::PathBuf,
+    },
+    /// Merge an exposure series into linear radiance (float EXR).
+    Merge {
+        /// Exposures as FILE:SECONDS.
+        exposures: Vec<String>,
+        /// A sidecar file of `FILE SECONDS` lines instead.
+        #[arg(long)]
+        times: Option<std::path::PathBuf>,
+        /// Response from `hdr calibrate` (recovered from the series itself if absent).
+        #[arg(long)]
+        response: Option<std::path::PathBuf>,
+        /// EXR file to write.
+        #[arg(long)]
+        out: std::path::PathBuf,
+    },
+}
+
+fn exposures(list: &[String], times: Option<&std::path::Path>) -> Result<Vec<cli_hdr::Exposure>, String> {
+    match times {
+        Some(p) if list.is_empty() => cli_hdr::read_sidecar(p),
+        Some(_) => {
+            Err("give the exposures either as FILE:SECONDS arguments or with --times, not both".into())
+        }
+        None => list.iter().map(|s| cli_hdr::parse_exposure(s)).collect(),
+    }
 }
 
 /// Exit codes: scripts can tell a usage error from an unreachable device from a fault.
@@ -142,6 +185,35 @@ fn stats_line(name: &str, s: &LinkStats) -> String {
 
 fn main() -> ExitCode {
     match Cli::parse().command {
+        Cmd::Hdr(cmd) => {
+            let result = match cmd {
+                HdrCmd::Calibrate { exposures: list, times, out } => {
+                    exposures(&list, times.as_deref()).and_then(|e| cli_hdr::calibrate(&e, &out)).map(|r| {
+                        eprintln!(
+                            "response: {} channel(s), {} levels -> {}",
+                            r.g.len(),
+                            r.levels,
+                            out.display()
+                        )
+                    })
+                }
+                HdrCmd::Merge { exposures: list, times, response, out } => exposures(&list, times.as_deref())
+                    .and_then(|e| cli_hdr::merge(&e, response.as_deref(), &out))
+                    .map(|bad| {
+                        eprintln!(
+                            "merged -> {} ({bad} pixels clipped or black in every exposure)",
+                            out.display()
+                        )
+                    }),
+            };
+            match result {
+                Ok(()) => ExitCode::SUCCESS,
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    ExitCode::from(4)
+                }
+            }
+        }
         Cmd::Acquire { rig, session, connect } => {
             match lightrig_host::cli_acquire::acquire(&rig, &session, connect.as_ref()) {
                 Ok(()) => ExitCode::SUCCESS,
