@@ -100,32 +100,29 @@ fn load(exposures: &[Exposure]) -> Result<Loaded, String> {
     Ok(Loaded { width, height, channels, samples, times })
 }
 
-fn recover(l: &Loaded) -> Result<ResponseFile, String> {
-    let e = |e: hdr::HdrError| e.to_string();
-    let (levels, curves) = match &l.samples {
-        Samples::Eight(v) => {
-            let stack = Stack::new(
-                l.width,
-                l.height,
-                l.channels,
-                v.iter().map(|x| x.as_slice()).collect(),
-                l.times.clone(),
-            )
-            .map_err(e)?;
-            (256, hdr::debevec(&stack, 256, &DebevecOptions::new(256)).map_err(e)?)
-        }
-        Samples::Sixteen(v) => {
-            let stack = Stack::new(
-                l.width,
-                l.height,
-                l.channels,
-                v.iter().map(|x| x.as_slice()).collect(),
-                l.times.clone(),
-            )
-            .map_err(e)?;
-            (65536, hdr::debevec(&stack, 65536, &DebevecOptions::new(65536)).map_err(e)?)
-        }
+/// Runs `f` on the loaded series as a [`Stack`] of its own sample type.
+fn on_stack<R>(
+    l: &Loaded,
+    f8: impl FnOnce(&Stack<u8>) -> Result<R, hdr::HdrError>,
+    f16: impl FnOnce(&Stack<u16>) -> Result<R, hdr::HdrError>,
+) -> Result<R, String> {
+    fn stack<'a, T: hdr::Sample>(l: &Loaded, v: &'a [Vec<T>]) -> Result<Stack<'a, T>, hdr::HdrError> {
+        Stack::new(l.width, l.height, l.channels, v.iter().map(|x| x.as_slice()).collect(), l.times.clone())
+    }
+    let r = match &l.samples {
+        Samples::Eight(v) => stack(l, v).and_then(|s| f8(&s)),
+        Samples::Sixteen(v) => stack(l, v).and_then(|s| f16(&s)),
     };
+    r.map_err(|e| e.to_string())
+}
+
+fn recover(l: &Loaded) -> Result<ResponseFile, String> {
+    let levels = match l.samples {
+        Samples::Eight(_) => 256,
+        Samples::Sixteen(_) => 65536,
+    };
+    let opts = DebevecOptions::new(levels);
+    let curves = on_stack(l, |s| hdr::debevec(s, levels, &opts), |s| hdr::debevec(s, levels, &opts))?;
     Ok(ResponseFile { levels, g: curves.into_iter().map(|r| r.g).collect() })
 }
 
@@ -155,31 +152,7 @@ pub fn merge(exposures: &[Exposure], response: Option<&Path>, out: &Path) -> Res
     }
     let responses: Vec<Response> = r.g.iter().map(|g| Response { levels: r.levels, g: g.clone() }).collect();
     let opts = MergeOptions { weights: Weights::snr(r.levels), threads: 0 };
-    let e = |e: hdr::HdrError| e.to_string();
-    let merged = match &l.samples {
-        Samples::Eight(v) => {
-            let stack = Stack::new(
-                l.width,
-                l.height,
-                l.channels,
-                v.iter().map(|x| x.as_slice()).collect(),
-                l.times.clone(),
-            )
-            .map_err(e)?;
-            hdr::merge(&stack, &responses, &opts).map_err(e)?
-        }
-        Samples::Sixteen(v) => {
-            let stack = Stack::new(
-                l.width,
-                l.height,
-                l.channels,
-                v.iter().map(|x| x.as_slice()).collect(),
-                l.times.clone(),
-            )
-            .map_err(e)?;
-            hdr::merge(&stack, &responses, &opts).map_err(e)?
-        }
-    };
+    let merged = on_stack(&l, |s| hdr::merge(s, &responses, &opts), |s| hdr::merge(s, &responses, &opts))?;
     let mut image = Image::new(l.width as u32, l.height as u32, l.channels as u8);
     image.data = merged.radiance;
     io::write_exr(out, &image, ExrPrecision::Float).map_err(|e| e.to_string())?;

@@ -65,24 +65,7 @@ impl FrameInput for TestCamera {
 }
 
 fn lls_plan() -> Plan {
-    lls::plan(&lls::LlsParams {
-        axis: 0,
-        start: -800,
-        step: 80,
-        count: 21,
-        camera: 0,
-        exposures: vec![2_000],
-        settle: 5_000,
-        frame_gap: 3_000,
-        light: 1,
-        stripe: 0,
-        backlight: Some(2),
-        passes: vec![lls::Pass::Reflectance, lls::Pass::Stripe, lls::Pass::Backlit],
-        timeout: 2_000_000,
-        frame_bytes: 64,
-        tick_hz: 1_000_000,
-    })
-    .unwrap()
+    lls::plan(&common::lls_params()).unwrap()
 }
 
 fn temp_dir(name: &str) -> PathBuf {

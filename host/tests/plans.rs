@@ -32,24 +32,7 @@ fn run(c: &mut Client<VirtualTransport>, plan: &Plan) -> Vec<lightrig_protocol::
 #[test]
 fn lls_passes_take_one_frame_per_millimetre_at_rest() {
     let mut c = rig_client();
-    let p = lls::LlsParams {
-        axis: 0,
-        start: -800,
-        step: 80,
-        count: 21,
-        camera: 0,
-        exposures: vec![2_000],
-        settle: 5_000,
-        frame_gap: 3_000,
-        light: 1,
-        stripe: 0,
-        backlight: Some(2),
-        passes: vec![lls::Pass::Reflectance, lls::Pass::Stripe, lls::Pass::Backlit],
-        timeout: 2_000_000,
-        frame_bytes: 1 << 20,
-        tick_hz: 1_000_000,
-    };
-    let plan = lls::plan(&p).unwrap();
+    let plan = lls::plan(&common::lls_params()).unwrap();
     let s = plan.summary();
     assert_eq!((s.steps, s.triggers, s.bytes), (3, 63, 63 << 20));
     let triggers = run(&mut c, &plan);

@@ -86,6 +86,28 @@ fn laser_named(rig: &RigFile, key: &str, name: &str) -> Result<u8, RigError> {
     })
 }
 
+/// Trigger-to-trigger time: the exposure plus `readout_us` (1000), and at least the camera's
+/// `min_interval_us`.
+fn frame_gap(
+    rig: &RigFile,
+    camera: &crate::rigfile::Camera,
+    exposure: u32,
+    hz: u32,
+) -> Result<u32, RigError> {
+    let readout = us(rig, "readout_us", num(rig, "readout_us", Some(1000.0))?, hz)?;
+    let min_interval = us(rig, "camera.min_interval_us", camera.min_interval_us, hz)?;
+    Ok(exposure.saturating_add(readout).max(min_interval))
+}
+
+/// `exposure_us` from `[plan]`, or the camera's pulse.
+fn exposure(rig: &RigFile, camera: &crate::rigfile::Camera, hz: u32) -> Result<u32, RigError> {
+    us(rig, "exposure_us", num(rig, "exposure_us", Some(camera.pulse_us))?, hz)
+}
+
+fn frame_bytes(rig: &RigFile) -> Result<u64, RigError> {
+    Ok(num(rig, "frame_bytes", Some(DEFAULT_FRAME_BYTES as f64))? as u64)
+}
+
 fn first_camera(rig: &RigFile) -> Result<&crate::rigfile::Camera, RigError> {
     rig.cameras.first().ok_or_else(|| rig.error("camera", "the plan needs a [[camera]]"))
 }
@@ -115,8 +137,6 @@ fn lls_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         Some(v) => v.iter().map(|&e| us(rig, "exposures_us", e, hz)).collect::<Result<_, _>>()?,
         None => vec![us(rig, "camera.pulse_us", camera.pulse_us, hz)?],
     };
-    let readout = us(rig, "readout_us", num(rig, "readout_us", Some(1000.0))?, hz)?;
-    let min_interval = us(rig, "camera.min_interval_us", camera.min_interval_us, hz)?;
     let longest = exposures.iter().copied().max().unwrap_or(0);
     let settle_ms = num(rig, "settle_ms", Some(20.0))?;
     let settle = ticks_from_ms(settle_ms, hz).ok_or_else(|| rig.error("plan.settle_ms", "out of range"))?;
@@ -154,13 +174,13 @@ fn lls_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         camera: camera.camera,
         exposures,
         settle,
-        frame_gap: longest.saturating_add(readout).max(min_interval),
+        frame_gap: frame_gap(rig, camera, longest, hz)?,
         light,
         stripe,
         backlight,
         passes,
         timeout: hz.saturating_mul(60),
-        frame_bytes: num(rig, "frame_bytes", Some(DEFAULT_FRAME_BYTES as f64))? as u64,
+        frame_bytes: frame_bytes(rig)?,
         tick_hz: hz,
     };
     lls::plan(&p).map_err(|e| rig.error("plan", e.0))
@@ -200,9 +220,7 @@ fn disco_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         None => None,
     };
     let camera = first_camera(rig)?;
-    let exposure = us(rig, "exposure_us", num(rig, "exposure_us", Some(camera.pulse_us))?, hz)?;
-    let readout = us(rig, "readout_us", num(rig, "readout_us", Some(1000.0))?, hz)?;
-    let min_interval = us(rig, "camera.min_interval_us", camera.min_interval_us, hz)?;
+    let exposure = exposure(rig, camera, hz)?;
     let p = disco::DiscoParams {
         turntable,
         views: view_steps,
@@ -212,10 +230,10 @@ fn disco_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         camera: camera.camera,
         exposure,
         settle: us(rig, "galvo.settle_us", galvo.settle_us, hz)?,
-        frame_gap: exposure.saturating_add(readout).max(min_interval),
+        frame_gap: frame_gap(rig, camera, exposure, hz)?,
         spotlight,
         timeout: hz.saturating_mul(60),
-        frame_bytes: num(rig, "frame_bytes", Some(DEFAULT_FRAME_BYTES as f64))? as u64,
+        frame_bytes: frame_bytes(rig)?,
         tick_hz: hz,
     };
     disco::plan(&p).map_err(|e| rig.error("plan", e.0))
@@ -253,9 +271,7 @@ fn immersion_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
             .ok_or_else(|| rig.error("laser", "the sheet needs a [[laser]]"))?,
     };
     let camera = first_camera(rig)?;
-    let exposure = us(rig, "exposure_us", num(rig, "exposure_us", Some(camera.pulse_us))?, hz)?;
-    let readout = us(rig, "readout_us", num(rig, "readout_us", Some(1000.0))?, hz)?;
-    let min_interval = us(rig, "camera.min_interval_us", camera.min_interval_us, hz)?;
+    let exposure = exposure(rig, camera, hz)?;
     let calibration = match rig.plan.get("calibration") {
         None => true,
         Some(v) => v.as_bool().ok_or_else(|| rig.error("plan.calibration", "must be true or false"))?,
@@ -270,10 +286,10 @@ fn immersion_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         camera: camera.camera,
         exposure,
         settle: us(rig, "galvo.settle_us", galvo.settle_us, hz)?,
-        frame_gap: exposure.saturating_add(readout).max(min_interval),
+        frame_gap: frame_gap(rig, camera, exposure, hz)?,
         calibration,
         timeout: hz.saturating_mul(60),
-        frame_bytes: num(rig, "frame_bytes", Some(DEFAULT_FRAME_BYTES as f64))? as u64,
+        frame_bytes: frame_bytes(rig)?,
         tick_hz: hz,
     };
     immersion::plan(&p).map_err(|e| rig.error("plan", e.0))
@@ -322,9 +338,7 @@ fn display_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         targets.push(brdf_display::Target { name: name.clone(), channels });
     }
     let camera = first_camera(rig)?;
-    let exposure = us(rig, "exposure_us", num(rig, "exposure_us", Some(camera.pulse_us))?, hz)?;
-    let readout = us(rig, "readout_us", num(rig, "readout_us", Some(1000.0))?, hz)?;
-    let min_interval = us(rig, "camera.min_interval_us", camera.min_interval_us, hz)?;
+    let exposure = exposure(rig, camera, hz)?;
     let ms = |key: &str, default: f64| -> Result<u32, RigError> {
         let v = num(rig, key, Some(default))?;
         ticks_from_ms(v, hz)
@@ -337,8 +351,8 @@ fn display_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         camera: camera.camera,
         captures: num(rig, "captures", Some(3.0))? as u32,
         exposure,
-        frame_gap: exposure.saturating_add(readout).max(min_interval),
-        frame_bytes: num(rig, "frame_bytes", Some(DEFAULT_FRAME_BYTES as f64))? as u64,
+        frame_gap: frame_gap(rig, camera, exposure, hz)?,
+        frame_bytes: frame_bytes(rig)?,
         tick_hz: hz,
     };
     brdf_display::plan(&p).map_err(|e| rig.error("plan", e.0))
@@ -445,7 +459,7 @@ fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         exposures,
         readout,
         timeout: hz.saturating_mul(60),
-        frame_bytes: num(rig, "frame_bytes", Some(DEFAULT_FRAME_BYTES as f64))? as u64,
+        frame_bytes: frame_bytes(rig)?,
         tick_hz: hz,
     };
     bispectral::plan(&p).map_err(|e| rig.error("plan", e.0))

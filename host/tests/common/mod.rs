@@ -74,3 +74,25 @@ pub fn setup<T: lightrig_host::transport::Transport>(mut c: Client<T>) -> Client
     c.request(Command::Arm { lasers: 0b111 }).unwrap();
     c
 }
+
+/// Three LLS passes of 21 positions, 1 mm apart, on the gantry of [`setup`].
+pub fn lls_params() -> lightrig_host::plan::lls::LlsParams {
+    use lightrig_host::plan::lls::{LlsParams, Pass};
+    LlsParams {
+        axis: 0,
+        start: -800,
+        step: 80,
+        count: 21,
+        camera: 0,
+        exposures: vec![2_000],
+        settle: 5_000,
+        frame_gap: 3_000,
+        light: 1,
+        stripe: 0,
+        backlight: Some(2),
+        passes: vec![Pass::Reflectance, Pass::Stripe, Pass::Backlit],
+        timeout: 2_000_000,
+        frame_bytes: 1 << 20,
+        tick_hz: 1_000_000,
+    }
+}
