@@ -90,16 +90,23 @@ pub struct SimMotor {
     pub index_at: Option<(i64, i64)>,
     /// Tick of the last step.
     pub last_step: Option<u64>,
+    /// Switches wired active-low (closing to ground against a pull-up), indexed
+    /// `[Min, Max, Index]`: their level is low while active.
+    pub active_low: [bool; 3],
 }
 
-/// A simulated camera's exposure-active output (active high): it goes active `delay` ticks after
-/// a trigger's leading edge and stays active `length` ticks.
+/// A simulated camera's exposure-active output: it goes active `delay` ticks after a trigger's
+/// leading edge and stays active `length` ticks.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct SimExposure {
     /// Ticks from trigger to exposure start.
     pub delay: u64,
     /// Exposure length, ticks.
     pub length: u64,
+    /// The camera's trigger input is active low (its leading edge is a falling one).
+    pub trigger_active_low: bool,
+    /// The exposure-active output is active low.
+    pub output_active_low: bool,
 }
 
 /// The simulated board.
@@ -241,32 +248,32 @@ impl Motors for SimBoard {
 
     fn switch_level(&mut self, motor: AxisRef, switch: Switch) -> bool {
         let Some(m) = self.motor(motor) else { return false };
-        match switch {
-            Switch::Min => m.limit_min_at.is_some_and(|p| m.position <= p),
-            Switch::Max => m.limit_max_at.is_some_and(|p| m.position >= p),
-            Switch::Index => {
-                m.index_at.is_some_and(|(at, period)| m.position.rem_euclid(period.max(1)) == at)
-            }
-        }
+        let (active, low) = match switch {
+            Switch::Min => (m.limit_min_at.is_some_and(|p| m.position <= p), m.active_low[0]),
+            Switch::Max => (m.limit_max_at.is_some_and(|p| m.position >= p), m.active_low[1]),
+            Switch::Index => (
+                m.index_at.is_some_and(|(at, period)| m.position.rem_euclid(period.max(1)) == at),
+                m.active_low[2],
+            ),
+        };
+        active != low
     }
 }
 
 impl Cameras for SimBoard {
     fn set_trigger(&mut self, camera: u8, level: bool, at: u64) {
-        let rising = match self.triggers.get_mut(usize::from(camera)) {
-            Some(t) => {
-                let rising = level && !*t;
-                *t = level;
-                rising
-            }
-            None => false,
+        let before = match self.triggers.get_mut(usize::from(camera)) {
+            Some(t) => Some(std::mem::replace(t, level)),
+            None => None,
         };
-        // Cameras in these tests trigger on the rising edge (active-high trigger).
-        if rising {
-            if let Some(Some(e)) = self.exposure.get(usize::from(camera)).copied() {
+        if let (Some(before), Some(Some(e))) = (before, self.exposure.get(usize::from(camera)).copied()) {
+            // The camera starts an exposure on its trigger input's leading edge.
+            let asserted = |l: bool| l != e.trigger_active_low;
+            if asserted(level) && !asserted(before) {
                 let start = at + e.delay;
-                self.add_capture(Capture { camera, level: true, tick: start });
-                self.add_capture(Capture { camera, level: false, tick: start + e.length });
+                let active = !e.output_active_low;
+                self.add_capture(Capture { camera, level: active, tick: start });
+                self.add_capture(Capture { camera, level: !active, tick: start + e.length });
             }
         }
         self.push(at, Output::Trigger { camera, level });

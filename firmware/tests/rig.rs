@@ -329,7 +329,7 @@ fn filter_wheel_homes_on_its_index_and_takes_the_shorter_way() {
 fn wait_for_exposure_end_resumes_at_the_captured_edge() {
     let mut rig = rig();
     configure_all(&mut rig);
-    rig.board_mut().exposure[0] = Some(SimExposure { delay: 30, length: 4_000 });
+    rig.board_mut().exposure[0] = Some(SimExposure { delay: 30, length: 4_000, ..Default::default() });
     let items = [
         item(100, trigger(0)),
         item(0, Action::Wait { until: WaitFor::ExposureEnd(0), timeout: 10_000 }),

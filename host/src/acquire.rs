@@ -41,7 +41,7 @@ pub struct Captured {
 /// Where a camera's frames come from.
 pub trait FrameInput {
     /// A step is about to start: frames from now on count from 0.
-    fn begin_step(&mut self) -> io::Result<()>;
+    fn begin_step(&mut self, step: &Step) -> io::Result<()>;
     /// The device fired a trigger (a rendering camera renders it here).
     fn on_trigger(&mut self, _trigger: &TriggerEvent, _host_us: Option<f64>) -> io::Result<()> {
         Ok(())
@@ -71,7 +71,7 @@ impl DirectoryInput {
 }
 
 impl FrameInput for DirectoryInput {
-    fn begin_step(&mut self) -> io::Result<()> {
+    fn begin_step(&mut self, _step: &Step) -> io::Result<()> {
         // The camera numbers its files on; the step's first new file is its frame 0.
         self.base = None;
         Ok(())
@@ -230,7 +230,7 @@ fn run_step<T: Transport>(
     let start_us = client.transport().now_us() as f64;
     let _stale = input.poll(start_us).map_err(AcquireError::Frames)?;
     session.start_step(step.id, seq)?;
-    input.begin_step().map_err(AcquireError::Frames)?;
+    input.begin_step(step).map_err(AcquireError::Frames)?;
     let mut triggers = Vec::new();
     let mut arrivals: Vec<Captured> = Vec::new();
     let mut failure: Option<AcquireError> = None;

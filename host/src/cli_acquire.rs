@@ -106,8 +106,8 @@ fn frame_input(rig: &RigFile) -> Result<Box<dyn FrameInput>, CliError> {
 struct Boxed<'a>(&'a mut dyn FrameInput);
 
 impl FrameInput for Boxed<'_> {
-    fn begin_step(&mut self) -> std::io::Result<()> {
-        self.0.begin_step()
+    fn begin_step(&mut self, step: &crate::plan::Step) -> std::io::Result<()> {
+        self.0.begin_step(step)
     }
     fn on_trigger(
         &mut self,

@@ -8,6 +8,7 @@
 //! - [`plan`]: acquisition planners, one per rig.
 //! - [`rigfile`]: the TOML rig description, validated with file:line:field errors.
 //! - [`selfcheck`]: the protocol self-check over a lossy simulated wire.
+//! - [`virtual_rig`]: the virtual rig: simulated board from a rig file, virtual camera, scenes.
 
 pub mod acquire;
 pub mod cli_acquire;
@@ -20,3 +21,4 @@ pub mod rigfile;
 pub mod selfcheck;
 pub mod session;
 pub mod transport;
+pub mod virtual_rig;

@@ -29,7 +29,7 @@ struct TestCamera {
 }
 
 impl FrameInput for TestCamera {
-    fn begin_step(&mut self) -> std::io::Result<()> {
+    fn begin_step(&mut self, _step: &lightrig_host::plan::Step) -> std::io::Result<()> {
         Ok(())
     }
 

@@ -142,17 +142,20 @@ fn lls_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
     let settle = ticks_from_ms(settle_ms, hz).ok_or_else(|| rig.error("plan.settle_ms", "out of range"))?;
     let has = |n: &str| rig.lasers.iter().any(|l| l.name.as_deref() == Some(n));
     let passes = match names(rig, "passes")? {
-        Some(list) => {
-            list.iter()
-                .map(|p| match p.as_str() {
-                    "reflectance" => Ok(lls::Pass::Reflectance),
-                    "stripe" => Ok(lls::Pass::Stripe),
-                    "backlit" => Ok(lls::Pass::Backlit),
-                    other => Err(rig
-                        .error("plan.passes", format!("`{other}`: expected reflectance, stripe or backlit"))),
-                })
-                .collect::<Result<Vec<_>, _>>()?
-        }
+        Some(list) => list
+            .iter()
+            .map(|p| match p.as_str() {
+                "board" => Ok(lls::Pass::Board),
+                "lightbox" => Ok(lls::Pass::LightBox),
+                "reflectance" => Ok(lls::Pass::Reflectance),
+                "stripe" => Ok(lls::Pass::Stripe),
+                "backlit" => Ok(lls::Pass::Backlit),
+                other => Err(rig.error(
+                    "plan.passes",
+                    format!("`{other}`: expected board, lightbox, reflectance, stripe or backlit"),
+                )),
+            })
+            .collect::<Result<Vec<_>, _>>()?,
         None => [
             ("light-tube", lls::Pass::Reflectance),
             ("stripe", lls::Pass::Stripe),

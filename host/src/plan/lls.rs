@@ -12,16 +12,37 @@ use serde_json::json;
 
 use super::{Plan, PlanError, StepBuilder};
 
-/// What a pass lights the sample with.
+/// What a pass lights the sample with. `Reflectance` and `Stripe` sweep the gantry, one frame
+/// (bracket) per position; the others are one frame (bracket) with the gantry at the start.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Pass {
+    /// The calibration board on the reference plane, in the room light: the camera's pose.
+    Board,
+    /// The light box with nothing on it: the reference for translucency.
+    LightBox,
     /// The linear light: diffuse, specular and roughness.
     Reflectance,
     /// The laser stripe: height by triangulation.
     Stripe,
     /// The light box under the sample: translucency.
     Backlit,
+}
+
+impl Pass {
+    /// Whether the pass sweeps the gantry.
+    pub fn sweeps(self) -> bool {
+        matches!(self, Pass::Reflectance | Pass::Stripe)
+    }
+
+    /// What the operator must do before the pass, if anything.
+    pub fn operator(self) -> Option<&'static str> {
+        match self {
+            Pass::Board => Some("place the calibration board on the reference plane"),
+            Pass::LightBox => Some("clear the light box (no sample)"),
+            _ => None,
+        }
+    }
 }
 
 /// Everything the LLS planner needs, in device units.
@@ -77,17 +98,21 @@ pub fn plan(p: &LlsParams) -> Result<Plan, PlanError> {
     let mut steps = Vec::new();
     for (id, pass) in p.passes.iter().enumerate() {
         let channel = match pass {
-            Pass::Reflectance => p.light,
-            Pass::Stripe => p.stripe,
-            Pass::Backlit => {
-                p.backlight.ok_or_else(|| PlanError("lls: a backlit pass needs a backlight".into()))?
-            }
+            Pass::Board => None,
+            Pass::Reflectance => Some(p.light),
+            Pass::Stripe => Some(p.stripe),
+            Pass::Backlit | Pass::LightBox => Some(
+                p.backlight.ok_or_else(|| PlanError(format!("lls: a {pass:?} pass needs a backlight")))?,
+            ),
         };
         let mut b = StepBuilder::default();
         b.move_to(p.axis, p.start, p.timeout);
-        b.then(Action::Laser { channel, on: true });
-        b.until(WaitFor::LaserReady(channel), p.timeout);
-        for i in 0..p.count {
+        if let Some(channel) = channel {
+            b.then(Action::Laser { channel, on: true });
+            b.until(WaitFor::LaserReady(channel), p.timeout);
+        }
+        let count = if pass.sweeps() { p.count } else { 1 };
+        for i in 0..count {
             let pos = p.start + p.step * i as i32;
             b.move_to(p.axis, pos, p.timeout);
             b.wait(p.settle);
@@ -96,11 +121,16 @@ pub fn plan(p: &LlsParams) -> Result<Plan, PlanError> {
                 b.wait(p.frame_gap);
             }
         }
-        b.then(Action::Laser { channel, on: false });
-        let meta = json!({
-            "pass": pass, "axis": p.axis, "start": p.start, "step": p.step, "count": p.count, "last": last,
-            "exposures": p.exposures,
+        if let Some(channel) = channel {
+            b.then(Action::Laser { channel, on: false });
+        }
+        let mut meta = json!({
+            "pass": pass, "axis": p.axis, "start": p.start, "step": p.step, "count": count,
+            "last": if pass.sweeps() { last } else { p.start }, "exposures": p.exposures,
         });
+        if let Some(op) = pass.operator() {
+            meta["operator"] = json!(op);
+        }
         steps.push(b.build(
             id as u32,
             format!("pass {}", serde_json::to_value(pass).unwrap_or_default()),

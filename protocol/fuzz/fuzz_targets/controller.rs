@@ -606,7 +606,7 @@ fn change_input(u: &mut Unstructured, board: &mut SimBoard, which: InputChange) 
         InputChange::Exposure => {
             let b = byte(u);
             let cam = usize::from(b % 4);
-            let model = SimExposure { delay: u64::from(le16(u)), length: u64::from(le16(u)) };
+            let model = SimExposure { delay: u64::from(le16(u)), length: u64::from(le16(u)), ..Default::default() };
             board.exposure[cam] = (b & 0x80 == 0).then_some(model);
             trace!("  exposure {cam} = {:?}", board.exposure[cam]);
         }
@@ -639,8 +639,8 @@ fn place_inputs(board: &mut SimBoard, switches: bool, exposure: bool) {
         board.wheels[0].index_at = Some((300, 1200));
     }
     if exposure {
-        board.exposure[0] = Some(SimExposure { delay: 20, length: 300 });
-        board.exposure[1] = Some(SimExposure { delay: 5, length: 50 });
+        board.exposure[0] = Some(SimExposure { delay: 20, length: 300, ..Default::default() });
+        board.exposure[1] = Some(SimExposure { delay: 5, length: 50, ..Default::default() });
     }
 }
 

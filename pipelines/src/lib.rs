@@ -1,0 +1,16 @@
+//! The fitting pipelines' maths, free of sessions, devices and files: plain functions on
+//! numbers and images, each testable alone.
+//!
+//! - [`vec3`]: the small vector algebra everything here uses.
+//! - [`quad`]: Gauss–Legendre quadrature.
+//! - [`ward`]: the isotropic Ward (1992) BRDF.
+//! - [`linear_light`]: a cylindrical light source's diffuse and specular response at a surface
+//!   point, integrated numerically over its width and length (shared by the virtual camera,
+//!   at high order, and the linear-light-source fit).
+//! - [`lls`]: the linear light source reflectometry fit (Gardner et al. 2003).
+
+pub mod linear_light;
+pub mod lls;
+pub mod quad;
+pub mod vec3;
+pub mod ward;

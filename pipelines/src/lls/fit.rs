@@ -1,0 +1,305 @@
+//! The per-pixel maths of the LLS fit.
+
+use crate::linear_light::{response, specular_response, Quadrature, Tube};
+use crate::vec3::{add, normalize, scale, V3};
+
+use super::Sheet;
+
+/// The gantry position at which a trace peaks, between samples: a Gaussian through the largest
+/// sample and its two neighbours (exact for a Gaussian profile). `None` when the peak is below
+/// `min_peak` or at either end.
+pub fn stripe_peak(values: &[f64], positions: &[f64], min_peak: f64) -> Option<f64> {
+    let (k, &top) = values.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1))?;
+    if top < min_peak || k == 0 || k + 1 >= values.len() {
+        return None;
+    }
+    let floor = top * 1e-3;
+    let (a, b, c) = (values[k - 1].max(floor).ln(), top.ln(), values[k + 1].max(floor).ln());
+    let den = a - 2.0 * b + c;
+    let delta = if den < 0.0 { (0.5 * (a - c) / den).clamp(-0.5, 0.5) } else { 0.0 };
+    let half_step = (positions[k + 1] - positions[k - 1]) / 2.0;
+    Some(positions[k] + delta * half_step)
+}
+
+/// Where the ray `(o, d)` meets the laser sheet when the gantry is at `g`.
+pub fn point_on_sheet(o: V3, d: V3, g: f64, sheet: &Sheet) -> Option<V3> {
+    // x − g − offset − z·tan(angle) = 0 along o + t·d.
+    let ta = sheet.angle.tan();
+    let den = d[0] - d[2] * ta;
+    if den.abs() < 1e-12 {
+        return None;
+    }
+    let t = (g + sheet.offset + o[2] * ta - o[0]) / den;
+    (t > 0.0).then(|| add(o, scale(d, t)))
+}
+
+/// Normals from the displacement map: for each pixel with a point, the plane `z = a + b·x + c·y`
+/// fitted by least squares to the points within `radius` pixels (those `keep` accepts), whose
+/// normal is `(−b, −c, 1)`.
+pub fn normals_from_points(
+    points: &[Option<V3>],
+    width: usize,
+    height: usize,
+    radius: usize,
+    keep: impl Fn(usize) -> bool,
+) -> Vec<Option<V3>> {
+    let mut out = vec![None; points.len()];
+    for y in 0..height {
+        for x in 0..width {
+            let i = y * width + x;
+            let Some(c) = points[i] else { continue };
+            // Normal equations of z − zc = a + b(x − xc) + c(y − yc).
+            let mut m = [[0.0f64; 3]; 3];
+            let mut r = [0.0f64; 3];
+            for yy in y.saturating_sub(radius)..(y + radius + 1).min(height) {
+                for xx in x.saturating_sub(radius)..(x + radius + 1).min(width) {
+                    let j = yy * width + xx;
+                    let Some(p) = points[j] else { continue };
+                    if !keep(j) {
+                        continue;
+                    }
+                    let f = [1.0, p[0] - c[0], p[1] - c[1]];
+                    for a in 0..3 {
+                        for b in 0..3 {
+                            m[a][b] += f[a] * f[b];
+                        }
+                        r[a] += f[a] * (p[2] - c[2]);
+                    }
+                }
+            }
+            if let Some(s) = solve3(m, r) {
+                out[i] = Some(normalize([-s[1], -s[2], 1.0]));
+            }
+        }
+    }
+    out
+}
+
+fn solve3(m: [[f64; 3]; 3], r: [f64; 3]) -> Option<[f64; 3]> {
+    let det = |m: &[[f64; 3]; 3]| {
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    };
+    let d = det(&m);
+    if d.abs() < 1e-12 {
+        return None;
+    }
+    let mut out = [0.0; 3];
+    for (k, o) in out.iter_mut().enumerate() {
+        let mut mk = m;
+        for row in 0..3 {
+            mk[row][k] = r[row];
+        }
+        *o = det(&mk) / d;
+    }
+    Some(out)
+}
+
+/// One pixel's fitted parameters.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct TraceFit {
+    /// Diffuse albedo per channel.
+    pub diffuse: [f64; 3],
+    /// Specular albedo per channel.
+    pub specular: [f64; 3],
+    /// Roughness.
+    pub alpha: f64,
+    /// RMS of the residual over the trace, relative to the trace's RMS.
+    pub residual: f64,
+}
+
+/// Least squares of `o ≈ a·D + b·S` with `a, b ≥ 0`; returns `(a, b, squared residual)`.
+fn two_lobes(o: &[f64], d: &[f64], s: &[f64], valid: &[bool]) -> (f64, f64, f64) {
+    let (mut dd, mut ds, mut ss, mut od, mut os, mut oo) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+    for k in 0..o.len() {
+        if !valid[k] {
+            continue;
+        }
+        dd += d[k] * d[k];
+        ds += d[k] * s[k];
+        ss += s[k] * s[k];
+        od += o[k] * d[k];
+        os += o[k] * s[k];
+        oo += o[k] * o[k];
+    }
+    let det = dd * ss - ds * ds;
+    let (mut a, mut b) =
+        if det > 1e-30 { ((od * ss - os * ds) / det, (os * dd - od * ds) / det) } else { (-1.0, -1.0) };
+    if a < 0.0 || b < 0.0 {
+        // One lobe alone, whichever explains more.
+        let ad = if dd > 0.0 { (od / dd).max(0.0) } else { 0.0 };
+        let bs = if ss > 0.0 { (os / ss).max(0.0) } else { 0.0 };
+        if ad * od >= bs * os {
+            (a, b) = (ad, 0.0);
+        } else {
+            (a, b) = (0.0, bs);
+        }
+    }
+    let res = oo - 2.0 * a * od - 2.0 * b * os + a * a * dd + 2.0 * a * b * ds + b * b * ss;
+    (a, b, res.max(0.0))
+}
+
+/// Fits one pixel's trace. `obs[c][k]`: channel `c` at frame `k`, in units of the tube's
+/// radiance (exposure and light scale divided out); `valid[c][k]` false for frames to ignore
+/// (clipped, the tube in the way); `tubes[k]` the tube at frame `k`; `p`, `n`, `v` the point, its
+/// normal and the direction to the camera.
+pub fn fit_trace(
+    obs: &[Vec<f64>; 3],
+    valid: &[Vec<bool>; 3],
+    tubes: &[Tube],
+    p: V3,
+    n: V3,
+    v: V3,
+    q: &Quadrature,
+) -> TraceFit {
+    let qd = Quadrature::diffuse();
+    let d: Vec<f64> = tubes.iter().map(|t| response(p, n, v, t, None, &qd).diffuse).collect();
+    let residual_at = |alpha: f64| -> (f64, [f64; 3], [f64; 3]) {
+        let s: Vec<f64> = tubes.iter().map(|t| specular_response(p, n, v, t, alpha, q)).collect();
+        let (mut total, mut da, mut sa) = (0.0, [0.0; 3], [0.0; 3]);
+        for c in 0..3 {
+            let (a, b, r) = two_lobes(&obs[c], &d, &s, &valid[c]);
+            total += r;
+            da[c] = a;
+            sa[c] = b;
+        }
+        (total, da, sa)
+    };
+    // Coarse grid on log α, then golden section between the best point's neighbours.
+    const GRID: [f64; 10] = [0.02, 0.03, 0.045, 0.065, 0.09, 0.13, 0.18, 0.26, 0.38, 0.55];
+    let scores: Vec<f64> = GRID.iter().map(|&a| residual_at(a).0).collect();
+    let best = scores.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1)).map_or(0, |b| b.0);
+    let (mut lo, mut hi) = (GRID[best.saturating_sub(1)].ln(), GRID[(best + 1).min(GRID.len() - 1)].ln());
+    let g = (5f64.sqrt() - 1.0) / 2.0;
+    let (mut x1, mut x2) = (hi - g * (hi - lo), lo + g * (hi - lo));
+    let (mut f1, mut f2) = (residual_at(x1.exp()).0, residual_at(x2.exp()).0);
+    while hi - lo > 2e-3 {
+        if f1 < f2 {
+            hi = x2;
+            (x2, f2) = (x1, f1);
+            x1 = hi - g * (hi - lo);
+            f1 = residual_at(x1.exp()).0;
+        } else {
+            lo = x1;
+            (x1, f1) = (x2, f2);
+            x2 = lo + g * (hi - lo);
+            f2 = residual_at(x2.exp()).0;
+        }
+    }
+    let alpha = ((lo + hi) / 2.0).exp();
+    let (r, diffuse, specular) = residual_at(alpha);
+    let (mut oo, mut count) = (0.0, 0usize);
+    for c in 0..3 {
+        for k in 0..obs[c].len() {
+            if valid[c][k] {
+                oo += obs[c][k] * obs[c][k];
+                count += 1;
+            }
+        }
+    }
+    let residual = if oo > 0.0 && count > 0 { (r / oo).sqrt() } else { 0.0 };
+    TraceFit { diffuse, specular, alpha, residual }
+}
+
+/// The light's scale per channel from the diffuse strip: for each strip pixel the ratio of its
+/// trace to the model trace of a Lambertian surface of the strip's albedo (least squares), and
+/// the median over the pixels. `traces[i][c][k]` are exposure-normalised values.
+pub fn strip_scale(traces: &[([Vec<f64>; 3], [Vec<bool>; 3], Vec<f64>)], albedo: f64) -> Option<[f64; 3]> {
+    if traces.is_empty() {
+        return None;
+    }
+    let mut out = [0.0; 3];
+    for (c, o) in out.iter_mut().enumerate() {
+        let mut ratios: Vec<f64> = traces
+            .iter()
+            .filter_map(|(obs, valid, d)| {
+                let (mut od, mut dd) = (0.0, 0.0);
+                for k in 0..d.len() {
+                    if valid[c][k] {
+                        od += obs[c][k] * d[k];
+                        dd += d[k] * d[k];
+                    }
+                }
+                (dd > 0.0).then(|| od / dd / albedo)
+            })
+            .collect();
+        if ratios.is_empty() {
+            return None;
+        }
+        ratios.sort_by(f64::total_cmp);
+        *o = ratios[ratios.len() / 2];
+    }
+    Some(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stripe_peak_is_exact_for_a_gaussian() {
+        let positions: Vec<f64> = (0..40).map(|i| -20.0 + i as f64).collect();
+        for centre in [-3.3, 0.0, 0.49, 7.71] {
+            let values: Vec<f64> = positions
+                .iter()
+                .map(|g| 5.0 * (-(g - centre) * (g - centre) / (2.0 * 0.9 * 0.9)).exp())
+                .collect();
+            let got = stripe_peak(&values, &positions, 0.1).unwrap();
+            assert!((got - centre).abs() < 1e-9, "{got} vs {centre}");
+        }
+        assert_eq!(stripe_peak(&[0.01; 40], &positions, 0.1), None);
+    }
+
+    #[test]
+    fn a_point_on_the_sheet_satisfies_the_sheet_equation() {
+        let sheet = Sheet { offset: -20.0, angle: 30f64.to_radians() };
+        let o = [-175.0, 3.0, 303.0];
+        let d = normalize([0.5, -0.01, -0.87]);
+        let p = point_on_sheet(o, d, 12.5, &sheet).unwrap();
+        assert!((p[0] - 12.5 + 20.0 - p[2] * sheet.angle.tan()).abs() < 1e-9);
+    }
+
+    #[test]
+    fn normals_of_a_tilted_plane() {
+        let (w, h) = (7, 5);
+        let pts: Vec<Option<V3>> = (0..w * h)
+            .map(|i| {
+                let (x, y) = ((i % w) as f64 * 0.7, (i / w) as f64 * 0.6);
+                Some([x, y, 0.1 * x - 0.05 * y + 2.0])
+            })
+            .collect();
+        let n = normals_from_points(&pts, w, h, 2, |_| true);
+        let want = normalize([-0.1, 0.05, 1.0]);
+        for m in n {
+            let m = m.unwrap();
+            assert!(crate::vec3::angle(m, want) < 1e-9);
+        }
+    }
+
+    #[test]
+    fn fit_recovers_a_noiseless_trace() {
+        let q = Quadrature::fit();
+        let (p, n, v) = ([1.0, 2.0, 0.3], normalize([0.02, -0.03, 1.0]), normalize([-0.5, 0.02, 0.866]));
+        let tubes: Vec<Tube> =
+            (-140..=100).map(|g| Tube { x: g as f64, z: 50.0, radius: 6.0, y0: -150.0, y1: 150.0 }).collect();
+        for (rd, rs, alpha) in
+            [([0.3, 0.2, 0.1], [0.06, 0.058, 0.055], 0.04), ([0.5, 0.15, 0.1], [0.12; 3], 0.22)]
+        {
+            let mut obs: [Vec<f64>; 3] = Default::default();
+            let mut valid: [Vec<bool>; 3] = Default::default();
+            for t in &tubes {
+                let r = response(p, n, v, t, Some(alpha), &Quadrature::render());
+                for c in 0..3 {
+                    obs[c].push(rd[c] * r.diffuse + rs[c] * r.specular);
+                    valid[c].push(true);
+                }
+            }
+            let f = fit_trace(&obs, &valid, &tubes, p, n, v, &q);
+            assert!((f.alpha / alpha - 1.0).abs() < 2e-3, "α {} vs {alpha}", f.alpha);
+            for c in 0..3 {
+                assert!((f.diffuse[c] - rd[c]).abs() < 1e-3, "ρd {:?} vs {rd:?}", f.diffuse);
+                assert!((f.specular[c] / rs[c] - 1.0).abs() < 3e-3, "ρs {:?} vs {rs:?}", f.specular);
+            }
+        }
+    }
+}
