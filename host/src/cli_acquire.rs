@@ -43,8 +43,22 @@ fn connect_spec(rig: &RigFile, over: Option<&Connect>) -> Connect {
 }
 
 /// Connects, uploads the rig's configuration and homes what has a homing procedure.
-fn bring_up(rig: &RigFile, spec: &Connect) -> Result<Client<Box<dyn Transport>>, CliError> {
-    let transport = spec.open().map_err(|e| err(DEVICE, e.to_string()))?;
+pub fn bring_up(rig: &RigFile, spec: &Connect) -> Result<Client<Box<dyn Transport>>, CliError> {
+    let transport: Box<dyn Transport> = match spec {
+        // The virtual device is wired as the rig file says (switch polarities, interlocks).
+        Connect::Virtual => {
+            Box::new(crate::virtual_rig::connect(rig, crate::selfcheck::virtual_device_info()))
+        }
+        _ => spec.open().map_err(|e| err(DEVICE, e.to_string()))?,
+    };
+    bring_up_on(rig, transport)
+}
+
+/// [`bring_up`] on a transport already open.
+pub fn bring_up_on(
+    rig: &RigFile,
+    transport: Box<dyn Transport>,
+) -> Result<Client<Box<dyn Transport>>, CliError> {
     let nonce = std::process::id() ^ (std::time::SystemTime::now().elapsed().map_or(7, |d| d.subsec_nanos()));
     let mut client = Client::connect(transport, nonce).map_err(|e| err(DEVICE, e.to_string()))?;
     if let Some(s) = &rig.safety {

@@ -18,6 +18,35 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Cmd {
+    /// Run a whole acquisition and fit on the virtual rig and compare the fit with the ground
+    /// truth (the default method is the linear light source).
+    Demo {
+        /// Method: `lls` (linear light source).
+        #[arg(default_value = "lls")]
+        method: String,
+        /// A small scene for a quick check (about half a minute).
+        #[arg(long)]
+        quick: bool,
+        /// Output directory.
+        #[arg(long, default_value = "lightrig-demo")]
+        out: std::path::PathBuf,
+        /// Noise seed.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Exit with failure if a fit accuracy target is missed.
+        #[arg(long)]
+        check: bool,
+    },
+    /// Fit a session: `lightrig fit lls SESSION --out DIR`.
+    Fit {
+        /// Pipeline: `lls`.
+        pipeline: String,
+        /// Session directory.
+        session: std::path::PathBuf,
+        /// Output directory for the maps.
+        #[arg(long)]
+        out: std::path::PathBuf,
+    },
     /// Run the host link against the firmware controller in-process over a lossy simulated wire.
     Selfcheck {
         /// Clock requests to exchange.
@@ -211,6 +240,52 @@ fn main() -> ExitCode {
                 Err(e) => {
                     eprintln!("error: {e}");
                     ExitCode::from(4)
+                }
+            }
+        }
+        Cmd::Demo { method, quick, out, seed, check } => {
+            if method != "lls" && method != "linear-light-source" {
+                eprintln!("error: `lightrig demo {method}`: the methods with a demo are: lls");
+                return ExitCode::from(exit::USAGE);
+            }
+            let opts = lightrig_host::demo::DemoOptions { quick, out: out.join("lls"), seed, progress: true };
+            match lightrig_host::demo::run_lls(&opts) {
+                Ok((acc, _)) => {
+                    let missed: Vec<_> = acc.targets().into_iter().filter(|t| !t.3).map(|t| t.0).collect();
+                    if check && !missed.is_empty() {
+                        eprintln!("error: accuracy targets missed: {}", missed.join(", "));
+                        return ExitCode::from(exit::FAILURE);
+                    }
+                    ExitCode::SUCCESS
+                }
+                Err(e) => {
+                    eprintln!("error: {}", e.message);
+                    ExitCode::from(e.code)
+                }
+            }
+        }
+        Cmd::Fit { pipeline, session, out } => {
+            if pipeline != "lls" {
+                eprintln!("error: `lightrig fit {pipeline}`: the pipelines are: lls");
+                return ExitCode::from(exit::USAGE);
+            }
+            let bar = indicatif::ProgressBar::new(0);
+            let b = bar.clone();
+            let maps = lightrig_host::lls_fit::fit_session(&session, &move |done, total| {
+                b.set_length(total);
+                b.set_position(done);
+            });
+            bar.finish();
+            match maps.and_then(|m| lightrig_host::lls_fit::write_outputs(&m, &out)) {
+                Ok(files) => {
+                    for f in files {
+                        println!("{}", f.display());
+                    }
+                    ExitCode::SUCCESS
+                }
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    ExitCode::from(exit::FAILURE)
                 }
             }
         }

@@ -146,13 +146,13 @@ fn lls_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
             .iter()
             .map(|p| match p.as_str() {
                 "board" => Ok(lls::Pass::Board),
-                "lightbox" => Ok(lls::Pass::LightBox),
+                "light-box" | "lightbox" => Ok(lls::Pass::LightBox),
                 "reflectance" => Ok(lls::Pass::Reflectance),
                 "stripe" => Ok(lls::Pass::Stripe),
                 "backlit" => Ok(lls::Pass::Backlit),
                 other => Err(rig.error(
                     "plan.passes",
-                    format!("`{other}`: expected board, lightbox, reflectance, stripe or backlit"),
+                    format!("`{other}`: expected board, light-box, reflectance, stripe or backlit"),
                 )),
             })
             .collect::<Result<Vec<_>, _>>()?,

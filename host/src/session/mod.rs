@@ -891,3 +891,30 @@ pub fn crc_of_file(path: &Path) -> io::Result<u32> {
         crc.update(&buf[..n]);
     }
 }
+
+/// Every trigger event in a session's journal, by `(sequence, item)`: the rig's state at each
+/// frame (the frame records name their trigger by these two numbers). Stops at the first
+/// damaged line, as opening does.
+pub fn trigger_events(
+    dir: impl AsRef<Path>,
+) -> Result<std::collections::HashMap<(u32, u32), lightrig_protocol::event::TriggerEvent>> {
+    let path = dir.as_ref().join(JOURNAL);
+    let file = File::open(&path).map_err(io_at(&path))?;
+    let mut out = std::collections::HashMap::new();
+    journal::scan(
+        &file,
+        |line, payload| {
+            let rec: Record = serde_json::from_slice(payload).map_err(|e| SessionError::Corrupt {
+                path: path.clone(),
+                line,
+                detail: format!("not a journal record: {e}"),
+            })?;
+            if let Record::Event { event: lightrig_protocol::Event::Trigger(t), .. } = rec {
+                out.insert((t.sequence, t.item), t);
+            }
+            Ok(())
+        },
+        io_at(&path),
+    )?;
+    Ok(out)
+}

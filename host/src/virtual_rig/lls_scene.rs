@@ -212,7 +212,7 @@ impl LlsSceneSpec {
                 offset_mm: 0.0,
                 radiance: 1.0,
             },
-            stripe: StripeSpec { offset_mm: -20.0, angle_deg: 30.0, sigma_mm: 1.0, radiance: 0.6 },
+            stripe: StripeSpec { offset_mm: -20.0, angle_deg: 30.0, sigma_mm: 1.0, radiance: 0.12 },
             diffuse_strip: StripSpec {
                 x_mm: [-40.0, 40.0],
                 y_mm: [26.0, 32.0],
@@ -227,7 +227,7 @@ impl LlsSceneSpec {
                 specular: 0.04,
                 alpha: 0.04,
             },
-            board: BoardSpec { cols: 9, rows: 6, square_mm: 8.0, origin_mm: [-32.0, -20.0] },
+            board: BoardSpec { cols: 7, rows: 4, square_mm: 10.0, origin_mm: [-30.0, -15.0] },
             room_radiance: 0.15,
             lightbox_radiance: 0.12,
             gantry_axis: 0,

@@ -166,14 +166,14 @@ pub fn fit_trace(
         (total, da, sa)
     };
     // Coarse grid on log α, then golden section between the best point's neighbours.
-    const GRID: [f64; 10] = [0.02, 0.03, 0.045, 0.065, 0.09, 0.13, 0.18, 0.26, 0.38, 0.55];
+    const GRID: [f64; 8] = [0.025, 0.04, 0.06, 0.09, 0.13, 0.19, 0.28, 0.42];
     let scores: Vec<f64> = GRID.iter().map(|&a| residual_at(a).0).collect();
     let best = scores.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1)).map_or(0, |b| b.0);
     let (mut lo, mut hi) = (GRID[best.saturating_sub(1)].ln(), GRID[(best + 1).min(GRID.len() - 1)].ln());
     let g = (5f64.sqrt() - 1.0) / 2.0;
     let (mut x1, mut x2) = (hi - g * (hi - lo), lo + g * (hi - lo));
     let (mut f1, mut f2) = (residual_at(x1.exp()).0, residual_at(x2.exp()).0);
-    while hi - lo > 2e-3 {
+    while hi - lo > 4e-3 {
         if f1 < f2 {
             hi = x2;
             (x2, f2) = (x1, f1);

@@ -83,7 +83,8 @@ impl Strip {
     }
 }
 
-/// The chessboard for the pose image: inner corners, square size, first corner's position.
+/// The chessboard for the pose image: inner corners, square size, first corner's position. The
+/// square before the first inner corner (towards −x, −y) is black.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BoardGeometry {
     /// Inner corners along `x`.
@@ -156,6 +157,26 @@ fn grey_bytes(img: &Image) -> Vec<u8> {
     g.iter().map(|v| ((v - lo) / span * 255.0).round() as u8).collect()
 }
 
+/// Whether the board image agrees with `pose` on the board's colours: the square before the
+/// first inner corner (towards −x, −y) is black, its neighbour along +x white. (A board of even
+/// × even squares looks the same turned by 180°, so boards must have an odd number of squares
+/// along one side: inner corners odd × even.)
+fn colours_agree(setup: &Setup, pose: &Pose, img: &Image) -> bool {
+    let b = &setup.board;
+    let h = b.square / 2.0;
+    let grey = |x: f64, y: f64| -> Option<f32> {
+        let (u, v) = lightrig_imaging::calib::project(&setup.intrinsics, pose, [x, y, 0.0])?;
+        let (u, v) = (u.round(), v.round());
+        if u < 0.0 || v < 0.0 || u >= f64::from(img.width) || v >= f64::from(img.height) {
+            return None;
+        }
+        let p = img.pixel(u as u32, v as u32);
+        Some(p.iter().take(3).sum())
+    };
+    let (o0, o1) = (b.origin[0], b.origin[1]);
+    matches!((grey(o0 - h, o1 - h), grey(o0 + h, o1 - h)), (Some(black), Some(white)) if white > black)
+}
+
 /// Step 1: the pose from the board image, and every pixel's viewing ray.
 pub fn register(setup: &Setup, board_image: &Image) -> Result<Registration, LlsError> {
     let (w, h) = (board_image.width as usize, board_image.height as usize);
@@ -168,14 +189,21 @@ pub fn register(setup: &Setup, board_image: &Image) -> Result<Registration, LlsE
             .map(|(r, c)| [b.origin[0] + c as f64 * b.square, b.origin[1] + r as f64 * b.square])
             .collect(),
     };
-    // The detector's corner order may start from either end of the board; take the pose that
-    // puts the camera above the plane.
+    // The detector's corner order may start at any corner of the grid: try the four, keep the
+    // pose that puts the camera above the plane with the smallest residual.
+    let (cols, rows) = (b.cols, b.rows);
     let mut best: Option<(Pose, f64)> = None;
-    for flip in [false, true] {
-        let pts: Vec<(f64, f64)> =
-            if flip { corners.iter().rev().copied().collect() } else { corners.clone() };
+    for (flip_r, flip_c) in [(false, false), (true, true), (true, false), (false, true)] {
+        let pts: Vec<(f64, f64)> = (0..rows)
+            .flat_map(|r| (0..cols).map(move |c| (r, c)))
+            .map(|(r, c)| {
+                let (r, c) = (if flip_r { rows - 1 - r } else { r }, if flip_c { cols - 1 - c } else { c });
+                corners[r * cols + c]
+            })
+            .collect();
         if let Ok((pose, rms)) = pose_from_board(&setup.intrinsics, &pts, &board) {
-            if pose.camera_centre()[2] > 0.0 && best.as_ref().is_none_or(|b| rms < b.1) {
+            let above = pose.camera_centre()[2] > 0.0;
+            if above && colours_agree(setup, &pose, board_image) && best.as_ref().is_none_or(|b| rms < b.1) {
                 best = Some((pose, rms));
             }
         }

@@ -1,0 +1,533 @@
+//! `lightrig fit lls`: a linear-light-source session → per-pixel reflectance maps.
+//!
+//! This module is the glue between a session on disk and the maths in
+//! [`lightrig_pipelines::lls`]: it reads the rig file from the session's manifest (the fit's
+//! geometry lives in its `[plan.fit]` table), the frames of each pass with their trigger
+//! records (the gantry position of every frame comes from the trigger's snapshot, not from the
+//! plan), merges exposure brackets, runs the fit and writes the maps.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use lightrig_imaging::calib::Intrinsics;
+use lightrig_imaging::io::{
+    read_with, write_exr_layers, write_png, BitDepth, Encoding, ExrPrecision, Image, Layer, ReadOptions,
+};
+use lightrig_pipelines::linear_light::{hides, response, Quadrature, Tube};
+use lightrig_pipelines::lls::{
+    fit_trace, normals_from_points, point_on_sheet, register, strip_scale, stripe_peak, BoardGeometry, Light,
+    Registration, Setup, Sheet, Strip, TraceFit,
+};
+use lightrig_pipelines::vec3::{normalize, sub, V3};
+use lightrig_pipelines::ward::Ward;
+use rayon::prelude::*;
+use serde::Deserialize;
+
+use crate::rigfile::RigFile;
+use crate::session::{trigger_events, Session};
+
+/// The `[plan.fit]` table of a linear-light-source rig file.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FitSpec {
+    /// Camera intrinsics, pixels (from `lightrig calibrate`).
+    pub camera: CameraIntrinsics,
+    /// The light tube.
+    pub light: LightGeom,
+    /// The laser sheet.
+    pub stripe: SheetGeom,
+    /// The pose board.
+    pub board: BoardGeom,
+    /// The diffuse calibration strip.
+    pub diffuse_strip: StripGeom,
+    /// The specular calibration strip.
+    pub specular_strip: StripGeom,
+}
+
+/// Pinhole intrinsics.
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraIntrinsics {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+}
+
+/// The light tube, mm.
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LightGeom {
+    pub diameter_mm: f64,
+    pub length_mm: f64,
+    pub height_mm: f64,
+    pub offset_mm: f64,
+}
+
+/// The laser sheet.
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SheetGeom {
+    pub offset_mm: f64,
+    pub angle_deg: f64,
+}
+
+/// The board.
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BoardGeom {
+    pub cols: usize,
+    pub rows: usize,
+    pub square_mm: f64,
+    pub origin_mm: [f64; 2],
+}
+
+/// A calibration strip.
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StripGeom {
+    pub x_mm: [f64; 2],
+    pub y_mm: [f64; 2],
+    pub albedo: f64,
+}
+
+impl FitSpec {
+    /// The pipeline's view of it.
+    pub fn setup(&self) -> Setup {
+        let strip = |s: &StripGeom| Strip { x: s.x_mm, y: s.y_mm, albedo: s.albedo };
+        Setup {
+            intrinsics: Intrinsics::pinhole(self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy),
+            light: Light {
+                radius: self.light.diameter_mm / 2.0,
+                length: self.light.length_mm,
+                height: self.light.height_mm,
+                offset: self.light.offset_mm,
+            },
+            sheet: Sheet { offset: self.stripe.offset_mm, angle: self.stripe.angle_deg.to_radians() },
+            board: BoardGeometry {
+                cols: self.board.cols,
+                rows: self.board.rows,
+                square: self.board.square_mm,
+                origin: self.board.origin_mm,
+            },
+            diffuse_strip: strip(&self.diffuse_strip),
+            specular_strip: strip(&self.specular_strip),
+        }
+    }
+}
+
+/// Why a fit could not run; each message names what to check.
+#[derive(Debug)]
+pub struct FitError(pub String);
+
+impl std::fmt::Display for FitError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for FitError {}
+
+fn fail(m: impl Into<String>) -> FitError {
+    FitError(m.into())
+}
+
+/// One position of a pass: exposure-normalised values (value per second), NaN where clipped in
+/// every exposure of the bracket.
+#[derive(Debug, Clone)]
+pub struct PassFrame {
+    /// Gantry position, mm.
+    pub gantry: f64,
+    /// Interleaved RGB, value per second of exposure.
+    pub rate: Vec<f32>,
+}
+
+/// The fitted maps, row-major, `width × height`.
+#[derive(Debug, Clone)]
+pub struct LlsMaps {
+    pub width: u32,
+    pub height: u32,
+    /// Pixels fitted (on neither strip, with a surface point).
+    pub fitted: Vec<bool>,
+    pub fit: Vec<TraceFit>,
+    /// Surface points, mm.
+    pub points: Vec<Option<V3>>,
+    pub normals: Vec<Option<V3>>,
+    pub translucency: Vec<f32>,
+    /// The camera registration.
+    pub registration_rms: f64,
+    /// The light's scale per channel from the diffuse strip.
+    pub scale: [f64; 3],
+    /// The specular strip's fitted specular albedo (median), against its known value.
+    pub specular_strip: (f64, f64),
+    /// A reflectance frame as captured and as the fitted maps predict it (value per second).
+    pub check_frame: (f64, Vec<f32>, Vec<f32>),
+}
+
+const CLIP: f32 = 0.98;
+
+fn load_pass(
+    session: &Session,
+    dir: &Path,
+    step: u32,
+    triggers: &std::collections::HashMap<(u32, u32), lightrig_protocol::event::TriggerEvent>,
+    gantry: &crate::rigfile::Stepper,
+    tick_hz: f64,
+) -> Result<Vec<PassFrame>, FitError> {
+    let mut frames = session.frames_of(step);
+    frames.sort_by_key(|f| f.frame);
+    let mut out: Vec<(i32, Vec<f32>, Vec<f32>)> = Vec::new(); // steps, Σ w·rate, Σ w
+    for f in &frames {
+        let t = triggers.get(&(f.sequence, f.item)).ok_or_else(|| {
+            fail(format!("{}: frame {} has no trigger record in the journal", dir.display(), f.file))
+        })?;
+        let steps = t.snapshot.axes.get(usize::from(gantry.axis)).copied().unwrap_or(0);
+        let exposure = f64::from(t.width) / tick_hz;
+        let path = dir.join(&f.file);
+        let img = read_with(&path, ReadOptions { assume: Encoding::Linear, expect_depth: None })
+            .map_err(|e| fail(format!("{}: {e}", path.display())))?;
+        if img.channels < 3 {
+            return Err(fail(format!("{}: {} channels, the fit needs RGB", path.display(), img.channels)));
+        }
+        let ch = usize::from(img.channels);
+        if out.last().is_none_or(|l| l.0 != steps) {
+            let n = (img.width * img.height) as usize * 3;
+            if out.first().is_some_and(|o| o.1.len() != n) {
+                return Err(fail(format!(
+                    "{}: image size differs from the pass's first frame",
+                    path.display()
+                )));
+            }
+            out.push((steps, vec![0.0; n], vec![0.0; n]));
+        }
+        let Some(last) = out.last_mut() else { continue };
+        // Weight by exposure time (collected light); clipped samples get none.
+        for (i, px) in img.data.chunks(ch).enumerate() {
+            for c in 0..3 {
+                if px[c] < CLIP {
+                    last.1[i * 3 + c] += px[c];
+                    last.2[i * 3 + c] += exposure as f32;
+                }
+            }
+        }
+    }
+    Ok(out
+        .into_iter()
+        .map(|(steps, sum, w)| PassFrame {
+            gantry: gantry.units(i64::from(steps)).unwrap_or(f64::from(steps)),
+            rate: sum.iter().zip(&w).map(|(s, w)| if *w > 0.0 { s / w } else { f32::NAN }).collect(),
+        })
+        .collect())
+}
+
+/// Reads a session and fits it. `progress(done, total)` is called as pixels finish.
+pub fn fit_session(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<LlsMaps, FitError> {
+    let (session, _) = Session::read(dir).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
+    let manifest = session.manifest().clone();
+    let rig = RigFile::parse(&manifest.rig, &dir.join("manifest.json")).map_err(|e| fail(e.to_string()))?;
+    let spec: FitSpec = rig
+        .plan
+        .get("fit")
+        .cloned()
+        .ok_or_else(|| {
+            fail(format!("{}: the rig file has no [plan.fit] table (the fit's geometry)", dir.display()))
+        })?
+        .try_into()
+        .map_err(|e| fail(format!("{}: [plan.fit]: {e}", dir.display())))?;
+    let setup = spec.setup();
+    let gantry = rig
+        .stepper_named("gantry")
+        .or_else(|| rig.steppers.first())
+        .ok_or_else(|| fail("the rig file has no gantry stepper"))?;
+    let tick_hz = f64::from(manifest.device.tick_hz);
+    let triggers = trigger_events(dir).map_err(|e| fail(e.to_string()))?;
+    let pass_of = |name: &str| {
+        manifest.plan.steps.iter().find(|s| s.extra["meta"]["pass"].as_str() == Some(name)).map(|s| s.id)
+    };
+    let load = |name: &str| -> Result<Vec<PassFrame>, FitError> {
+        match pass_of(name) {
+            Some(id) => load_pass(&session, dir, id, &triggers, gantry, tick_hz),
+            None => Ok(Vec::new()),
+        }
+    };
+    let board = load("board")?;
+    let reflect = load("reflectance")?;
+    let stripe = load("stripe")?;
+    let backlit = load("backlit")?;
+    let lightbox = load("light-box")?;
+    let first =
+        board.first().ok_or_else(|| fail("the session has no board frame: the camera's pose needs one"))?;
+    if reflect.len() < 5 {
+        return Err(fail(format!(
+            "the reflectance pass has {} positions; the fit needs a sweep",
+            reflect.len()
+        )));
+    }
+    // Size from the first board file.
+    let any = session.frames_of(pass_of("board").unwrap_or(0));
+    let img0 =
+        read_with(dir.join(&any[0].file), ReadOptions { assume: Encoding::Linear, expect_depth: None })
+            .map_err(|e| fail(e.to_string()))?;
+    let (w, h) = (img0.width as usize, img0.height as usize);
+    let board_img = Image {
+        width: w as u32,
+        height: h as u32,
+        channels: 3,
+        data: first.rate.iter().map(|v| if v.is_nan() { 1.0 } else { *v }).collect(),
+        encoding: Encoding::Linear,
+    };
+    let reg: Registration = register(&setup, &board_img).map_err(|e| fail(e.to_string()))?;
+
+    // Surface points: the stripe's crossing, or the reference plane where no stripe shows.
+    let stripe_pos: Vec<f64> = stripe.iter().map(|f| f.gantry).collect();
+    let stripe_max = stripe.iter().flat_map(|f| f.rate.iter().step_by(3)).fold(0f32, |a, &v| {
+        if v.is_nan() {
+            a
+        } else {
+            a.max(v)
+        }
+    });
+    let points: Vec<Option<V3>> = (0..w * h)
+        .map(|i| {
+            let (o, d) = reg.rays[i];
+            // The red channel sees the laser best; where it clipped, the green one (which
+            // passes a little of it).
+            let channel =
+                |c: usize| -> Vec<f64> { stripe.iter().map(|f| f64::from(f.rate[i * 3 + c])).collect() };
+            let red = channel(0);
+            let trace: Vec<f64> = if red.iter().any(|v| v.is_nan()) { channel(1) } else { red }
+                .into_iter()
+                .map(|v| v.max(0.0))
+                .collect();
+            let on_sheet = if stripe.len() >= 3 {
+                stripe_peak(&trace, &stripe_pos, f64::from(stripe_max) * 0.002)
+                    .and_then(|g| point_on_sheet(o, d, g, &setup.sheet))
+            } else {
+                None
+            };
+            on_sheet.or_else(|| {
+                let t = -o[2] / d[2];
+                (t > 0.0).then(|| [o[0] + t * d[0], o[1] + t * d[1], 0.0])
+            })
+        })
+        .collect();
+    let in_strip = |i: usize| {
+        points[i]
+            .is_some_and(|p| setup.diffuse_strip.contains(p, -0.5) || setup.specular_strip.contains(p, -0.5))
+    };
+    let mut normals = normals_from_points(&points, w, h, 2, |j| !in_strip(j));
+    for (i, n) in normals.iter_mut().enumerate() {
+        if in_strip(i) {
+            *n = Some([0.0, 0.0, 1.0]);
+        }
+    }
+    let tubes: Vec<Tube> = reflect.iter().map(|f| setup.light.at(f.gantry)).collect();
+    let trace_of = |i: usize, p: V3, v: V3, scale: [f64; 3]| {
+        let mut obs: [Vec<f64>; 3] = Default::default();
+        let mut valid: [Vec<bool>; 3] = Default::default();
+        for (f, t) in reflect.iter().zip(&tubes) {
+            // Leave a millimetre's margin around the tube's silhouette.
+            let wide = Tube { radius: t.radius + 1.0, ..*t };
+            let hidden = hides(p, v, &wide);
+            for c in 0..3 {
+                let r = f64::from(f.rate[i * 3 + c]);
+                valid[c].push(!hidden && r.is_finite());
+                obs[c].push(if r.is_finite() { r / scale[c] } else { 0.0 });
+            }
+        }
+        (obs, valid)
+    };
+    // The light's scale from the diffuse strip (its inner part).
+    let qd = Quadrature::diffuse();
+    let strip_traces: Vec<_> = (0..w * h)
+        .filter(|&i| points[i].is_some_and(|p| setup.diffuse_strip.contains(p, 1.0)))
+        .map(|i| {
+            let p = points[i].unwrap_or([0.0; 3]);
+            let v = normalize(sub(reg.rays[i].0, p));
+            let (obs, valid) = trace_of(i, p, v, [1.0; 3]);
+            let d: Vec<f64> =
+                tubes.iter().map(|t| response(p, [0.0, 0.0, 1.0], v, t, None, &qd).diffuse).collect();
+            (obs, valid, d)
+        })
+        .collect();
+    let scale = strip_scale(&strip_traces, setup.diffuse_strip.albedo)
+        .ok_or_else(|| fail("no pixel sees the diffuse calibration strip: check [plan.fit.diffuse_strip]"))?;
+    let q = Quadrature::fit();
+    let total = (w * h) as u64;
+    let done = AtomicU64::new(0);
+    let fitted: Vec<bool> =
+        (0..w * h).map(|i| points[i].is_some() && normals[i].is_some() && !in_strip(i)).collect();
+    let want_fit = |i: usize| fitted[i] || points[i].is_some_and(|p| setup.specular_strip.contains(p, 1.0));
+    let fit: Vec<TraceFit> = (0..w * h)
+        .into_par_iter()
+        .map(|i| {
+            let out = match (want_fit(i), points[i], normals[i]) {
+                (true, Some(p), Some(n)) => {
+                    let v = normalize(sub(reg.rays[i].0, p));
+                    let (obs, valid) = trace_of(i, p, v, scale);
+                    fit_trace(&obs, &valid, &tubes, p, n, v, &q)
+                }
+                _ => TraceFit::default(),
+            };
+            let k = done.fetch_add(1, Ordering::Relaxed) + 1;
+            if k % 256 == 0 || k == total {
+                progress(k, total);
+            }
+            out
+        })
+        .collect();
+    let mut spec_strip: Vec<f64> = (0..w * h)
+        .filter(|&i| points[i].is_some_and(|p| setup.specular_strip.contains(p, 1.0)))
+        .map(|i| (fit[i].specular[0] + fit[i].specular[1] + fit[i].specular[2]) / 3.0)
+        .collect();
+    spec_strip.sort_by(f64::total_cmp);
+    let specular_strip =
+        (spec_strip.get(spec_strip.len() / 2).copied().unwrap_or(f64::NAN), setup.specular_strip.albedo);
+
+    let translucency: Vec<f32> = (0..w * h)
+        .map(|i| match (backlit.first(), lightbox.first()) {
+            (Some(b), Some(l)) => {
+                let (num, den): (f32, f32) = (0..3)
+                    .map(|c| (b.rate[i * 3 + c], l.rate[i * 3 + c]))
+                    .fold((0.0, 0.0), |a, x| (a.0 + x.0, a.1 + x.1));
+                if den > 0.0 && num.is_finite() {
+                    num / den
+                } else {
+                    0.0
+                }
+            }
+            _ => 0.0,
+        })
+        .collect();
+
+    // A frame near the middle of the pass as captured and as the maps predict it.
+    let k = reflect.len() / 2;
+    let predicted: Vec<f32> = (0..w * h)
+        .flat_map(|i| {
+            let mut px = [0f32; 3];
+            if let (true, Some(p), Some(n)) = (fitted[i], points[i], normals[i]) {
+                let v = normalize(sub(reg.rays[i].0, p));
+                let f = &fit[i];
+                let r = response(p, n, v, &tubes[k], Some(f.alpha.max(1e-3)), &q);
+                for c in 0..3 {
+                    px[c] = ((f.diffuse[c] * r.diffuse + f.specular[c] * r.specular) * scale[c]) as f32;
+                }
+            }
+            px
+        })
+        .collect();
+    let captured: Vec<f32> = reflect[k].rate.iter().map(|v| if v.is_finite() { *v } else { 0.0 }).collect();
+    Ok(LlsMaps {
+        width: w as u32,
+        height: h as u32,
+        fitted,
+        fit,
+        points,
+        normals,
+        translucency,
+        registration_rms: reg.rms,
+        scale,
+        specular_strip,
+        check_frame: (reflect[k].gantry, captured, predicted),
+    })
+}
+
+fn layer(name: &str, channels: &[&str], w: u32, h: u32, data: Vec<f32>) -> Layer {
+    Layer {
+        name: name.into(),
+        channels: channels.iter().map(|c| c.to_string()).collect(),
+        image: Image {
+            width: w,
+            height: h,
+            channels: channels.len() as u8,
+            data,
+            encoding: Encoding::Linear,
+        },
+    }
+}
+
+/// Writes `maps.exr` (layers diffuse, specular, roughness, height, normal, translucency,
+/// residual), PNG previews, and `relit.png`: a captured frame, the same frame predicted from
+/// the maps, and the maps relit by a point light above the sample. Returns the files written.
+pub fn write_outputs(m: &LlsMaps, out: &Path) -> Result<Vec<PathBuf>, FitError> {
+    std::fs::create_dir_all(out).map_err(|e| fail(format!("{}: {e}", out.display())))?;
+    let (w, h) = (m.width, m.height);
+    let n = (w * h) as usize;
+    let pick = |f: &dyn Fn(usize) -> Vec<f32>| -> Vec<f32> { (0..n).flat_map(f).collect() };
+    let on = |i: usize| m.fitted[i];
+    let diffuse = pick(&|i| m.fit[i].diffuse.map(|v| v as f32).to_vec());
+    let specular = pick(&|i| m.fit[i].specular.map(|v| v as f32).to_vec());
+    let rough = pick(&|i| vec![if on(i) { m.fit[i].alpha as f32 } else { 0.0 }]);
+    let height = pick(&|i| vec![m.points[i].map_or(0.0, |p| p[2] as f32)]);
+    let normal = pick(&|i| m.normals[i].unwrap_or([0.0, 0.0, 1.0]).map(|v| v as f32).to_vec());
+    let resid = pick(&|i| vec![m.fit[i].residual as f32]);
+    let layers = vec![
+        layer("diffuse", &["R", "G", "B"], w, h, diffuse.clone()),
+        layer("specular", &["R", "G", "B"], w, h, specular.clone()),
+        layer("roughness", &["Y"], w, h, rough.clone()),
+        layer("height", &["Y"], w, h, height.clone()),
+        layer("normal", &["X", "Y", "Z"], w, h, normal.clone()),
+        layer("translucency", &["Y"], w, h, m.translucency.clone()),
+        layer("residual", &["Y"], w, h, resid),
+    ];
+    let exr = out.join("maps.exr");
+    write_exr_layers(&exr, &layers, ExrPrecision::Float).map_err(|e| fail(e.to_string()))?;
+    let mut files = vec![exr];
+    let png = |name: &str, ch: u8, data: Vec<f32>, files: &mut Vec<PathBuf>| -> Result<(), FitError> {
+        let img = Image { width: w, height: h, channels: ch, data, encoding: Encoding::Linear };
+        let p = out.join(name);
+        write_png(&p, &img.to_srgb(), BitDepth::Eight).map_err(|e| fail(e.to_string()))?;
+        files.push(p);
+        Ok(())
+    };
+    let (hmin, hmax) = height.iter().fold((f32::MAX, f32::MIN), |a, &v| (a.0.min(v), a.1.max(v)));
+    png("diffuse.png", 3, diffuse.iter().map(|v| v.clamp(0.0, 1.0)).collect(), &mut files)?;
+    png("specular.png", 3, specular.iter().map(|v| (v * 5.0).clamp(0.0, 1.0)).collect(), &mut files)?;
+    png("roughness.png", 1, rough.iter().map(|v| (v / 0.4).clamp(0.0, 1.0)).collect(), &mut files)?;
+    png("height.png", 1, height.iter().map(|v| (v - hmin) / (hmax - hmin).max(1e-6)).collect(), &mut files)?;
+    png("normal.png", 3, normal.iter().map(|v| ((v + 1.0) / 2.0).clamp(0.0, 1.0)).collect(), &mut files)?;
+    png("translucency.png", 1, m.translucency.iter().map(|v| v.clamp(0.0, 1.0)).collect(), &mut files)?;
+    // relit.png: captured | predicted | point light.
+    let (_, cap, pred) = &m.check_frame;
+    let peak = cap.iter().fold(0f32, |a, &v| a.max(v)).max(1e-12);
+    let light = [0.0, 0.0, 150.0];
+    let mut relit = vec![0f32; n * 3];
+    for i in 0..n {
+        if let (true, Some(p), Some(nn)) = (m.fitted[i], m.points[i], m.normals[i]) {
+            let wi = normalize(sub(light, p));
+            let wo = normalize([-p[0] - 175.0, -p[1], 303.0 - p[2]]);
+            let f = Ward {
+                diffuse: m.fit[i].diffuse,
+                specular: m.fit[i].specular,
+                alpha: m.fit[i].alpha.max(1e-3),
+            }
+            .eval(nn, wi, wo);
+            let ci = lightrig_pipelines::vec3::dot(nn, wi).max(0.0);
+            for c in 0..3 {
+                relit[i * 3 + c] = (f[c] * ci * 2.0) as f32;
+            }
+        }
+    }
+    let mut strip = vec![0f32; n * 9];
+    for y in 0..h as usize {
+        for x in 0..w as usize {
+            let i = y * w as usize + x;
+            for c in 0..3 {
+                strip[(y * 3 * w as usize + x) * 3 + c] = cap[i * 3 + c] / peak;
+                strip[(y * 3 * w as usize + w as usize + x) * 3 + c] = pred[i * 3 + c] / peak;
+                strip[(y * 3 * w as usize + 2 * w as usize + x) * 3 + c] = relit[i * 3 + c].min(1.0);
+            }
+        }
+    }
+    let img = Image {
+        width: w * 3,
+        height: h,
+        channels: 3,
+        data: strip.iter().map(|v| v.clamp(0.0, 1.0)).collect(),
+        encoding: Encoding::Linear,
+    };
+    let p = out.join("relit.png");
+    write_png(&p, &img.to_srgb(), BitDepth::Eight).map_err(|e| fail(e.to_string()))?;
+    files.push(p);
+    Ok(files)
+}
