@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# Builds the NUCLEO-G474RE firmware for thumbv7em-none-eabihf (release, locked) and prints its
+# size report: flash = .text + .rodata + .data (its load image), RAM = .data + .bss (+ stack
+# above). Installs what it needs first, idempotently and without questions.
+set -euo pipefail
+cd "$(dirname "$0")"
+
+rustup target add thumbv7em-none-eabihf >/dev/null
+
+# A size tool: binutils for ARM from Debian, unless an ELF size tool is already there.
+size_tool=""
+for t in arm-none-eabi-size llvm-size; do
+  if command -v "$t" >/dev/null 2>&1; then size_tool="$t"; break; fi
+done
+if [ -z "$size_tool" ]; then
+  export DEBIAN_FRONTEND=noninteractive
+  sudo=""; [ "$(id -u)" -ne 0 ] && sudo="sudo -n"
+  $sudo apt-get update -qq
+  $sudo apt-get install -y -qq binutils-arm-none-eabi >/dev/null
+  size_tool=arm-none-eabi-size
+fi
+
+t0=$SECONDS
+cargo build --release --locked
+echo "build: $((SECONDS - t0))s"
+
+elf=target/thumbv7em-none-eabihf/release/lightrig-nucleo-g474re
+"$size_tool" -A "$elf" | grep -E '^(section|\.vector_table|\.text|\.rodata|\.data|\.bss|\.uninit)' || true
+# Berkeley format: text (incl. rodata and the vector table), data, bss.
+read -r text data bss _ < <("$size_tool" -B "$elf" | tail -1)
+flash=$((text + data))
+ram=$((data + bss))
+printf 'size: flash %d bytes (%d KiB of 512 KiB), RAM %d bytes (%d KiB of 128 KiB, stack not included)\n' \
+  "$flash" $(((flash + 1023) / 1024)) "$ram" $(((ram + 1023) / 1024))

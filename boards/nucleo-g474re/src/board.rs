@@ -1,0 +1,174 @@
+//! The NUCLEO-G474RE's peripherals behind the firmware's hardware traits.
+//!
+//! Outputs change when the rig calls (its poll tick, at most the run loop's wake-up latency
+//! after `at`); see docs/boards/nucleo-g474re.md, "Timing", for what that means and what a
+//! timer-latched version would change.
+
+use embassy_stm32::gpio::{Flex, Input, Level, Output, Speed};
+use embassy_stm32::mode::Blocking;
+use embassy_stm32::spi::{self, Spi};
+use embedded_hal_bus::spi::{ExclusiveDevice, NoDelay};
+use lightrig_firmware::galvo::{GalvoOutput, SpiDacGalvo};
+use lightrig_firmware::hal::{Cameras, Capture, Galvos, HwError, Lasers, Motors, VoiceCoils};
+use lightrig_protocol::config::Xy;
+use lightrig_protocol::event::Switch;
+use lightrig_protocol::sequence::AxisRef;
+
+use crate::inputs;
+use crate::voice::VoiceStream;
+
+/// The galvo DAC's SPI device: SPI1 with the DAC8563's SYNC as chip select.
+pub type GalvoSpi = ExclusiveDevice<Spi<'static, Blocking, spi::mode::Master>, Output<'static>, NoDelay>;
+
+/// Step pulse width: covers common drivers' minimum high time (DRV8825 1.9 µs, A4988 1 µs).
+const STEP_PULSE_CYCLES: u32 = 168 * 2;
+
+/// A safety output: high impedance (held inactive by its pull resistor) until the rig first
+/// drives it, which it does only once the peripheral's polarity is configured.
+pub struct SafeOutput {
+    pin: Flex<'static>,
+    driven: bool,
+}
+
+impl SafeOutput {
+    pub fn new(pin: Flex<'static>) -> Self {
+        Self { pin, driven: false }
+    }
+
+    fn set(&mut self, level: bool) {
+        // Level first, then output mode: no glitch to the other level.
+        self.pin.set_level(Level::from(level));
+        if !self.driven {
+            self.pin.set_as_output(Speed::High);
+            self.driven = true;
+        }
+    }
+}
+
+/// One step/dir/enable driver and its switches.
+pub struct Motor {
+    pub step: Output<'static>,
+    pub dir: Output<'static>,
+    pub enable: SafeOutput,
+    pub limit_min: Option<Input<'static>>,
+    pub limit_max: Option<Input<'static>>,
+    pub index: Option<Input<'static>>,
+}
+
+impl Motor {
+    fn pulse(&mut self) {
+        self.step.set_high();
+        cortex_m::asm::delay(STEP_PULSE_CYCLES);
+        self.step.set_low();
+    }
+
+    fn switch(&self, switch: Switch) -> bool {
+        let pin = match switch {
+            Switch::Min => &self.limit_min,
+            Switch::Max => &self.limit_max,
+            Switch::Index => &self.index,
+        };
+        // An unwired switch reads low; the rig file must not configure it.
+        pin.as_ref().is_some_and(|p| p.is_high())
+    }
+}
+
+/// Everything the rig drives on this board.
+pub struct Nucleo {
+    pub galvo: SpiDacGalvo<GalvoSpi>,
+    pub lasers: [SafeOutput; 2],
+    pub interlocks: [Input<'static>; 2],
+    pub trigger: SafeOutput,
+    /// Camera 0 exposure input (PB10): held so nothing else claims it; read in the EXTI handler.
+    pub _exposure: Input<'static>,
+    pub stepper: Motor,
+    pub wheel: Motor,
+    pub voice: VoiceStream,
+}
+
+impl Nucleo {
+    fn motor(&mut self, motor: AxisRef) -> Option<&mut Motor> {
+        match motor {
+            AxisRef::Stepper(0) => Some(&mut self.stepper),
+            AxisRef::FilterWheel(0) => Some(&mut self.wheel),
+            _ => None,
+        }
+    }
+
+    /// Board housekeeping between polls.
+    pub fn service(&mut self, now: u64) {
+        self.voice.service(now);
+        if inputs::take_overflow() {
+            defmt::error!("exposure captures lost: run loop stalled");
+        }
+    }
+}
+
+impl Galvos for Nucleo {
+    fn set_galvo(&mut self, pair: u8, to: Xy, _at: u64) -> Result<(), HwError> {
+        if pair != 0 {
+            return Err(HwError);
+        }
+        self.galvo.set(to).map_err(|e| {
+            defmt::error!("galvo SPI: {}", defmt::Debug2Format(&e));
+            HwError
+        })
+    }
+}
+
+impl Lasers for Nucleo {
+    fn set_laser(&mut self, channel: u8, level: bool, _at: u64) {
+        if let Some(l) = self.lasers.get_mut(usize::from(channel)) {
+            l.set(level);
+        }
+    }
+
+    fn interlock_level(&mut self, channel: u8) -> bool {
+        // An unknown channel reads open: lasers stay off.
+        self.interlocks.get(usize::from(channel)).is_some_and(|p| p.is_high())
+    }
+}
+
+impl Motors for Nucleo {
+    fn step(&mut self, motor: AxisRef, _at: u64) {
+        if let Some(m) = self.motor(motor) {
+            m.pulse();
+        }
+    }
+
+    fn set_dir(&mut self, motor: AxisRef, level: bool, _at: u64) {
+        if let Some(m) = self.motor(motor) {
+            m.dir.set_level(Level::from(level));
+        }
+    }
+
+    fn set_enable(&mut self, motor: AxisRef, level: bool, _at: u64) {
+        if let Some(m) = self.motor(motor) {
+            m.enable.set(level);
+        }
+    }
+
+    fn switch_level(&mut self, motor: AxisRef, switch: Switch) -> bool {
+        self.motor(motor).is_some_and(|m| m.switch(switch))
+    }
+}
+
+impl Cameras for Nucleo {
+    fn set_trigger(&mut self, camera: u8, level: bool, _at: u64) {
+        if camera == 0 {
+            self.trigger.set(level);
+        }
+    }
+
+    fn take_capture(&mut self, until: u64) -> Option<Capture> {
+        inputs::take(until)
+    }
+}
+
+impl VoiceCoils for Nucleo {
+    fn write_samples(&mut self, channel: u8, first_sample: u64, samples: &[i16], at: u64) {
+        if channel == 0 {
+            self.voice.write(first_sample, samples, at);
+        }
+    }
+}
