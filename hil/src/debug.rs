@@ -82,6 +82,18 @@ impl DebugPort {
         Ok(())
     }
 
+    /// Moves the cursor back to the oldest record the ring still holds.
+    pub fn rewind(&mut self) -> Result<(), String> {
+        let p = self.ask(&request::read(0, 0))?;
+        match Answer::decode(&p) {
+            Some(Answer::Records { first, .. }) => {
+                self.cursor = first;
+                Ok(())
+            }
+            other => Err(format!("unexpected debug answer {other:?}")),
+        }
+    }
+
     /// Opens or closes a laser's interlock input.
     pub fn set_interlock(&mut self, channel: u8, closed: bool) -> Result<(), String> {
         let p = self.ask(&request::set_interlock(channel, closed))?;

@@ -154,15 +154,18 @@ fn report(
     let (rx, tx) = (d1.rx_bytes - d0.rx_bytes, d1.tx_bytes - d0.tx_bytes);
     let busy = (d1.busy_cycles - d0.busy_cycles) as f64 * ipc;
     let virt = (d1.now - d0.now) as f64 / 1e6;
+    let turns = d1.wakeups - d0.wakeups;
+    println!("{what}: {n} in {wall:.2} s wall ({virt:.2} s virtual) = {:.0}/s", f64::from(n) / wall);
     println!(
-        "{what}: {n} in {wall:.2} s = {:.0}/s; {:.0} B/s to the device, {:.0} B/s back ({} + {} B); \
-         {:.0} instructions of firmware work each; virtual time {virt:.2} s",
-        f64::from(n) / wall,
+        "    bytes: {rx} to the device ({:.0} B/s), {tx} back ({:.0} B/s)",
         rx as f64 / wall,
-        tx as f64 / wall,
-        rx,
-        tx,
+        tx as f64 / wall
+    );
+    println!(
+        "    firmware: {:.0} instructions each, in {:.1} run-loop turns ({:.0} instructions per turn)",
         busy / f64::from(n),
+        turns as f64 / f64::from(n),
+        busy / turns.max(1) as f64
     );
 }
 

@@ -6,6 +6,7 @@
 //! lightrig-hil suite --port /dev/ttyACM0 [--baud B]               a real board, serial
 //! lightrig-hil suite --usb 1209:4c52[:SERIAL]                     a real board, USB
 //! lightrig-hil figures [--elf ELF] [--shift N]                    instruction counts and UART throughput
+//! lightrig-hil pins --port /dev/pts/N                             the emulated board's recorded outputs
 //! ```
 
 mod debug;
@@ -29,7 +30,8 @@ struct Args {
     logs: PathBuf,
 }
 
-const USAGE: &str = "usage: lightrig-hil [suite|figures] [--elf ELF] [--shift N] [--port PATH [--baud B]] \
+const USAGE: &str =
+    "usage: lightrig-hil [suite|figures|pins] [--elf ELF] [--shift N] [--port PATH [--baud B]] \
                      [--usb VID:PID[:SERIAL]] [--only NAME]... [--logs DIR]";
 
 fn parse() -> Result<Args, String> {
@@ -47,7 +49,7 @@ fn parse() -> Result<Args, String> {
     while let Some(arg) = it.next() {
         let mut value = |name: &str| it.next().ok_or(format!("{name} needs a value\n{USAGE}"));
         match arg.as_str() {
-            "suite" | "figures" => a.command = arg,
+            "suite" | "figures" | "pins" => a.command = arg,
             "--elf" => a.elf = Some(value("--elf")?.into()),
             "--shift" => a.shift = value("--shift")?.parse().map_err(|e| format!("--shift: {e}"))?,
             "--port" => a.port = Some(value("--port")?),
@@ -99,6 +101,19 @@ fn boot_nonce() -> u32 {
 }
 
 fn run(a: Args) -> Result<bool, String> {
+    if a.command == "pins" {
+        // The recorder of a running emulated board: every change it still holds.
+        let path = a.port.ok_or("pins needs --port, the debug UART's pty")?;
+        let mut d = debug::DebugPort::open(&path)?;
+        d.rewind()?;
+        let records = d.read_new()?;
+        let info = d.info()?;
+        for r in records {
+            println!("{:>12} {:?}", r.tick, r.output);
+        }
+        println!("({} changes recorded since start; board tick {})", info.written, info.now);
+        return Ok(true);
+    }
     if a.command == "figures" {
         let elf = match a.elf {
             Some(e) => e,
