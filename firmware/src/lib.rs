@@ -10,6 +10,7 @@
 //! - [`motion`]: trapezoidal step timing, exact in integer ticks.
 //! - [`synth`]: voice-coil sine synthesis in fixed point.
 //! - [`galvo`]: galvo output frame formats (DAC8563, AD5689, XY2-100) and drivers.
+//! - [`record`]: a no_std board that records its outputs in a ring, read over a debug port.
 //! - [`sim`] (feature `std`): simulated peripherals that record every change with its tick.
 //!
 //! Logging goes through the macros of `fmt.rs` (defmt on the MCU, `log` on the host).
@@ -23,6 +24,7 @@ pub mod controller;
 pub mod galvo;
 pub mod hal;
 pub mod motion;
+pub mod record;
 pub mod rig;
 #[cfg(feature = "std")]
 pub mod sim;
