@@ -16,6 +16,7 @@ use crate::session::{Manifest, Session};
 use crate::transport::{Connect, Transport};
 
 /// An error for the command line: message and exit code.
+#[derive(Debug)]
 pub struct CliError {
     /// Exit code.
     pub code: u8,

@@ -154,7 +154,7 @@ pub fn fit_trace(
 ) -> TraceFit {
     let qd = Quadrature::diffuse();
     let d: Vec<f64> = tubes.iter().map(|t| response(p, n, v, t, None, &qd).diffuse).collect();
-    let residual_at = |alpha: f64| -> (f64, [f64; 3], [f64; 3]) {
+    let residual_with = |alpha: f64, q: &Quadrature| -> (f64, [f64; 3], [f64; 3]) {
         let s: Vec<f64> = tubes.iter().map(|t| specular_response(p, n, v, t, alpha, q)).collect();
         let (mut total, mut da, mut sa) = (0.0, [0.0; 3], [0.0; 3]);
         for c in 0..3 {
@@ -165,28 +165,35 @@ pub fn fit_trace(
         }
         (total, da, sa)
     };
-    // Coarse grid on log α, then golden section between the best point's neighbours.
+    let residual_at = |alpha: f64| residual_with(alpha, q);
+    // Coarse grid on log α with a cheap quadrature, then successive parabolic interpolation on
+    // log α with the fit's, kept inside the bracket around the grid's best point (a golden
+    // section step where the parabola is no help).
     const GRID: [f64; 8] = [0.025, 0.04, 0.06, 0.09, 0.13, 0.19, 0.28, 0.42];
-    let scores: Vec<f64> = GRID.iter().map(|&a| residual_at(a).0).collect();
+    let coarse = Quadrature::new(8, 12, 6);
+    let scores: Vec<f64> = GRID.iter().map(|&a| residual_with(a, &coarse).0).collect();
     let best = scores.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1)).map_or(0, |b| b.0);
-    let (mut lo, mut hi) = (GRID[best.saturating_sub(1)].ln(), GRID[(best + 1).min(GRID.len() - 1)].ln());
-    let g = (5f64.sqrt() - 1.0) / 2.0;
-    let (mut x1, mut x2) = (hi - g * (hi - lo), lo + g * (hi - lo));
-    let (mut f1, mut f2) = (residual_at(x1.exp()).0, residual_at(x2.exp()).0);
-    while hi - lo > 4e-3 {
-        if f1 < f2 {
-            hi = x2;
-            (x2, f2) = (x1, f1);
-            x1 = hi - g * (hi - lo);
-            f1 = residual_at(x1.exp()).0;
-        } else {
-            lo = x1;
-            (x1, f1) = (x2, f2);
-            x2 = lo + g * (hi - lo);
-            f2 = residual_at(x2.exp()).0;
+    let (lo, hi) = (GRID[best.saturating_sub(1)].ln(), GRID[(best + 1).min(GRID.len() - 1)].ln());
+    let mut pts: Vec<(f64, f64)> =
+        [lo, GRID[best].ln(), hi].iter().map(|&x| (x, residual_at(x.exp()).0)).collect();
+    for _ in 0..8 {
+        pts.sort_by(|a, b| a.1.total_cmp(&b.1));
+        let [(x0, f0), (x1, f1), (x2, f2)] = [pts[0], pts[1], pts[2]];
+        let den = (x1 - x0) * (f1 - f2) - (x1 - x2) * (f1 - f0);
+        let num = (x1 - x0).powi(2) * (f1 - f2) - (x1 - x2).powi(2) * (f1 - f0);
+        let mut x = if den.abs() > 1e-300 { x1 - 0.5 * num / den } else { f64::NAN };
+        if !x.is_finite() || x <= lo || x >= hi || pts.iter().any(|p| (p.0 - x).abs() < 1e-4) {
+            // Golden step from the best point into the larger side of the bracket.
+            x = x0 + 0.382 * (if hi - x0 > x0 - lo { hi - x0 } else { lo - x0 });
+        }
+        let step = (x - x0).abs();
+        pts[2] = (x, residual_at(x.exp()).0);
+        if step < 1e-3 {
+            break;
         }
     }
-    let alpha = ((lo + hi) / 2.0).exp();
+    pts.sort_by(|a, b| a.1.total_cmp(&b.1));
+    let alpha = pts[0].0.exp();
     let (r, diffuse, specular) = residual_at(alpha);
     let (mut oo, mut count) = (0.0, 0usize);
     for c in 0..3 {

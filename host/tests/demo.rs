@@ -1,0 +1,114 @@
+//! The virtual rig end to end: the linear-light-source demo at quick size, its fit checked
+//! against the ground truth the frames were rendered from, and the virtual camera's renders
+//! checked against closed forms and for determinism.
+
+use lightrig_host::demo::{run_lls, DemoOptions};
+use lightrig_host::virtual_rig::camera::{RigState, Scene};
+use lightrig_host::virtual_rig::lls_scene::{LlsScene, LlsSceneSpec, Region};
+use lightrig_host::virtual_rig::sensor::Sensor;
+
+#[test]
+fn lls_demo_meets_the_accuracy_targets() {
+    let out = std::env::temp_dir().join(format!("lightrig-demo-test-{}", std::process::id()));
+    let opts = DemoOptions { quick: true, out: out.clone(), seed: 7, progress: false };
+    let (acc, report) = run_lls(&opts).unwrap();
+    assert!(acc.pixels > 1500, "{} pixels compared", acc.pixels);
+    for (name, value, limit, met) in acc.targets() {
+        assert!(met, "{name}: {value} > {limit}");
+    }
+    assert!(acc.translucency_abs < 0.01, "translucency {}", acc.translucency_abs);
+    let text = std::fs::read_to_string(report).unwrap();
+    assert!(text.contains("| roughness, median rel |"), "{text}");
+    for f in [
+        "fit/maps.exr",
+        "fit/relit.png",
+        "truth/truth.exr",
+        "truth/scene.json",
+        "rig.toml",
+        "session/journal.jsonl",
+    ] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    // The session is an ordinary one: `lightrig fit lls` reads it again to the same maps.
+    let again = lightrig_host::lls_fit::fit_session(&out.join("session"), &|_, _| {}).unwrap();
+    let first = lightrig_host::lls_fit::fit_session(&out.join("session"), &|_, _| {}).unwrap();
+    assert_eq!(again.fit, first.fit);
+    std::fs::remove_dir_all(&out).ok();
+}
+
+fn state(pass: Option<&str>, gantry: f64, lasers: u8) -> RigState {
+    RigState {
+        pass: pass.map(str::to_string),
+        axes: vec![gantry],
+        lasers,
+        filters: vec![],
+        exposure_s: 0.004,
+    }
+}
+
+#[test]
+fn a_white_plate_under_the_tube_matches_the_view_factor() {
+    // A Lambertian strip (the diffuse calibration strip, ρ = 0.8) under the tube: radiance
+    // ρ·Le·r·h/(h² + Δx²), the closed form for an infinitely long tube; the tube is made 200 m
+    // long so that its ends cost nothing.
+    let mut spec = LlsSceneSpec::new(80, 60);
+    spec.light.length_mm = 2e5;
+    let scene = LlsScene::new(spec.clone());
+    let (w, _) = scene.size();
+    let mut checked = 0;
+    for (i, t) in scene.truth.iter().enumerate() {
+        if t.region != Region::DiffuseStrip {
+            continue;
+        }
+        let g = t.point[0] + 40.0; // on the far side from the camera: never in its way
+        let l = scene.radiance(i as u32 % w, i as u32 / w, &state(None, g, 1 << spec.tube_channel));
+        let (r, h) = (spec.light.diameter_mm / 2.0, spec.light.height_mm);
+        let dx = t.point[0] - g;
+        let want = 0.8 * spec.light.radiance * r * h / (h * h + dx * dx);
+        for c in l {
+            assert!((c / want - 1.0).abs() < 1e-5, "pixel {i}: {c} vs {want}");
+        }
+        checked += 1;
+    }
+    assert!(checked > 50, "{checked} strip pixels");
+}
+
+#[test]
+fn the_stripe_lights_the_points_on_the_sheet() {
+    // Every sample pixel is brightest in the stripe when the sheet passes through its point.
+    let spec = LlsSceneSpec::new(40, 30);
+    let scene = LlsScene::new(spec.clone());
+    let (w, _) = scene.size();
+    let tan = spec.stripe.angle_deg.to_radians().tan();
+    for (i, t) in scene.truth.iter().enumerate().filter(|(_, t)| t.region == Region::Sample) {
+        let g = t.point[0] - spec.stripe.offset_mm - t.point[2] * tan;
+        let at =
+            |g: f64| scene.radiance(i as u32 % w, i as u32 / w, &state(None, g, 1 << spec.stripe_channel))[0];
+        let peak = at(g);
+        assert!(peak > 0.0);
+        assert!(at(g + 0.3) < peak && at(g - 0.3) < peak, "pixel {i}");
+        let want = spec.stripe.radiance * t.material.diffuse[0];
+        assert!((peak / want - 1.0).abs() < 1e-9, "pixel {i}: {peak} vs {want}");
+    }
+}
+
+#[test]
+fn same_seed_same_bytes() {
+    let spec = LlsSceneSpec::new(24, 18);
+    let scene = LlsScene::new(spec.clone());
+    let s = Sensor { seed: 3, ..Sensor::default() };
+    let frame = |sensor: &Sensor, key: u64| -> Vec<u32> {
+        let st = state(None, -10.0, 1 << spec.tube_channel);
+        let (w, h) = scene.size();
+        (0..w * h)
+            .flat_map(|i| {
+                let l = scene.radiance(i % w, i / w, &st);
+                (0..3).map(move |c| (i, c, l[c]))
+            })
+            .map(|(i, c, l)| sensor.expose(l, 0.004, key * 1_000_000 + u64::from(i) * 3 + c as u64).to_bits())
+            .collect()
+    };
+    assert_eq!(frame(&s, 5), frame(&s, 5));
+    assert_ne!(frame(&s, 5), frame(&s, 6));
+    assert_ne!(frame(&s, 5), frame(&Sensor { seed: 4, ..s }, 5));
+}
