@@ -344,7 +344,7 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
     );
 
     // Acquire, exactly as `lightrig acquire` does, on the virtual rig.
-    let transport: Box<dyn Transport> = Box::new(crate::virtual_rig::connect(&rig, info.clone()));
+    let transport: Box<dyn Transport> = Box::new(crate::virtual_rig::connect(&rig, info));
     let mut client = bring_up_on(&rig, transport)?;
     let manifest = Manifest::new(text.clone(), client.info(), plan_summary(&plan));
     let mut session = Session::create(&session_dir, manifest)

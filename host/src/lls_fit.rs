@@ -203,9 +203,9 @@ fn load_pass(
         let Some(last) = out.last_mut() else { continue };
         // Weight by exposure time (collected light); clipped samples get none.
         for (i, px) in img.data.chunks(ch).enumerate() {
-            for c in 0..3 {
-                if px[c] < CLIP {
-                    last.1[i * 3 + c] += px[c];
+            for (c, &v) in px.iter().take(3).enumerate() {
+                if v < CLIP {
+                    last.1[i * 3 + c] += v;
                     last.2[i * 3 + c] += exposure as f32;
                 }
             }
@@ -370,7 +370,7 @@ pub fn fit_session(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<L
                 _ => TraceFit::default(),
             };
             let k = done.fetch_add(1, Ordering::Relaxed) + 1;
-            if k % 256 == 0 || k == total {
+            if k.is_multiple_of(256) || k == total {
                 progress(k, total);
             }
             out

@@ -467,8 +467,8 @@ impl Scene for LlsScene {
                 return [s.light.radiance; 3];
             }
             let r = response(t.point, t.normal, t.view, &tube, Some(t.material.alpha), &self.quad);
-            for c in 0..3 {
-                out[c] += s.light.radiance
+            for (c, o) in out.iter_mut().enumerate() {
+                *o += s.light.radiance
                     * (t.material.diffuse[c] * r.diffuse + t.material.specular[c] * r.specular);
             }
         }

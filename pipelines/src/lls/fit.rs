@@ -208,10 +208,14 @@ pub fn fit_trace(
     TraceFit { diffuse, specular, alpha, residual }
 }
 
+/// One pixel's trace for [`strip_scale`]: observations and validity per channel, and the model
+/// trace of a white Lambertian surface.
+pub type StripTrace = ([Vec<f64>; 3], [Vec<bool>; 3], Vec<f64>);
+
 /// The light's scale per channel from the diffuse strip: for each strip pixel the ratio of its
 /// trace to the model trace of a Lambertian surface of the strip's albedo (least squares), and
 /// the median over the pixels. `traces[i][c][k]` are exposure-normalised values.
-pub fn strip_scale(traces: &[([Vec<f64>; 3], [Vec<bool>; 3], Vec<f64>)], albedo: f64) -> Option<[f64; 3]> {
+pub fn strip_scale(traces: &[StripTrace], albedo: f64) -> Option<[f64; 3]> {
     if traces.is_empty() {
         return None;
     }
