@@ -41,7 +41,7 @@ fn lls_passes_take_one_frame_per_millimetre_at_rest() {
         let (pass, i) = (k / 21, (k % 21) as i32);
         // The gantry sits exactly at its position, and only the pass's light is on.
         assert_eq!(t.snapshot.axes[0], -800 + 80 * i, "frame {k}");
-        assert_eq!(t.snapshot.lasers, [0b010, 0b001, 0b100][pass], "frame {k}");
+        assert_eq!(t.snapshot.lasers, [0b010, 0b001, 0b010][pass], "frame {k}");
         assert_eq!(t.frame, i as u32);
         assert_eq!(t.width, 2_000);
     }
@@ -53,6 +53,23 @@ fn lls_passes_take_one_frame_per_millimetre_at_rest() {
         let inside = steps.iter().filter(|&&s| s >= t.tick && s < t.tick + u64::from(t.width)).count();
         assert_eq!(inside, 0);
     }
+}
+
+#[test]
+fn lls_board_light_box_and_backlit_frames_are_single_shots_at_the_start() {
+    use lightrig_host::plan::lls::Pass;
+    let mut c = rig_client();
+    let params =
+        lls::LlsParams { passes: vec![Pass::Board, Pass::LightBox, Pass::Backlit], ..common::lls_params() };
+    let plan = lls::plan(&params).unwrap();
+    assert_eq!(plan.steps.iter().map(|s| s.shots.len()).collect::<Vec<_>>(), [1, 1, 1]);
+    assert_eq!(plan.steps[0].meta["operator"], "place the calibration board on the reference plane");
+    assert_eq!(plan.steps[1].meta["pass"], "light-box");
+    let triggers = run(&mut c, &plan);
+    let lasers: Vec<u8> = triggers.iter().map(|t| t.snapshot.lasers).collect();
+    // The board in room light (no source), then the light box alone, twice.
+    assert_eq!(lasers, [0b000, 0b100, 0b100]);
+    assert!(triggers.iter().all(|t| t.snapshot.axes[0] == -800));
 }
 
 #[test]

@@ -90,7 +90,8 @@ pub fn lls_params() -> lightrig_host::plan::lls::LlsParams {
         light: 1,
         stripe: 0,
         backlight: Some(2),
-        passes: vec![Pass::Reflectance, Pass::Stripe, Pass::Backlit],
+        // Two sweeping passes and a second reflectance pass (backlit is one frame now).
+        passes: vec![Pass::Reflectance, Pass::Stripe, Pass::Reflectance],
         timeout: 2_000_000,
         frame_bytes: 1 << 20,
         tick_hz: 1_000_000,
