@@ -4,7 +4,9 @@
 //!   explicit, errors that name the file and the problem.
 //! - [`hdr`]: camera response recovery from exposure series and merging to linear radiance.
 //! - [`calib`]: chessboard detection, intrinsics with distortion, pose, per-pixel rays.
+//! - [`synth`]: synthetic images with known truth (rendered chessboards).
 
 pub mod calib;
 pub mod hdr;
 pub mod io;
+pub mod synth;

@@ -2,6 +2,7 @@
 //! photographs.
 
 use lightrig_imaging::calib::*;
+use lightrig_imaging::synth::{render_chessboard, ChessboardScene};
 
 /// Deterministic noise: a small LCG and Box–Muller.
 struct Rng(u64);
@@ -167,112 +168,150 @@ fn pose_from_one_board_and_rays() {
     assert!(c[2] > 0.0, "{c:?}");
 }
 
-/// Renders a chessboard of `(cols+1) × (rows+1)` squares (`square` units, with a one-square white
-/// margin) seen through `k`/`pose`, by 4×4 supersampling, a small blur and Gaussian noise σ = 2.
-fn render(k: &Intrinsics, pose: &Pose, cols: usize, rows: usize, square: f64, w: usize, h: usize) -> Vec<u8> {
-    let mut rng = Rng(11);
-    let mut img = vec![0.0f64; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let mut acc = 0.0;
-            for sy in 0..4 {
-                for sx in 0..4 {
-                    let u = x as f64 - 0.5 + (sx as f64 + 0.5) / 4.0;
-                    let v = y as f64 - 0.5 + (sy as f64 + 0.5) / 4.0;
-                    let (o, d) = pixel_ray(k, pose, (u, v)).unwrap();
-                    let s = -o[2] / d[2];
-                    let (bx, by) = ((o[0] + s * d[0]) / square, (o[1] + s * d[1]) / square);
-                    // Inner corner (0,0) is at board (0,0); squares span [-1, cols] × [-1, rows].
-                    acc += if s <= 0.0
-                        || bx < -2.0
-                        || by < -2.0
-                        || bx > cols as f64 + 1.0
-                        || by > rows as f64 + 1.0
-                    {
-                        90.0
-                    } else if bx < -1.0 || by < -1.0 || bx > cols as f64 || by > rows as f64 {
-                        220.0
-                    } else if (bx.floor() as i64 + by.floor() as i64).rem_euclid(2) == 0 {
-                        30.0
-                    } else {
-                        220.0
-                    };
-                }
-            }
-            img[y * w + x] = acc / 16.0;
-        }
-    }
-    // Blur with a [1 2 1]/4 kernel each way (σ ≈ 0.7 px).
-    let mut out = img.clone();
-    for y in 1..h - 1 {
-        for x in 1..w - 1 {
-            let mut s = 0.0;
-            for (dy, wy) in [(-1i64, 1.0), (0, 2.0), (1, 1.0)] {
-                for (dx, wx) in [(-1i64, 1.0), (0, 2.0), (1, 1.0)] {
-                    s += wx * wy * img[(y as i64 + dy) as usize * w + (x as i64 + dx) as usize];
-                }
-            }
-            out[y * w + x] = s / 16.0;
-        }
-    }
-    out.iter().map(|&v| (v + 2.0 * rng.gauss()).round().clamp(0.0, 255.0) as u8).collect()
+/// Renders `scene` through `k`/`pose` at 640×480 and returns the image with the board's true corners.
+fn rendered(scene: &ChessboardScene, k: &Intrinsics, pose: &Pose) -> (Vec<u8>, Vec<(f64, f64)>) {
+    let board = Board::chessboard(scene.cols, scene.rows, scene.square);
+    let truth = board.points.iter().map(|b| project(k, pose, [b[0], b[1], 0.0]).unwrap()).collect();
+    (render_chessboard(scene, k, pose, W, H), truth)
 }
 
+const W: usize = 640;
+const H: usize = 480;
+
+/// Largest and RMS distance between corresponding corners.
+fn corner_errors(found: &[(f64, f64)], truth: &[(f64, f64)]) -> (f64, f64) {
+    assert_eq!(found.len(), truth.len());
+    let d: Vec<f64> = found.iter().zip(truth).map(|(p, q)| (p.0 - q.0).hypot(p.1 - q.1)).collect();
+    (d.iter().cloned().fold(0.0, f64::max), (d.iter().map(|x| x * x).sum::<f64>() / d.len() as f64).sqrt())
+}
+
+fn camera() -> Intrinsics {
+    Intrinsics { k1: -0.15, k2: 0.05, ..Intrinsics::pinhole(620.0, 620.0, 320.0, 240.0) }
+}
+
+/// A 9×6 board of unit squares (~40 px here) in varied poses, noise σ = 2 grey levels on a
+/// contrast of 190: every corner within 0.1 px of the truth, RMS within 0.03 px, and in the
+/// board's own order (9 + 6 is odd, so the dark square (0, 0) fixes corner 0 however the board is
+/// turned; the last pose is upside down).
 #[test]
-#[ignore = "detector not finished: corners off by up to 0.21 px on rendered boards (target 0.1)"]
 fn finds_rendered_chessboards_to_a_tenth_of_a_pixel() {
-    let k = Intrinsics { k1: -0.15, k2: 0.05, ..Intrinsics::pinhole(620.0, 620.0, 320.0, 240.0) };
-    let board = Board::chessboard(9, 6, 1.0);
+    let k = camera();
     let poses = [
         Pose { rvec: [0.05, -0.1, 0.02], tvec: [-4.0, -2.5, 14.0] },
         Pose { rvec: [0.4, 0.3, 0.3], tvec: [-4.5, -3.0, 15.0] },
         Pose { rvec: [-0.3, 0.45, -0.5], tvec: [-3.0, -1.0, 16.0] },
         Pose { rvec: [0.1, 0.1, 1.6], tvec: [1.5, -4.0, 15.0] },
+        Pose { rvec: [0.0, 0.2, 3.1], tvec: [4.0, 2.5, 15.0] },
     ];
-    let (w, h) = (640, 480);
+    let scene = ChessboardScene { noise: 2.0, ..ChessboardScene::new(9, 6, 1.0) };
     for pose in &poses {
-        let img = render(&k, pose, 9, 6, 1.0, w, h);
-        let found = find_chessboard(&img, w, h, (9, 6)).unwrap();
-        let truth: Vec<(f64, f64)> =
-            board.points.iter().map(|b| project(&k, pose, [b[0], b[1], 0.0]).unwrap()).collect();
-        // The detector orders from the top-left; match the truth's order up to the 180° turn.
-        let d = |a: &[(f64, f64)], b: &[(f64, f64)]| {
-            a.iter()
-                .zip(b)
-                .map(|(p, q)| ((p.0 - q.0).powi(2) + (p.1 - q.1).powi(2)).sqrt())
-                .fold(0.0, f64::max)
-        };
-        let rev: Vec<(f64, f64)> = truth.iter().rev().cloned().collect();
-        let err = d(&found, &truth).min(d(&found, &rev));
-        eprintln!("pose {pose:?}: max corner error {err:.4} px");
-        if err > 0.1 {
-            for (p, q) in found.iter().zip(&truth) {
-                eprintln!("{p:?} {q:?}");
-            }
-        }
-        assert!(err < 0.1, "max corner error {err} px");
-        let f = found[0];
-        let l = found[53];
-        assert!(f.0 + f.1 < l.0 + l.1, "first corner nearest the top-left");
+        let (img, truth) = rendered(&scene, &k, pose);
+        let found = find_chessboard(&img, W, H, (9, 6)).unwrap_or_else(|e| panic!("{pose:?}: {e}"));
+        let (max, rms) = corner_errors(&found, &truth);
+        eprintln!("pose {pose:?}: corner error max {max:.4} px, rms {rms:.4} px");
+        assert!(max < 0.1 && rms < 0.03, "{pose:?}: corner error max {max} px, rms {rms} px");
     }
-    let blank = vec![128u8; w * h];
-    assert_eq!(find_chessboard(&blank, w, h, (9, 6)), Err(CalibError::BoardNotFound));
-    let img = render(&k, &poses[0], 9, 6, 1.0, w, h);
-    assert_eq!(find_chessboard(&img, w, h, (8, 6)), Err(CalibError::BoardNotFound));
-    assert!(matches!(find_chessboard(&img[..100], w, h, (9, 6)), Err(CalibError::InvalidInput(_))));
+}
+
+/// Harder images, each with its tolerance: small squares (~15 px), a soft lens (blur σ = 1.5 px),
+/// low contrast (80 levels) with noise σ = 3, and outer squares cut to a quarter width (as on
+/// OpenCV's sample board), where a window reaching the board's outline would pull the outer
+/// corners.
+#[test]
+fn finds_harder_rendered_chessboards() {
+    let k = camera();
+    let base = ChessboardScene { noise: 2.0, ..ChessboardScene::new(9, 6, 1.0) };
+    let cases = [
+        ("small squares", base.clone(), Pose { rvec: [0.3, -0.2, 0.4], tvec: [-4.0, -2.5, 40.0] }, 0.15),
+        (
+            "blur 1.5 px",
+            ChessboardScene { blur: 1.5, ..base.clone() },
+            Pose { rvec: [0.2, 0.3, -0.2], tvec: [-4.0, -2.5, 15.0] },
+            0.1,
+        ),
+        (
+            "low contrast",
+            ChessboardScene { dark: 80.0, light: 160.0, background: 110.0, noise: 3.0, ..base.clone() },
+            Pose { rvec: [-0.2, 0.3, 0.1], tvec: [-4.0, -2.5, 15.0] },
+            0.15,
+        ),
+        (
+            "cut outer squares",
+            ChessboardScene { border: 0.25, ..base.clone() },
+            Pose { rvec: [0.35, -0.3, 0.2], tvec: [-4.0, -2.5, 13.0] },
+            0.1,
+        ),
+    ];
+    for (name, scene, pose, tol) in cases {
+        let (img, truth) = rendered(&scene, &k, &pose);
+        let found = find_chessboard(&img, W, H, (9, 6)).unwrap_or_else(|e| panic!("{name}: {e}"));
+        let (max, rms) = corner_errors(&found, &truth);
+        eprintln!("{name}: corner error max {max:.4} px, rms {rms:.4} px");
+        assert!(max < tol, "{name}: corner error max {max} px (tolerance {tol})");
+    }
+}
+
+/// A board with `cols + rows` even looks the same after a half turn; its corner 0 is the end
+/// nearest the image's top-left, and the axes keep the image's handedness.
+#[test]
+fn symmetric_boards_start_top_left() {
+    let k = camera();
+    let scene = ChessboardScene { noise: 2.0, ..ChessboardScene::new(8, 6, 1.0) };
+    for pose in [
+        Pose { rvec: [0.1, -0.2, 0.1], tvec: [-3.5, -2.5, 14.0] },
+        Pose { rvec: [0.1, -0.2, 3.0], tvec: [3.5, 2.5, 14.0] },
+    ] {
+        let (img, truth) = rendered(&scene, &k, &pose);
+        let found = find_chessboard(&img, W, H, (8, 6)).unwrap();
+        let turned = truth[0].0 + truth[0].1 > truth[47].0 + truth[47].1;
+        let want: Vec<(f64, f64)> = if turned { truth.iter().rev().cloned().collect() } else { truth };
+        let (max, _) = corner_errors(&found, &want);
+        assert!(max < 0.1, "{pose:?}: max {max}");
+        let (o, a, b) = (found[0], found[1], found[8]);
+        assert!((a.0 - o.0) * (b.1 - o.1) - (a.1 - o.1) * (b.0 - o.0) > 0.0, "handedness");
+    }
+}
+
+#[test]
+fn reports_boards_that_are_not_there() {
+    let k = camera();
+    let scene = ChessboardScene { noise: 2.0, ..ChessboardScene::new(9, 6, 1.0) };
+    let pose = Pose { rvec: [0.05, -0.1, 0.02], tvec: [-4.0, -2.5, 14.0] };
+    let (img, _) = rendered(&scene, &k, &pose);
+    // Only the exact pattern is accepted.
+    for pattern in [(8, 6), (9, 5), (10, 6), (5, 9)] {
+        assert_eq!(find_chessboard(&img, W, H, pattern), Err(CalibError::BoardNotFound), "{pattern:?}");
+    }
+    // Part of the board outside the image.
+    let (cut, _) = rendered(&scene, &k, &Pose { tvec: [-1.0, -2.5, 12.0], ..pose });
+    assert_eq!(find_chessboard(&cut, W, H, (9, 6)), Err(CalibError::BoardNotFound));
+    assert_eq!(find_chessboard(&vec![128u8; W * H], W, H, (9, 6)), Err(CalibError::BoardNotFound));
+    assert!(matches!(find_chessboard(&img[..100], W, H, (9, 6)), Err(CalibError::InvalidInput(_))));
+    assert!(matches!(find_chessboard(&img, W, H, (1, 6)), Err(CalibError::InvalidInput(_))));
 }
 
 const OPENCV_DATA: &str = "/usr/share/doc/opencv-doc/examples/data";
 
 /// OpenCV's sample stereo chessboards (`left01.jpg` … `left14.jpg`, no `left10`; 9×6 inner corners).
 ///
-/// Reference (OpenCV 5.0.0 via `pip install opencv-python-headless`): findChessboardCorners,
-/// cornerSubPix (11×11, 30 iterations / 0.001), calibrateCamera with the default 5-coefficient model,
+/// References (OpenCV 5.0.0 via `pip install opencv-python-headless`): findChessboardCorners,
+/// cornerSubPix (30 iterations / 0.001), calibrateCamera with the default 5-coefficient model,
 /// square size 1, on the same 13 images:
-/// rms 0.40869, fx 536.0735, fy 536.0164, cx 342.3705, cy 235.5369,
-/// dist (−0.26509, −0.04674, 0.00183, −0.00031, 0.25231).
+///
+/// - cornerSubPix winSize (11, 11), a 23×23 window (OpenCV's tutorial): rms 0.40869,
+///   fx 536.0735, fy 536.0164, cx 342.3705, cy 235.5369,
+///   dist (−0.26509, −0.04674, 0.00183, −0.00031, 0.25231).
+/// - winSize (7, 7), a 15×15 window, about the size this detector uses on these ~35 px squares:
+///   rms 0.18320, fx 533.0022, fy 533.1245, cx 342.3094, cy 233.9292,
+///   dist (−0.28540, 0.06385, 0.00111, −0.00013, 0.08172).
+///
+/// The two differ because this board's outermost squares are cut short (to ~12 px on `left02`)
+/// and a 23×23 window reaches the board's outline: 16 outer-ring corners move by 0.5–6 px, which
+/// more than doubles the RMS and raises fx by 0.6 %. On the 7×4 inner corners, out of the
+/// outline's reach, the windows agree: the (11, 11) corners calibrate to fx 535.69. So the
+/// focal length is checked against the run whose corners are not pulled, and against the
+/// (11, 11) run on the inner corners.
 #[test]
-#[ignore = "detector not finished: grids on left01.jpg stop at 51 of 54 corners"]
 fn calibrates_opencv_sample_chessboards() {
     let mut files: Vec<_> = std::fs::read_dir(OPENCV_DATA)
         .unwrap_or_else(|e| {
@@ -298,7 +337,20 @@ fn calibrates_opencv_sample_chessboards() {
     }
     let c = calibrate(&Board::chessboard(9, 6, 1.0), &views).unwrap();
     eprintln!("OpenCV samples: {:?}, rms {:.5}", c.intrinsics, c.rms);
-    assert!(c.rms <= 0.41, "rms {} worse than OpenCV's 0.409", c.rms);
-    assert!((c.intrinsics.fx / 536.0735 - 1.0).abs() < 0.005, "fx {}", c.intrinsics.fx);
-    assert!((c.intrinsics.fy / 536.0164 - 1.0).abs() < 0.005, "fy {}", c.intrinsics.fy);
+    assert!(c.rms <= 0.40869, "rms {} worse than OpenCV's 0.409 (winSize 11)", c.rms);
+    assert!(c.rms <= 0.18320, "rms {} worse than OpenCV's 0.183 (winSize 7)", c.rms);
+    assert!((c.intrinsics.fx / 533.0022 - 1.0).abs() < 0.005, "fx {}", c.intrinsics.fx);
+    assert!((c.intrinsics.fy / 533.1245 - 1.0).abs() < 0.005, "fy {}", c.intrinsics.fy);
+    assert!((c.intrinsics.cx - 342.3094).abs() < 2.0 && (c.intrinsics.cy - 233.9292).abs() < 2.0);
+
+    // The inner 7×4 corners only.
+    let inner: Vec<usize> =
+        (0..54).filter(|i| (1..8).contains(&(i % 9)) && (1..5).contains(&(i / 9))).collect();
+    let board = Board::chessboard(9, 6, 1.0);
+    let inner_board = Board { points: inner.iter().map(|&i| board.points[i]).collect() };
+    let inner_views: Vec<Vec<(f64, f64)>> =
+        views.iter().map(|v| inner.iter().map(|&i| v[i]).collect()).collect();
+    let ci = calibrate(&inner_board, &inner_views).unwrap();
+    eprintln!("inner corners: fx {:.4} fy {:.4} rms {:.5}", ci.intrinsics.fx, ci.intrinsics.fy, ci.rms);
+    assert!((ci.intrinsics.fx / 535.6929 - 1.0).abs() < 0.005, "inner fx {}", ci.intrinsics.fx);
 }
