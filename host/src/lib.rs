@@ -12,6 +12,7 @@
 
 pub mod acquire;
 pub mod cli_acquire;
+pub mod cli_calibrate;
 pub mod cli_hdr;
 pub mod client;
 pub mod clock;

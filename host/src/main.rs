@@ -3,6 +3,7 @@
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
+use lightrig_host::cli_calibrate;
 use lightrig_host::cli_hdr;
 use lightrig_host::client::Client;
 use lightrig_host::selfcheck;
@@ -98,6 +99,9 @@ enum Cmd {
     /// High dynamic range from exposure series.
     #[command(subcommand)]
     Hdr(HdrCmd),
+    /// Camera calibration from chessboard images; with --pose-only, a board's pose on the
+    /// reference plane. Writes a calibration file (docs/calibration-format.md).
+    Calibrate(cli_calibrate::Args),
     /// Connect to a device and print what it says about itself and how its clock maps.
     Info {
         /// `virtual`, `serial:PATH[@BAUD]`, `usb` or `usb:SERIAL`.
@@ -214,6 +218,7 @@ fn stats_line(name: &str, s: &LinkStats) -> String {
 
 fn main() -> ExitCode {
     match Cli::parse().command {
+        Cmd::Calibrate(args) => cli_calibrate::run(&args),
         Cmd::Hdr(cmd) => {
             let result = match cmd {
                 HdrCmd::Calibrate { exposures: list, times, out } => {

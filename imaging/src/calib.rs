@@ -176,6 +176,25 @@ fn project_raw(k: &[f64], pose: &[f64], x: [f64; 3]) -> (f64, f64, f64) {
     (k.fx * xd + k.cx, k.fy * yd + k.cy, xc[2])
 }
 
+/// Reprojection RMS in pixels of one view: `sqrt(Σ‖uᵢ − π(k, pose, Xᵢ)‖² / N)` over the board's
+/// points and their image positions `view` (a point behind the camera counts as infinite).
+pub fn reprojection_rms(k: &Intrinsics, pose: &Pose, board: &Board, view: &[(f64, f64)]) -> f64 {
+    let n = board.points.len().min(view.len());
+    if n == 0 {
+        return 0.0;
+    }
+    let sse: f64 = board
+        .points
+        .iter()
+        .zip(view)
+        .map(|(b, &(u, v))| match project(k, pose, [b[0], b[1], 0.0]) {
+            Some((pu, pv)) => (pu - u).powi(2) + (pv - v).powi(2),
+            None => f64::INFINITY,
+        })
+        .sum();
+    (sse / n as f64).sqrt()
+}
+
 /// Inverts the distortion: pixel `(u, v)` → undistorted normalised point `(x, y)` such that
 /// `distort(x, y) = ((u − cx)/fx, (v − cy)/fy)`, by Newton iteration (numeric 2×2 Jacobian).
 /// Returns `None` when the iteration does not converge (far outside the model's valid range).

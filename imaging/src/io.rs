@@ -95,6 +95,31 @@ pub fn read_stack_with<P: AsRef<Path>>(paths: &[P], opts: ReadOptions) -> Result
     Ok(images)
 }
 
+/// An 8-bit grey image, row-major: what the chessboard detector takes.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Gray8 {
+    pub width: u32,
+    pub height: u32,
+    pub data: Vec<u8>,
+}
+
+/// Reads any image the `image` crate decodes (PNG, TIFF, JPEG — cameras' own output included)
+/// as 8-bit grey: the encoded values as stored (no linearisation), colour reduced to luma and
+/// 16-bit scaled to 8, as OpenCV's `imread(…, IMREAD_GRAYSCALE)` does for detection.
+pub fn read_gray8(path: impl AsRef<Path>) -> Result<Gray8, IoError> {
+    let path = path.as_ref();
+    let reader = image::ImageReader::open(path)
+        .and_then(|r| r.with_guessed_format())
+        .map_err(|source| IoError::Open { path: path.into(), source })?;
+    let decoded = reader.decode().map_err(|e| match e {
+        image::ImageError::Unsupported(u) => IoError::Unsupported { path: path.into(), what: u.to_string() },
+        other => IoError::Decode { path: path.into(), detail: other.to_string() },
+    })?;
+    let grey = decoded.to_luma8();
+    let (width, height) = grey.dimensions();
+    Ok(Gray8 { width, height, data: grey.into_raw() })
+}
+
 /// Reads one file; also returns the bits per sample on disk (8, 16, 16 for half, 32 for float).
 fn read_inner(path: &Path, opts: ReadOptions) -> Result<(Image, u8), IoError> {
     let format = sniff(path)?;
@@ -149,7 +174,7 @@ fn sniff(path: &Path) -> Result<Format, IoError> {
 
 /// Writes through a temporary file in the target's directory and renames it into place, so readers
 /// (and a crash) only ever see the old file or the complete new one.
-fn write_atomically(
+pub(crate) fn write_atomically(
     path: &Path,
     write: impl FnOnce(&mut BufWriter<File>) -> Result<(), String>,
 ) -> Result<(), IoError> {

@@ -4,9 +4,11 @@
 //!   explicit, errors that name the file and the problem.
 //! - [`hdr`]: camera response recovery from exposure series and merging to linear radiance.
 //! - [`calib`]: chessboard detection, intrinsics with distortion, pose, per-pixel rays.
+//! - [`calib_file`]: the calibration file the pipelines read (TOML, versioned).
 //! - [`synth`]: synthetic images with known truth (rendered chessboards).
 
 pub mod calib;
+pub mod calib_file;
 pub mod hdr;
 pub mod io;
 pub mod synth;

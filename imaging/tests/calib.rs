@@ -329,10 +329,10 @@ fn calibrates_opencv_sample_chessboards() {
     assert_eq!(files.len(), 13, "expected left01..left14.jpg (no left10) in {OPENCV_DATA}: {files:?}");
     let mut views = Vec::new();
     for f in &files {
-        let img = image::open(f).unwrap_or_else(|e| panic!("{}: {e}", f.display())).to_luma8();
-        let (w, h) = img.dimensions();
-        let corners = find_chessboard(img.as_raw(), w as usize, h as usize, (9, 6))
-            .unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+        let img = lightrig_imaging::io::read_gray8(f).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((img.width, img.height), (640, 480));
+        let corners =
+            find_chessboard(&img.data, 640, 480, (9, 6)).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
         views.push(corners);
     }
     let c = calibrate(&Board::chessboard(9, 6, 1.0), &views).unwrap();
