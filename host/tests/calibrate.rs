@@ -65,11 +65,13 @@ fn write_render(path: &Path, scene: &ChessboardScene, pose: &Pose) {
     io::write_png(path, &img, BitDepth::Eight).unwrap();
 }
 
-/// Rendered once for all tests (read-only): `board/view0.png` … `view7.png` and `plane.png`.
+/// Rendered once per run for all tests (read-only): `board/view0.png` … `view7.png` and
+/// `plane.png`, in cargo's temporary directory for integration tests (no teardown needed).
 fn fixture() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
-        let dir = std::env::temp_dir().join(format!("lightrig-calibrate-fixture-{}", std::process::id()));
+        let dir =
+            Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("calibrate-fixture-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(dir.join("board")).unwrap();
         let scene = ChessboardScene { noise: 1.5, ..ChessboardScene::new(9, 6, 20.0) };
