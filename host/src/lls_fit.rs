@@ -136,6 +136,8 @@ fn fail(m: impl Into<String>) -> FitError {
 /// every exposure of the bracket.
 #[derive(Debug, Clone)]
 pub struct PassFrame {
+    /// Image size, pixels.
+    pub size: (u32, u32),
     /// Gantry position, mm.
     pub gantry: f64,
     /// Interleaved RGB, value per second of exposure.
@@ -177,6 +179,7 @@ fn load_pass(
     let mut frames = session.frames_of(step);
     frames.sort_by_key(|f| f.frame);
     let mut out: Vec<(i32, Vec<f32>, Vec<f32>)> = Vec::new(); // steps, Σ w·rate, Σ w
+    let mut size = (0, 0);
     for f in &frames {
         let t = triggers.get(&(f.sequence, f.item)).ok_or_else(|| {
             fail(format!("{}: frame {} has no trigger record in the journal", dir.display(), f.file))
@@ -199,6 +202,7 @@ fn load_pass(
                 )));
             }
             out.push((steps, vec![0.0; n], vec![0.0; n]));
+            size = (img.width, img.height);
         }
         let Some(last) = out.last_mut() else { continue };
         // Weight by exposure time (collected light); clipped samples get none.
@@ -214,6 +218,7 @@ fn load_pass(
     Ok(out
         .into_iter()
         .map(|(steps, sum, w)| PassFrame {
+            size,
             gantry: gantry.units(i64::from(steps)).unwrap_or(f64::from(steps)),
             rate: sum.iter().zip(&w).map(|(s, w)| if *w > 0.0 { s / w } else { f32::NAN }).collect(),
         })
@@ -263,12 +268,17 @@ pub fn fit_session(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<L
             reflect.len()
         )));
     }
-    // Size from the first board file.
-    let any = session.frames_of(pass_of("board").unwrap_or(0));
-    let img0 =
-        read_with(dir.join(&any[0].file), ReadOptions { assume: Encoding::Linear, expect_depth: None })
-            .map_err(|e| fail(e.to_string()))?;
-    let (w, h) = (img0.width as usize, img0.height as usize);
+    let (w, h) = (first.size.0 as usize, first.size.1 as usize);
+    for (name, pass) in
+        [("reflectance", &reflect), ("stripe", &stripe), ("backlit", &backlit), ("light-box", &lightbox)]
+    {
+        if let Some(f) = pass.iter().find(|f| f.size != first.size) {
+            return Err(fail(format!(
+                "the {name} pass's frames are {}×{} but the board frame is {w}×{h}: one camera, one size",
+                f.size.0, f.size.1
+            )));
+        }
+    }
     let board_img = Image {
         width: w as u32,
         height: h as u32,

@@ -11,7 +11,7 @@
 //! Each pixel looks at one surface point (the first hit of its ray on the height field), so
 //! its ground truth is the material, height and normal at that point, exact.
 
-use lightrig_imaging::calib::{pixel_ray, project, Intrinsics, Pose};
+use lightrig_imaging::calib::{pixel_ray, Intrinsics, Pose};
 use lightrig_pipelines::linear_light::{hides, response, Quadrature, Tube};
 use lightrig_pipelines::vec3::{add, normalize, scale, sub, V3};
 use lightrig_pipelines::ward::Ward;
@@ -412,12 +412,6 @@ impl LlsScene {
             }
         }
         LlsScene { spec, truth, board_points, quad: Quadrature::render() }
-    }
-
-    /// The pixel of world point `p`, if in front of the camera.
-    pub fn project(&self, p: V3) -> Option<(f64, f64)> {
-        let (k, pose) = self.spec.camera.model();
-        project(&k, &pose, p)
     }
 
     fn board_white(&self, x: f64, y: f64) -> bool {

@@ -20,7 +20,7 @@ pub enum Response {
 pub enum Depth {
     /// 8-bit integers.
     U8,
-    /// 12-bit integers (stored in 16-bit files, values 0..=4095 scaled by 16 as cameras do).
+    /// 12-bit integers: 4096 levels, stored in 16-bit files.
     U12,
     /// 16-bit integers.
     U16,
@@ -104,16 +104,6 @@ impl Sensor {
         };
         let max = self.max_value();
         ((v * max).round() / max) as f32
-    }
-
-    /// Radiance from a stored normalised value for a known exposure, inverting the response
-    /// (no noise removal): what a pipeline does with this camera's frames.
-    pub fn radiance(&self, value: f64, exposure_s: f64) -> f64 {
-        let v = match self.response {
-            Response::Linear => value,
-            Response::Gamma(g) => value.max(0.0).powf(g),
-        };
-        v * self.full_well / (exposure_s * self.gain)
     }
 }
 
