@@ -8,7 +8,9 @@
 //!   point, integrated numerically over its width and length (shared by the virtual camera,
 //!   at high order, and the linear-light-source fit).
 //! - [`lls`]: the linear light source reflectometry fit (Gardner et al. 2003).
+//! - [`firs`]: fluorescent immersion range scanning (Hullin et al. 2008).
 
+pub mod firs;
 pub mod linear_light;
 pub mod lls;
 pub mod quad;

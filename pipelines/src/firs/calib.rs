@@ -1,0 +1,1 @@
+//! Calibration through the tank wall: to be written.

@@ -1,0 +1,1 @@
+//! Surface mode (`lightrig fit firs-surface`): to be written.

@@ -1,0 +1,1 @@
+//! Volume mode (`lightrig fit firs-volume`): to be written.
