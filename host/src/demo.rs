@@ -2,7 +2,8 @@
 //! ground truth the frames were rendered from.
 //!
 //! For the linear light source (the default method) it writes, under the output directory:
-//! `rig.toml` (the rig the demo runs, a valid rig file), `truth/` (`scene.json` and `truth.exr`,
+//! `rig.toml` (the rig the demo runs, a valid rig file), `camera.toml` (the virtual camera's
+//! intrinsics as a calibration file, standing in for `lightrig calibrate`), `truth/` (`scene.json` and `truth.exr`,
 //! the ground truth per pixel), `camera/` (the frames as the virtual camera wrote them),
 //! `session/` (the journaled session, as `lightrig acquire` writes it), `fit/` (the maps) and
 //! `report.md` (the fit against the truth).
@@ -51,8 +52,12 @@ pub struct LlsAccuracy {
     pub specular_rel: f64,
     /// Median |α/α* − 1|.
     pub roughness_rel: f64,
-    /// Median normal angle error, degrees.
+    /// Median normal angle error, degrees (the normals the fit used).
     pub normal_deg: f64,
+    /// The same for the displacement map's normals alone.
+    pub geometric_normal_deg: f64,
+    /// The same for the diagonal passes' normals alone (NaN without diagonal passes).
+    pub photometric_normal_deg: f64,
     /// Median |h − h*|, mm.
     pub height_mm: f64,
     /// Median |τ − τ*|.
@@ -86,7 +91,6 @@ fn median(mut v: Vec<f64>) -> f64 {
 /// The demo's rig file for `spec`: a valid rig file whose `[plan.fit]` holds the geometry the
 /// fit needs (what a lab measures once for its rig).
 pub fn lls_rig_text(spec: &LlsSceneSpec, pass: [f64; 2], step_mm: f64) -> String {
-    let (k, _) = spec.camera.model();
     let l = &spec.light;
     let s = &spec.stripe;
     let b = &spec.board;
@@ -158,10 +162,10 @@ pass_mm = [{p0}, {p1}]
 step_mm = {step_mm}
 exposures_us = [4000]
 settle_ms = 5
-passes = ["board", "light-box", "reflectance", "stripe", "backlit"]
+passes = ["board", "light-box", "reflectance", "reflectance+15", "reflectance-15", "stripe", "backlit"]
 
+# The fit's geometry; the camera's intrinsics come from camera.toml (`lightrig calibrate`).
 [plan.fit]
-camera = {{ fx = {fx}, fy = {fy}, cx = {cx}, cy = {cy} }}
 light = {{ diameter_mm = {ld}, length_mm = {ll}, height_mm = {lh}, offset_mm = {lo} }}
 stripe = {{ offset_mm = {so}, angle_deg = {sa} }}
 board = {{ cols = {bc}, rows = {br}, square_mm = {bs}, origin_mm = [{bx}, {by}] }}
@@ -174,10 +178,6 @@ specular_strip = {{ x_mm = [{sx0}, {sx1}], y_mm = [{sy0}, {sy1}], albedo = {sa2}
         back_ch = spec.backlight_channel,
         p0 = pass[0],
         p1 = pass[1],
-        fx = k.fx,
-        fy = k.fy,
-        cx = k.cx,
-        cy = k.cy,
         ld = l.diameter_mm,
         ll = l.length_mm,
         lh = l.height_mm,
@@ -253,9 +253,33 @@ fn write_truth(scene: &LlsScene, dir: &Path) -> Result<(), CliError> {
         .map_err(|e| CliError { code: FAILURE, message: e.to_string() })
 }
 
+/// Writes the virtual camera's intrinsics as a calibration file: on a real rig this file comes
+/// from `lightrig calibrate`.
+fn write_calibration(spec: &LlsSceneSpec, path: &Path) -> Result<(), CliError> {
+    let (k, _) = spec.camera.model();
+    let file = lightrig_imaging::calib_file::CalibrationFile {
+        tool: format!("lightrig {} demo (the virtual camera's model)", env!("CARGO_PKG_VERSION")),
+        image_size: (spec.camera.width, spec.camera.height),
+        intrinsics: k,
+        board: lightrig_imaging::calib_file::BoardSpec {
+            cols: spec.board.cols,
+            rows: spec.board.rows,
+            square: spec.board.square_mm,
+            unit: "mm".into(),
+        },
+        rms: 0.0,
+        views: Vec::new(),
+        skipped: Vec::new(),
+        reference: None,
+    };
+    lightrig_imaging::calib_file::write(path, &file)
+        .map_err(|e| CliError { code: FAILURE, message: e.to_string() })
+}
+
 /// Compares the maps with the scene's truth.
 pub fn lls_accuracy(scene: &LlsScene, m: &LlsMaps, step_mm: f64) -> LlsAccuracy {
     let (mut d, mut s, mut r, mut n, mut hgt, mut tr) = (vec![], vec![], vec![], vec![], vec![], vec![]);
+    let (mut ng, mut np) = (vec![], vec![]);
     for (i, t) in scene.truth.iter().enumerate() {
         if t.region != Region::Sample || !m.fitted[i] {
             continue;
@@ -266,8 +290,12 @@ pub fn lls_accuracy(scene: &LlsScene, m: &LlsMaps, step_mm: f64) -> LlsAccuracy 
             s.push((f.specular[c] / t.material.specular[c] - 1.0).abs());
         }
         r.push((f.alpha / t.material.alpha - 1.0).abs());
-        if let Some(nn) = m.normals[i] {
-            n.push(angle(nn, t.normal).to_degrees());
+        for (normals, errs) in
+            [(&m.normals, &mut n), (&m.geometric_normals, &mut ng), (&m.photometric_normals, &mut np)]
+        {
+            if let Some(nn) = normals[i] {
+                errs.push(angle(nn, t.normal).to_degrees());
+            }
         }
         if let Some(p) = m.points[i] {
             hgt.push((p[2] - t.point[2]).abs());
@@ -280,6 +308,8 @@ pub fn lls_accuracy(scene: &LlsScene, m: &LlsMaps, step_mm: f64) -> LlsAccuracy 
         specular_rel: median(s),
         roughness_rel: median(r),
         normal_deg: median(n),
+        geometric_normal_deg: median(ng),
+        photometric_normal_deg: median(np),
         height_mm: median(hgt),
         translucency_abs: median(tr),
         step_mm,
@@ -322,6 +352,8 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
         RigFile::parse(&text, &rig_path).map_err(|e| CliError { code: INPUT, message: e.to_string() })?;
     let info = virtual_device_info();
     let plan = from_rig::plan(&rig, &info).map_err(|e| CliError { code: INPUT, message: e.to_string() })?;
+    let calibration = out.join("camera.toml");
+    write_calibration(&spec, &calibration)?;
     let scene = LlsScene::new(spec);
     write_truth(&scene, &out.join("truth"))?;
     let session_dir = out.join("session");
@@ -362,8 +394,12 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
     // Fit.
     let fitbar = bar(opts.progress, u64::from(w * h), "fit");
     let fb = fitbar.clone();
-    let maps = fit_session(&session_dir, &move |done, _| fb.set_position(done))
-        .map_err(|e| CliError { code: FAILURE, message: e.to_string() })?;
+    let fb_len = fitbar.clone();
+    let maps = fit_session(&session_dir, Some(&calibration), &move |done, total| {
+        fb_len.set_length(total);
+        fb.set_position(done)
+    })
+    .map_err(|e| CliError { code: FAILURE, message: e.to_string() })?;
     fitbar.finish();
     let fit_dir = out.join("fit");
     let files =
@@ -398,6 +434,19 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
         let _ = writeln!(report, "| {name} | {v:.4} | ≤ {limit} | {} |", if met { "yes" } else { "**no**" });
     }
     let _ = writeln!(report, "| translucency, median abs | {:.4} | | |", acc.translucency_abs);
+    if !maps.diagonal_mounts.is_empty() {
+        let _ = writeln!(
+            report,
+            "| normal from the displacement map alone, median deg | {:.4} | | |",
+            acc.geometric_normal_deg
+        );
+        let _ = writeln!(
+            report,
+            "| normal from the diagonal passes ({}°) alone, median deg | {:.4} | | |",
+            maps.diagonal_mounts.iter().map(|m| format!("{m:+}")).collect::<Vec<_>>().join(", "),
+            acc.photometric_normal_deg
+        );
+    }
     let _ = writeln!(report, "\nRoughness by material:\n\n| α | pixels | median rel error |\n|---|---|---|");
     for (a, n, e) in roughness_by_material(scene, &maps) {
         let _ = writeln!(report, "| {a} | {n} | {e:.4} |");

@@ -2,9 +2,15 @@
 //!
 //! This module is the glue between a session on disk and the maths in
 //! [`lightrig_pipelines::lls`]: it reads the rig file from the session's manifest (the fit's
-//! geometry lives in its `[plan.fit]` table), the frames of each pass with their trigger
-//! records (the gantry position of every frame comes from the trigger's snapshot, not from the
-//! plan), merges exposure brackets, runs the fit and writes the maps.
+//! geometry lives in its `[plan.fit]` table), the camera's calibration file (from
+//! `lightrig calibrate`), the frames of each pass with their trigger records (the gantry
+//! position of every frame comes from the trigger's snapshot, not from the plan), merges
+//! exposure brackets, runs the fit and writes the maps.
+//!
+//! With diagonal passes (`reflectance+15`, `reflectance-15` in the rig file's passes) the
+//! normals from the displacement map are refined by the reflectance traces of those passes
+//! ([`fit_normal`]), blended ([`blend_normals`]), and the straight pass is fitted once more
+//! with the blended normals, as Gardner et al. do.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -15,8 +21,8 @@ use lightrig_imaging::io::{
 };
 use lightrig_pipelines::linear_light::{hides, response, Quadrature, Tube};
 use lightrig_pipelines::lls::{
-    fit_trace, normals_from_points, point_on_sheet, register, strip_scale, stripe_peak, BoardGeometry, Light,
-    Registration, Setup, Sheet, Strip, TraceFit,
+    blend_normals, fit_normal, fit_trace, normals_from_points, point_on_sheet, refit_trace, register,
+    strip_scale, stripe_peak, BoardGeometry, Light, PassTrace, Registration, Setup, Sheet, Strip, TraceFit,
 };
 use lightrig_pipelines::vec3::{normalize, sub, V3};
 use lightrig_pipelines::ward::Ward;
@@ -30,8 +36,9 @@ use crate::session::{trigger_events, Session};
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FitSpec {
-    /// Camera intrinsics, pixels (from `lightrig calibrate`).
-    pub camera: CameraIntrinsics,
+    /// Camera intrinsics, pixels, without distortion: for rigs without a calibration file
+    /// (`lightrig fit lls --calibration cam.toml` takes precedence).
+    pub camera: Option<CameraIntrinsics>,
     /// The light tube.
     pub light: LightGeom,
     /// The laser sheet.
@@ -92,11 +99,11 @@ pub struct StripGeom {
 }
 
 impl FitSpec {
-    /// The pipeline's view of it.
-    pub fn setup(&self) -> Setup {
+    /// The pipeline's view of it, with the camera's intrinsics.
+    pub fn setup(&self, intrinsics: Intrinsics) -> Setup {
         let strip = |s: &StripGeom| Strip { x: s.x_mm, y: s.y_mm, albedo: s.albedo };
         Setup {
-            intrinsics: Intrinsics::pinhole(self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy),
+            intrinsics,
             light: Light {
                 radius: self.light.diameter_mm / 2.0,
                 length: self.light.length_mm,
@@ -154,7 +161,14 @@ pub struct LlsMaps {
     pub fit: Vec<TraceFit>,
     /// Surface points, mm.
     pub points: Vec<Option<V3>>,
+    /// The normals the final fit used (blended when there were diagonal passes).
     pub normals: Vec<Option<V3>>,
+    /// Normals from the displacement map alone.
+    pub geometric_normals: Vec<Option<V3>>,
+    /// Normals from the diagonal passes' traces (all `None` without diagonal passes).
+    pub photometric_normals: Vec<Option<V3>>,
+    /// The mount angles of the diagonal passes used, degrees.
+    pub diagonal_mounts: Vec<i64>,
     pub translucency: Vec<f32>,
     /// The camera registration.
     pub registration_rms: f64,
@@ -225,8 +239,40 @@ fn load_pass(
         .collect())
 }
 
-/// Reads a session and fits it. `progress(done, total)` is called as pixels finish.
-pub fn fit_session(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<LlsMaps, FitError> {
+/// The camera's intrinsics: from the calibration file if given (its image size must match the
+/// frames'), else from `[plan.fit].camera`.
+fn intrinsics(spec: &FitSpec, calibration: Option<&Path>, size: (u32, u32)) -> Result<Intrinsics, FitError> {
+    if let Some(path) = calibration {
+        let c = lightrig_imaging::calib_file::read(path).map_err(|e| fail(e.to_string()))?;
+        if c.image_size != size {
+            return Err(fail(format!(
+                "{}: the calibration is for {}×{} images but the session's frames are {}×{}: \
+                 calibrate the camera at the resolution it captures with",
+                path.display(),
+                c.image_size.0,
+                c.image_size.1,
+                size.0,
+                size.1
+            )));
+        }
+        return Ok(c.intrinsics);
+    }
+    let k = spec.camera.ok_or_else(|| {
+        fail(
+            "no camera intrinsics: pass `--calibration cam.toml` (from `lightrig calibrate`) or give \
+             `camera = { fx, fy, cx, cy }` in the rig file's [plan.fit]",
+        )
+    })?;
+    Ok(Intrinsics::pinhole(k.fx, k.fy, k.cx, k.cy))
+}
+
+/// Reads a session and fits it, with the camera calibration file `calibration` if given (else
+/// the rig file's `[plan.fit].camera`). `progress(done, total)` is called as pixels finish.
+pub fn fit_session(
+    dir: &Path,
+    calibration: Option<&Path>,
+    progress: &(dyn Fn(u64, u64) + Sync),
+) -> Result<LlsMaps, FitError> {
     let (session, _) = Session::read(dir).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
     let manifest = session.manifest().clone();
     let rig = RigFile::parse(&manifest.rig, &dir.join("manifest.json")).map_err(|e| fail(e.to_string()))?;
@@ -239,24 +285,52 @@ pub fn fit_session(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<L
         })?
         .try_into()
         .map_err(|e| fail(format!("{}: [plan.fit]: {e}", dir.display())))?;
-    let setup = spec.setup();
     let gantry = rig
         .stepper_named("gantry")
         .or_else(|| rig.steppers.first())
         .ok_or_else(|| fail("the rig file has no gantry stepper"))?;
     let tick_hz = f64::from(manifest.device.tick_hz);
     let triggers = trigger_events(dir).map_err(|e| fail(e.to_string()))?;
-    let pass_of = |name: &str| {
-        manifest.plan.steps.iter().find(|s| s.extra["meta"]["pass"].as_str() == Some(name)).map(|s| s.id)
+    // Passes by name and, for the reflectance passes, mount angle (the first of each).
+    let mount_of = |s: &crate::session::PlanStep| s.extra["meta"]["mount_deg"].as_i64().unwrap_or(0);
+    let pass_of = |name: &str, mount: Option<i64>| {
+        manifest
+            .plan
+            .steps
+            .iter()
+            .find(|s| {
+                s.extra["meta"]["pass"].as_str() == Some(name) && mount.is_none_or(|m| mount_of(s) == m)
+            })
+            .map(|s| s.id)
     };
-    let load = |name: &str| -> Result<Vec<PassFrame>, FitError> {
-        match pass_of(name) {
+    let load_mount = |name: &str, mount: Option<i64>| -> Result<Vec<PassFrame>, FitError> {
+        match pass_of(name, mount) {
             Some(id) => load_pass(&session, dir, id, &triggers, gantry, tick_hz),
             None => Ok(Vec::new()),
         }
     };
+    let load = |name: &str| load_mount(name, None);
     let board = load("board")?;
-    let reflect = load("reflectance")?;
+    let reflect = load_mount("reflectance", Some(0))?;
+    let mut mounts: Vec<i64> = manifest
+        .plan
+        .steps
+        .iter()
+        .filter(|s| s.extra["meta"]["pass"].as_str() == Some("reflectance"))
+        .map(mount_of)
+        .filter(|&m| m != 0)
+        .collect();
+    mounts.sort_unstable();
+    mounts.dedup();
+    let diagonal: Vec<(i64, Vec<PassFrame>)> =
+        if mounts.iter().any(|&m| m > 0) && mounts.iter().any(|&m| m < 0) {
+            mounts
+                .iter()
+                .map(|&m| Ok((m, load_mount("reflectance", Some(m))?)))
+                .collect::<Result<_, FitError>>()?
+        } else {
+            Vec::new()
+        };
     let stripe = load("stripe")?;
     let backlit = load("backlit")?;
     let lightbox = load("light-box")?;
@@ -269,8 +343,11 @@ pub fn fit_session(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<L
         )));
     }
     let (w, h) = (first.size.0 as usize, first.size.1 as usize);
+    let setup = spec.setup(intrinsics(&spec, calibration, first.size)?);
     for (name, pass) in
         [("reflectance", &reflect), ("stripe", &stripe), ("backlit", &backlit), ("light-box", &lightbox)]
+            .into_iter()
+            .chain(diagonal.iter().map(|(_, p)| ("diagonal reflectance", p)))
     {
         if let Some(f) = pass.iter().find(|f| f.size != first.size) {
             return Err(fail(format!(
@@ -332,10 +409,16 @@ pub fn fit_session(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<L
         }
     }
     let tubes: Vec<Tube> = reflect.iter().map(|f| setup.light.at(f.gantry)).collect();
-    let trace_of = |i: usize, p: V3, v: V3, scale: [f64; 3]| {
+    let diagonal_tubes: Vec<Vec<Tube>> = diagonal
+        .iter()
+        .map(|(m, pass)| {
+            pass.iter().map(|f| setup.light.mounted(f.gantry, (*m as f64).to_radians())).collect()
+        })
+        .collect();
+    let trace_in = |pass: &[PassFrame], tubes: &[Tube], i: usize, p: V3, v: V3, scale: [f64; 3]| {
         let mut obs: [Vec<f64>; 3] = Default::default();
         let mut valid: [Vec<bool>; 3] = Default::default();
-        for (f, t) in reflect.iter().zip(&tubes) {
+        for (f, t) in pass.iter().zip(tubes) {
             // Leave a millimetre's margin around the tube's silhouette.
             let wide = Tube { radius: t.radius + 1.0, ..*t };
             let hidden = hides(p, v, &wide);
@@ -347,6 +430,7 @@ pub fn fit_session(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<L
         }
         (obs, valid)
     };
+    let trace_of = |i: usize, p: V3, v: V3, scale: [f64; 3]| trace_in(&reflect, &tubes, i, p, v, scale);
     // The light's scale from the diffuse strip (its inner part).
     let qd = Quadrature::diffuse();
     let strip_traces: Vec<_> = (0..w * h)
@@ -363,12 +447,20 @@ pub fn fit_session(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<L
     let scale = strip_scale(&strip_traces, setup.diffuse_strip.albedo)
         .ok_or_else(|| fail("no pixel sees the diffuse calibration strip: check [plan.fit.diffuse_strip]"))?;
     let q = Quadrature::fit();
-    let total = (w * h) as u64;
+    // Progress: the first fit, then (with diagonal passes) the normals and the refit.
+    let rounds = if diagonal.is_empty() { 1 } else { 3 };
+    let total = (w * h * rounds) as u64;
     let done = AtomicU64::new(0);
+    let tick = || {
+        let k = done.fetch_add(1, Ordering::Relaxed) + 1;
+        if k.is_multiple_of(256) || k == total {
+            progress(k, total);
+        }
+    };
     let fitted: Vec<bool> =
         (0..w * h).map(|i| points[i].is_some() && normals[i].is_some() && !in_strip(i)).collect();
     let want_fit = |i: usize| fitted[i] || points[i].is_some_and(|p| setup.specular_strip.contains(p, 1.0));
-    let fit: Vec<TraceFit> = (0..w * h)
+    let mut fit: Vec<TraceFit> = (0..w * h)
         .into_par_iter()
         .map(|i| {
             let out = match (want_fit(i), points[i], normals[i]) {
@@ -379,13 +471,65 @@ pub fn fit_session(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<L
                 }
                 _ => TraceFit::default(),
             };
-            let k = done.fetch_add(1, Ordering::Relaxed) + 1;
-            if k.is_multiple_of(256) || k == total {
-                progress(k, total);
-            }
+            tick();
             out
         })
         .collect();
+    let geometric_normals = normals.clone();
+    let mut photometric_normals = vec![None; w * h];
+    if !diagonal.is_empty() {
+        photometric_normals = (0..w * h)
+            .into_par_iter()
+            .map(|i| {
+                let out = match (fitted[i], points[i], normals[i]) {
+                    (true, Some(p), Some(n)) => {
+                        let v = normalize(sub(reg.rays[i].0, p));
+                        let traces: Vec<_> = diagonal
+                            .iter()
+                            .zip(&diagonal_tubes)
+                            .map(|((_, pass), t)| trace_in(pass, t, i, p, v, scale))
+                            .collect();
+                        let passes: Vec<PassTrace> = traces
+                            .iter()
+                            .zip(&diagonal_tubes)
+                            .map(|((obs, valid), tubes)| PassTrace { obs, valid, tubes })
+                            .collect();
+                        fit_normal(&passes, p, n, v, fit[i].alpha, &Quadrature::coarse())
+                    }
+                    _ => None,
+                };
+                tick();
+                out
+            })
+            .collect();
+        // The geometric normals' low frequencies, the photometric ones' detail (σ 2 px).
+        let blended = blend_normals(&photometric_normals, &geometric_normals, w, h, 2.0);
+        for i in 0..w * h {
+            if fitted[i] {
+                normals[i] = blended[i];
+            }
+        }
+        let refit: Vec<Option<TraceFit>> = (0..w * h)
+            .into_par_iter()
+            .map(|i| {
+                let out = match (fitted[i], points[i], normals[i]) {
+                    (true, Some(p), Some(n)) => {
+                        let v = normalize(sub(reg.rays[i].0, p));
+                        let (obs, valid) = trace_of(i, p, v, scale);
+                        Some(refit_trace(&obs, &valid, &tubes, p, n, v, &q, fit[i].alpha))
+                    }
+                    _ => None,
+                };
+                tick();
+                out
+            })
+            .collect();
+        for (f, r) in fit.iter_mut().zip(refit) {
+            if let Some(r) = r {
+                *f = r;
+            }
+        }
+    }
     let mut spec_strip: Vec<f64> = (0..w * h)
         .filter(|&i| points[i].is_some_and(|p| setup.specular_strip.contains(p, 1.0)))
         .map(|i| (fit[i].specular[0] + fit[i].specular[1] + fit[i].specular[2]) / 3.0)
@@ -434,6 +578,9 @@ pub fn fit_session(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<L
         fit,
         points,
         normals,
+        geometric_normals,
+        photometric_normals,
+        diagonal_mounts: diagonal.iter().map(|(m, _)| *m).collect(),
         translucency,
         registration_rms: reg.rms,
         scale,

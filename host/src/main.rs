@@ -38,7 +38,7 @@ enum Cmd {
         #[arg(long)]
         check: bool,
     },
-    /// Fit a session: `lightrig fit lls SESSION --out DIR`.
+    /// Fit a session: `lightrig fit lls SESSION --out DIR [--calibration cam.toml]`.
     Fit {
         /// Pipeline: `lls`.
         pipeline: String,
@@ -47,6 +47,10 @@ enum Cmd {
         /// Output directory for the maps.
         #[arg(long)]
         out: std::path::PathBuf,
+        /// The camera's calibration file from `lightrig calibrate` (else the rig file's
+        /// `[plan.fit].camera`).
+        #[arg(long)]
+        calibration: Option<std::path::PathBuf>,
     },
     /// Run the host link against the firmware controller in-process over a lossy simulated wire.
     Selfcheck {
@@ -269,17 +273,18 @@ fn main() -> ExitCode {
                 }
             }
         }
-        Cmd::Fit { pipeline, session, out } => {
+        Cmd::Fit { pipeline, session, out, calibration } => {
             if pipeline != "lls" {
                 eprintln!("error: `lightrig fit {pipeline}`: the pipelines are: lls");
                 return ExitCode::from(exit::USAGE);
             }
             let bar = indicatif::ProgressBar::new(0);
             let b = bar.clone();
-            let maps = lightrig_host::lls_fit::fit_session(&session, &move |done, total| {
-                b.set_length(total);
-                b.set_position(done);
-            });
+            let maps =
+                lightrig_host::lls_fit::fit_session(&session, calibration.as_deref(), &move |done, total| {
+                    b.set_length(total);
+                    b.set_position(done);
+                });
             bar.finish();
             match maps.and_then(|m| lightrig_host::lls_fit::write_outputs(&m, &out)) {
                 Ok(files) => {

@@ -73,6 +73,33 @@ fn lls_board_light_box_and_backlit_frames_are_single_shots_at_the_start() {
 }
 
 #[test]
+fn lls_diagonal_passes_carry_their_mount_and_ask_for_the_turn() {
+    use lightrig_host::plan::lls::Pass;
+    assert_eq!(Pass::parse("reflectance+15"), Some(Pass::Reflectance { mount_deg: 15 }));
+    assert_eq!(Pass::parse("reflectance-15"), Some(Pass::Reflectance { mount_deg: -15 }));
+    assert_eq!(Pass::parse("reflectance"), Some(Pass::REFLECTANCE));
+    for bad in ["reflectance15", "reflectance+46", "reflectance+x", "reflect"] {
+        assert_eq!(Pass::parse(bad), None, "{bad}");
+    }
+    let passes =
+        vec![Pass::REFLECTANCE, Pass::Reflectance { mount_deg: 15 }, Pass::Reflectance { mount_deg: -15 }];
+    let plan = lls::plan(&lls::LlsParams { passes, ..common::lls_params() }).unwrap();
+    let meta: Vec<_> =
+        plan.steps.iter().map(|s| (s.meta["pass"].clone(), s.meta["mount_deg"].clone())).collect();
+    assert_eq!(
+        meta,
+        [("reflectance", 0), ("reflectance", 15), ("reflectance", -15)]
+            .map(|(p, m)| (serde_json::json!(p), serde_json::json!(m)))
+    );
+    assert!(plan.steps[0].meta.get("operator").is_none());
+    assert_eq!(plan.steps[1].meta["operator"], "turn the linear light's mount to +15°");
+    assert_eq!(plan.steps[2].meta["operator"], "turn the linear light's mount to -15°");
+    assert_eq!(plan.steps[1].name, "pass reflectance +15°");
+    // Each sweeps the whole pass.
+    assert!(plan.steps.iter().all(|s| s.shots.len() == 21));
+}
+
+#[test]
 fn disco_never_triggers_while_the_mirrors_move() {
     let mut c = rig_client();
     let grid: Vec<Xy> = (0..3)

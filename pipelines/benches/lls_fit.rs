@@ -11,7 +11,7 @@ fn bench(c: &mut Criterion) {
     let (p, n, v) = ([1.0, 2.0, 0.3], normalize([0.02, -0.03, 1.0]), normalize([-0.5, 0.02, 0.866]));
     // 400 frames at 0.6 mm: the pass of a 240 mm gantry travel.
     let tubes: Vec<Tube> = (0..400)
-        .map(|k| Tube { x: -140.0 + 0.6 * k as f64, z: 50.0, radius: 6.0, y0: -150.0, y1: 150.0 })
+        .map(|k| Tube { x: -140.0 + 0.6 * k as f64, z: 50.0, radius: 6.0, y0: -150.0, y1: 150.0, yaw: 0.0 })
         .collect();
     let q = Quadrature::fit();
     let mut g = c.benchmark_group("lls_fit");

@@ -18,6 +18,12 @@
 //!
 //! For a white Lambertian plane under an infinitely long tube `D` has the closed form
 //! `r·h / (h² + Δx²)` (the view factor of a parallel cylinder), which the tests check.
+//!
+//! **Diagonal mounts.** Gardner et al. also sweep the tube mounted at ±15° to the gantry's
+//! cross direction, which moves the lobes with the normal's `y` component. A [`Tube`] with a
+//! `yaw` is described in its own frame (the world turned by `−yaw` about `z`), where its axis
+//! runs along `y` again; the functions here turn the point, normal and view into that frame
+//! first, so the integration is the same for every mount.
 
 use std::f64::consts::PI;
 
@@ -25,19 +31,46 @@ use crate::quad::{gauss_legendre, on_interval};
 use crate::vec3::{dot, normalize, sub, V3};
 use crate::ward::specular_lobe;
 
-/// The tube's placement for one frame, millimetres.
+/// The tube's placement for one frame, millimetres. `x`, `y0` and `y1` are in the tube's own
+/// frame: the world turned by `−yaw` about `z` (for `yaw = 0`, the world).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Tube {
-    /// Axis position along `x`.
+    /// Axis position along the frame's `x`.
     pub x: f64,
     /// Axis height above the reference plane `z = 0`.
     pub z: f64,
     /// Radius.
     pub radius: f64,
-    /// Ends of the emitting length along `y`.
+    /// Ends of the emitting length along the frame's `y`.
     pub y0: f64,
     /// See `y0`.
     pub y1: f64,
+    /// The axis' turn about `z` from the world's `y` (counter-clockwise seen from above),
+    /// radians: the axis runs along `(−sin yaw, cos yaw, 0)`.
+    pub yaw: f64,
+}
+
+impl Tube {
+    /// The tube with axis `centre + s·(−sin yaw, cos yaw, 0)` for `s` in `±length/2`.
+    pub fn through(centre: V3, yaw: f64, radius: f64, length: f64) -> Tube {
+        let c = turn(centre, -yaw);
+        Tube { x: c[0], z: c[2], radius, y0: c[1] - length / 2.0, y1: c[1] + length / 2.0, yaw }
+    }
+
+    /// World vector `a` in the tube's frame.
+    fn local(&self, a: V3) -> V3 {
+        if self.yaw == 0.0 {
+            a
+        } else {
+            turn(a, -self.yaw)
+        }
+    }
+}
+
+/// `a` turned by `angle` about `z`.
+fn turn(a: V3, angle: f64) -> V3 {
+    let (s, c) = angle.sin_cos();
+    [c * a[0] - s * a[1], s * a[0] + c * a[1], a[2]]
 }
 
 /// Quadrature orders: Gauss–Legendre nodes across the tube and per panel along it.
@@ -58,6 +91,12 @@ impl Quadrature {
     /// The order the fit uses: error below 1e-6 of the lobe's peak for α ≥ 0.03 (see the tests).
     pub fn fit() -> Self {
         Self::new(16, 24, 8)
+    }
+
+    /// A cheap order for searches (the fit's coarse roughness grid, the normals from the
+    /// diagonal passes): about 1e-3 of the lobe's peak.
+    pub fn coarse() -> Self {
+        Self::new(8, 12, 6)
     }
 
     /// A cheaper order for the diffuse lobe alone (relative error below 1e-4, see the tests).
@@ -94,6 +133,7 @@ pub fn mirror(n: V3, v: V3) -> V3 {
 /// Responses at point `p` with unit normal `n`, seen from unit direction `v` (towards the
 /// camera), under `tube`; the specular lobe for roughness `alpha` if given.
 pub fn response(p: V3, n: V3, v: V3, tube: &Tube, alpha: Option<f64>, q: &Quadrature) -> Response {
+    let (p, n, v) = (tube.local(p), tube.local(n), tube.local(v));
     let (dx, dz) = (p[0] - tube.x, p[2] - tube.z);
     let d = (dx * dx + dz * dz).sqrt();
     let r = tube.radius;
@@ -149,19 +189,64 @@ pub fn response(p: V3, n: V3, v: V3, tube: &Tube, alpha: Option<f64>, q: &Quadra
     out
 }
 
+/// The diffuse lobe's vector form: `E = ∫ wi / π dω` over the visible tube, so that
+/// `D = n · E` for every normal `n` that sees the whole tube above its tangent plane (the usual
+/// case: the fit of normals from the diagonal passes uses it to try many normals for the price
+/// of one integration). Same quadrature and parametrisation as [`response`].
+pub fn diffuse_vector(p: V3, tube: &Tube, q: &Quadrature) -> V3 {
+    let pl = tube.local(p);
+    let (dx, dz) = (pl[0] - tube.x, pl[2] - tube.z);
+    let d = (dx * dx + dz * dz).sqrt();
+    let r = tube.radius;
+    if d <= r {
+        return [0.0; 3];
+    }
+    let (u0, u1) = (((tube.y0 - pl[1]) / d).atan(), ((tube.y1 - pl[1]) / d).atan());
+    let phi0 = dz.atan2(dx);
+    let half = (r / d).acos();
+    let mut e = [0.0; 3];
+    for (u, wu) in on_interval(&q.centre, u0, u1) {
+        let (s, c) = u.sin_cos();
+        let y = pl[1] + d * s / c;
+        let dy = d / (c * c);
+        for (phi, wphi) in on_interval(&q.across, phi0 - half, phi0 + half) {
+            let (sp, cp) = phi.sin_cos();
+            let to = sub([tube.x + r * cp, y, tube.z + r * sp], pl);
+            let dist2 = dot(to, to);
+            let dist = dist2.sqrt();
+            let wi = [to[0] / dist, to[1] / dist, to[2] / dist];
+            let cos_q = -(cp * wi[0] + sp * wi[2]);
+            if cos_q <= 0.0 {
+                continue;
+            }
+            let w = wu * wphi * r * dy * cos_q / dist2 / PI;
+            for k in 0..3 {
+                e[k] += w * wi[k];
+            }
+        }
+    }
+    // Back to the world frame.
+    if tube.yaw == 0.0 {
+        e
+    } else {
+        turn(e, tube.yaw)
+    }
+}
+
 /// `S(α)` alone, zero without integrating when the lobe cannot reach the tube: the angle
 /// between the mirror direction and the nearest direction to the tube, halved (the half vector
 /// turns half as far), is more than 5α from the normal (the lobe is below e⁻²⁵ there).
 pub fn specular_response(p: V3, n: V3, v: V3, tube: &Tube, alpha: f64, q: &Quadrature) -> f64 {
-    let (dx, dz) = (p[0] - tube.x, p[2] - tube.z);
+    let (pl, nl, vl) = (tube.local(p), tube.local(n), tube.local(v));
+    let (dx, dz) = (pl[0] - tube.x, pl[2] - tube.z);
     let d = (dx * dx + dz * dz).sqrt();
     if d <= tube.radius {
         return 0.0;
     }
-    let m = normalize(mirror(n, v));
+    let m = normalize(mirror(nl, vl));
     let us = m[1].atan2((m[0] * m[0] + m[2] * m[2]).sqrt());
-    let y = (p[1] + d * us.tan()).clamp(tube.y0, tube.y1);
-    let to_axis = normalize(sub([tube.x, y, tube.z], p));
+    let y = (pl[1] + d * us.tan()).clamp(tube.y0, tube.y1);
+    let to_axis = normalize(sub([tube.x, y, tube.z], pl));
     let gap = crate::vec3::angle(to_axis, m) - (tube.radius / d).asin();
     if gap > 0.0 && (gap / 2.0).tan() > 5.0 * alpha {
         return 0.0;
@@ -172,6 +257,7 @@ pub fn specular_response(p: V3, n: V3, v: V3, tube: &Tube, alpha: f64, q: &Quadr
 /// Whether the tube hides point `p` from a camera in unit direction `v`: the view ray meets the
 /// cylinder between its ends (the camera then sees the tube itself).
 pub fn hides(p: V3, v: V3, tube: &Tube) -> bool {
+    let (p, v) = (tube.local(p), tube.local(v));
     // Distance from the axis (a line along y) to the ray, in the xz-plane.
     let (ox, oz) = (p[0] - tube.x, p[2] - tube.z);
     let (vx, vz) = (v[0], v[2]);
@@ -196,7 +282,7 @@ mod tests {
     use super::*;
 
     fn tube(x: f64) -> Tube {
-        Tube { x, z: 50.0, radius: 6.0, y0: -1e5, y1: 1e5 }
+        Tube { x, z: 50.0, radius: 6.0, y0: -1e5, y1: 1e5, yaw: 0.0 }
     }
 
     #[test]
@@ -228,7 +314,7 @@ mod tests {
             let mut worst = 0f64;
             let mut rows = Vec::new();
             for i in -80..=80 {
-                let t = Tube { x: i as f64, z: 50.0, radius: 6.0, y0: -150.0, y1: 150.0 };
+                let t = Tube { x: i as f64, z: 50.0, radius: 6.0, y0: -150.0, y1: 150.0, yaw: 0.0 };
                 let a = response(p, n, v, &t, Some(alpha), &fit).specular;
                 let b = response(p, n, v, &t, Some(alpha), &render).specular;
                 peak = peak.max(b);
@@ -245,7 +331,7 @@ mod tests {
     fn the_diffuse_order_is_within_1e4() {
         let up = [0.0, 0.0, 1.0];
         for dx in [0.0, 10.0, 30.0, 60.0, 120.0, 300.0] {
-            let t = Tube { x: dx, z: 50.0, radius: 6.0, y0: -150.0, y1: 150.0 };
+            let t = Tube { x: dx, z: 50.0, radius: 6.0, y0: -150.0, y1: 150.0, yaw: 0.0 };
             let p = [0.0, 20.0, 1.0];
             let a = response(p, up, up, &t, None, &Quadrature::diffuse()).diffuse;
             let b = response(p, up, up, &t, None, &Quadrature::render()).diffuse;
@@ -262,7 +348,7 @@ mod tests {
             let mut peak = 0f64;
             let mut rows = Vec::new();
             for i in -150..=150 {
-                let t = Tube { x: i as f64, z: 50.0, radius: 6.0, y0: -150.0, y1: 150.0 };
+                let t = Tube { x: i as f64, z: 50.0, radius: 6.0, y0: -150.0, y1: 150.0, yaw: 0.0 };
                 let full = response([0.0; 3], n, v, &t, Some(alpha), &q).specular;
                 let culled = specular_response([0.0; 3], n, v, &t, alpha, &q);
                 peak = peak.max(full);
@@ -280,11 +366,56 @@ mod tests {
     #[test]
     fn the_tube_hides_the_points_behind_it() {
         let v = normalize([-1.0, 0.0, 1.0]); // camera up and to −x at 45°
-        let t = Tube { x: -50.0, z: 50.0, radius: 6.0, y0: -100.0, y1: 100.0 };
+        let t = Tube { x: -50.0, z: 50.0, radius: 6.0, y0: -100.0, y1: 100.0, yaw: 0.0 };
         assert!(hides([0.0, 0.0, 0.0], v, &t));
         assert!(!hides([9.0, 0.0, 0.0], v, &t)); // ray passes 9/√2 ≈ 6.4 mm from the axis
         assert!(hides([8.0, 0.0, 0.0], v, &t)); // 5.7 mm
         assert!(!hides([0.0, 120.0, 0.0], v, &t)); // beyond the tube's end
         assert!(!hides([0.0, 0.0, 0.0], normalize([1.0, 0.0, 1.0]), &t));
+    }
+
+    #[test]
+    fn a_turned_tube_sees_a_turned_scene() {
+        // Turning tube, point, normal and view together about z changes nothing; a tube built
+        // by `through` at yaw 0 is the plain one.
+        let q = Quadrature::fit();
+        let (p, n, v) = ([3.0, -4.0, 0.5], normalize([0.03, -0.02, 1.0]), normalize([-0.5, 0.05, 1.0]));
+        let yaw = 15f64.to_radians();
+        for x in [-30.0, 0.0, 12.0, 29.0, 60.0] {
+            let plain = Tube { x, z: 50.0, radius: 6.0, y0: -150.0, y1: 150.0, yaw: 0.0 };
+            assert_eq!(Tube::through([x, 0.0, 50.0], 0.0, 6.0, 300.0), plain);
+            let turned = Tube { yaw, ..plain };
+            let (pt, nt, vt) = (turn(p, yaw), turn(n, yaw), turn(v, yaw));
+            for alpha in [0.05, 0.2] {
+                let a = response(p, n, v, &plain, Some(alpha), &q);
+                let b = response(pt, nt, vt, &turned, Some(alpha), &q);
+                assert!((a.diffuse - b.diffuse).abs() < 1e-12 && (a.specular - b.specular).abs() < 1e-12);
+                let c = specular_response(pt, nt, vt, &turned, alpha, &q);
+                assert!((c - a.specular).abs() < 1e-12);
+            }
+            assert_eq!(hides(p, v, &plain), hides(pt, vt, &turned));
+        }
+        // `through`: the centre lies on the axis, the ends `length/2` along (−sin, cos, 0).
+        let t = Tube::through([10.0, 5.0, 50.0], yaw, 6.0, 300.0);
+        let end = turn([t.x, t.y1, t.z], yaw);
+        let want = [10.0 - 150.0 * yaw.sin(), 5.0 + 150.0 * yaw.cos(), 50.0];
+        assert!((0..3).all(|k| (end[k] - want[k]).abs() < 1e-9), "{end:?} vs {want:?}");
+    }
+
+    #[test]
+    fn the_diffuse_vector_gives_the_diffuse_lobe() {
+        let q = Quadrature::diffuse();
+        let p = [3.0, -4.0, 0.5];
+        for yaw in [0.0, 15f64.to_radians(), -0.3] {
+            for x in [-60.0, -10.0, 0.0, 25.0, 80.0] {
+                let t = Tube::through([x, 0.0, 50.0], yaw, 6.0, 300.0);
+                let e = diffuse_vector(p, &t, &q);
+                for n in [[0.0, 0.0, 1.0], normalize([0.05, -0.08, 1.0])] {
+                    let want = response(p, n, [0.0, 0.0, 1.0], &t, None, &q).diffuse;
+                    let got = dot(n, e);
+                    assert!((got - want).abs() < 1e-12 * want.max(1e-9), "{got} vs {want}");
+                }
+            }
+        }
     }
 }

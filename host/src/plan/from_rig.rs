@@ -144,20 +144,20 @@ fn lls_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
     let passes = match names(rig, "passes")? {
         Some(list) => list
             .iter()
-            .map(|p| match p.as_str() {
-                "board" => Ok(lls::Pass::Board),
-                "light-box" | "lightbox" => Ok(lls::Pass::LightBox),
-                "reflectance" => Ok(lls::Pass::Reflectance),
-                "stripe" => Ok(lls::Pass::Stripe),
-                "backlit" => Ok(lls::Pass::Backlit),
-                other => Err(rig.error(
-                    "plan.passes",
-                    format!("`{other}`: expected board, light-box, reflectance, stripe or backlit"),
-                )),
+            .map(|p| {
+                lls::Pass::parse(p).ok_or_else(|| {
+                    rig.error(
+                        "plan.passes",
+                        format!(
+                            "`{p}`: expected board, light-box, reflectance (or reflectance+15, \
+                             reflectance-15: the mount turned by whole degrees, at most 45), stripe or backlit"
+                        ),
+                    )
+                })
             })
             .collect::<Result<Vec<_>, _>>()?,
         None => [
-            ("light-tube", lls::Pass::Reflectance),
+            ("light-tube", lls::Pass::REFLECTANCE),
             ("stripe", lls::Pass::Stripe),
             ("backlight", lls::Pass::Backlit),
         ]

@@ -7,22 +7,25 @@
 //! ends anyway).
 
 use lightrig_protocol::sequence::{Action, WaitFor};
-use serde::Serialize;
 use serde_json::json;
 
 use super::{Plan, PlanError, StepBuilder};
 
 /// What a pass lights the sample with. `Reflectance` and `Stripe` sweep the gantry, one frame
 /// (bracket) per position; the others are one frame (bracket) with the gantry at the start.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "kebab-case")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Pass {
     /// The calibration board on the reference plane, in the room light: the camera's pose.
     Board,
     /// The light box with nothing on it: the reference for translucency.
     LightBox,
-    /// The linear light: diffuse, specular and roughness.
-    Reflectance,
+    /// The linear light: diffuse, specular and roughness. `mount_deg` turns the light's mount
+    /// about the vertical (0: across the gantry's travel; Gardner et al. add ±15° passes for
+    /// the normals' other component).
+    Reflectance {
+        /// Degrees, counter-clockwise seen from above.
+        mount_deg: i8,
+    },
     /// The laser stripe: height by triangulation.
     Stripe,
     /// The light box under the sample: translucency.
@@ -30,16 +33,54 @@ pub enum Pass {
 }
 
 impl Pass {
+    /// The reflectance pass with the light across the gantry's travel.
+    pub const REFLECTANCE: Pass = Pass::Reflectance { mount_deg: 0 };
+
+    /// The pass's name in the rig file and in the step's `meta.pass` (the mount angle goes to
+    /// `meta.mount_deg`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Pass::Board => "board",
+            Pass::LightBox => "light-box",
+            Pass::Reflectance { .. } => "reflectance",
+            Pass::Stripe => "stripe",
+            Pass::Backlit => "backlit",
+        }
+    }
+
+    /// Parses a rig file's pass name: `board`, `light-box`, `reflectance`, `reflectance+15`,
+    /// `reflectance-15` (any whole number of degrees up to 45 either way), `stripe`, `backlit`.
+    pub fn parse(name: &str) -> Option<Pass> {
+        Some(match name {
+            "board" => Pass::Board,
+            "light-box" | "lightbox" => Pass::LightBox,
+            "reflectance" => Pass::REFLECTANCE,
+            "stripe" => Pass::Stripe,
+            "backlit" => Pass::Backlit,
+            other => {
+                let deg = other.strip_prefix("reflectance")?;
+                if !deg.starts_with(['+', '-']) {
+                    return None;
+                }
+                let mount_deg: i8 = deg.parse().ok()?;
+                if mount_deg.unsigned_abs() > 45 {
+                    return None;
+                }
+                Pass::Reflectance { mount_deg }
+            }
+        })
+    }
+
     /// Whether the pass sweeps the gantry.
     pub fn sweeps(self) -> bool {
-        matches!(self, Pass::Reflectance | Pass::Stripe)
+        matches!(self, Pass::Reflectance { .. } | Pass::Stripe)
     }
 
     /// What the operator must do before the pass, if anything.
-    pub fn operator(self) -> Option<&'static str> {
+    pub fn operator(self) -> Option<String> {
         match self {
-            Pass::Board => Some("place the calibration board on the reference plane"),
-            Pass::LightBox => Some("clear the light box (no sample)"),
+            Pass::Board => Some("place the calibration board on the reference plane".into()),
+            Pass::LightBox => Some("clear the light box (no sample)".into()),
             _ => None,
         }
     }
@@ -96,10 +137,11 @@ pub fn plan(p: &LlsParams) -> Result<Plan, PlanError> {
     let last = i64::from(p.start) + i64::from(p.step) * (i64::from(p.count) - 1);
     let last = i32::try_from(last).map_err(|_| PlanError("lls: the pass runs past the axis range".into()))?;
     let mut steps = Vec::new();
+    let mut mount = 0i8;
     for (id, pass) in p.passes.iter().enumerate() {
         let channel = match pass {
             Pass::Board => None,
-            Pass::Reflectance => Some(p.light),
+            Pass::Reflectance { .. } => Some(p.light),
             Pass::Stripe => Some(p.stripe),
             Pass::Backlit | Pass::LightBox => Some(
                 p.backlight.ok_or_else(|| PlanError(format!("lls: a {pass:?} pass needs a backlight")))?,
@@ -125,17 +167,25 @@ pub fn plan(p: &LlsParams) -> Result<Plan, PlanError> {
             b.then(Action::Laser { channel, on: false });
         }
         let mut meta = json!({
-            "pass": pass, "axis": p.axis, "start": p.start, "step": p.step, "count": count,
+            "pass": pass.name(), "axis": p.axis, "start": p.start, "step": p.step, "count": count,
             "last": if pass.sweeps() { last } else { p.start }, "exposures": p.exposures,
         });
-        if let Some(op) = pass.operator() {
+        let mut operator = pass.operator();
+        let mut title = format!("pass {}", pass.name());
+        if let Pass::Reflectance { mount_deg } = *pass {
+            meta["mount_deg"] = json!(mount_deg);
+            if mount_deg != mount {
+                operator = Some(format!("turn the linear light's mount to {mount_deg:+}°"));
+                mount = mount_deg;
+            }
+            if mount_deg != 0 {
+                title = format!("{title} {mount_deg:+}°");
+            }
+        }
+        if let Some(op) = operator {
             meta["operator"] = json!(op);
         }
-        steps.push(b.build(
-            id as u32,
-            format!("pass {}", serde_json::to_value(pass).unwrap_or_default()),
-            meta,
-        ));
+        steps.push(b.build(id as u32, title, meta));
     }
     Ok(Plan { method: "linear-light-source".into(), tick_hz: p.tick_hz, steps, frame_bytes: p.frame_bytes })
 }

@@ -21,6 +21,9 @@ pub struct RigState {
     /// The step's `meta.pass` (or `meta.kind`), if it has one: tells a scene what is on the
     /// rig (the board, the bare light box, the sample).
     pub pass: Option<String>,
+    /// The step's `meta.mount_deg`: how far the linear light's mount is turned from across the
+    /// gantry's travel (the LLS diagonal passes), degrees; 0 when absent.
+    pub mount_deg: f64,
     /// Each stepper axis' position, rig units (mm or degrees), by axis index.
     pub axes: Vec<f64>,
     /// Lasers emitting, one bit per channel.
@@ -49,6 +52,7 @@ pub struct VirtualCamera<S: Scene> {
     next_file: u64,
     axis_units: Vec<Option<crate::rigfile::Stepper>>,
     pass: Option<String>,
+    mount_deg: f64,
     input: DirectoryInput,
     on_frame: Option<Box<dyn FnMut(u64)>>,
 }
@@ -80,6 +84,7 @@ impl<S: Scene> VirtualCamera<S> {
             next_file: 0,
             axis_units,
             pass: None,
+            mount_deg: 0.0,
             input,
             on_frame: None,
         })
@@ -112,6 +117,7 @@ impl<S: Scene> VirtualCamera<S> {
             .collect();
         RigState {
             pass: self.pass.clone(),
+            mount_deg: self.mount_deg,
             axes,
             lasers: t.snapshot.lasers,
             filters: t.snapshot.filters.iter().copied().collect(),
@@ -158,6 +164,7 @@ impl<S: Scene> FrameInput for VirtualCamera<S> {
             .or_else(|| step.meta.get("kind"))
             .and_then(|p| p.as_str())
             .map(str::to_string);
+        self.mount_deg = step.meta.get("mount_deg").and_then(|m| m.as_f64()).unwrap_or(0.0);
         self.input.begin_step(step)
     }
 

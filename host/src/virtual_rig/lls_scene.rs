@@ -308,16 +308,11 @@ impl LlsSceneSpec {
         0.3 + 0.2 * (x * 0.12).sin() * (y * 0.09).cos()
     }
 
-    /// The tube for gantry position `g`.
-    pub fn tube(&self, g: f64) -> Tube {
+    /// The tube for gantry position `g` on a mount turned by `yaw` radians (0: across the
+    /// gantry's travel).
+    pub fn tube(&self, g: f64, yaw: f64) -> Tube {
         let l = &self.light;
-        Tube {
-            x: g + l.offset_mm,
-            z: l.height_mm,
-            radius: l.diameter_mm / 2.0,
-            y0: -l.length_mm / 2.0,
-            y1: l.length_mm / 2.0,
-        }
+        Tube::through([g + l.offset_mm, 0.0, l.height_mm], yaw, l.diameter_mm / 2.0, l.length_mm)
     }
 }
 
@@ -456,7 +451,7 @@ impl Scene for LlsScene {
         let g = state.axes.get(usize::from(s.gantry_axis)).copied().unwrap_or(0.0);
         let mut out = [0.0; 3];
         if on(s.tube_channel) {
-            let tube = s.tube(g);
+            let tube = s.tube(g, state.mount_deg.to_radians());
             if hides(t.point, t.view, &tube) {
                 return [s.light.radiance; 3];
             }

@@ -91,7 +91,7 @@ pub fn lls_params() -> lightrig_host::plan::lls::LlsParams {
         stripe: 0,
         backlight: Some(2),
         // Two sweeping passes and a second reflectance pass (backlit is one frame now).
-        passes: vec![Pass::Reflectance, Pass::Stripe, Pass::Reflectance],
+        passes: vec![Pass::REFLECTANCE, Pass::Stripe, Pass::REFLECTANCE],
         timeout: 2_000_000,
         frame_bytes: 1 << 20,
         tick_hz: 1_000_000,

@@ -1,7 +1,7 @@
 //! The per-pixel maths of the LLS fit.
 
-use crate::linear_light::{response, specular_response, Quadrature, Tube};
-use crate::vec3::{add, normalize, scale, V3};
+use crate::linear_light::{diffuse_vector, response, specular_response, Quadrature, Tube};
+use crate::vec3::{add, dot, normalize, scale, V3};
 
 use super::Sheet;
 
@@ -152,6 +152,37 @@ pub fn fit_trace(
     v: V3,
     q: &Quadrature,
 ) -> TraceFit {
+    fit_trace_from(obs, valid, tubes, p, n, v, q, None)
+}
+
+/// [`fit_trace`] starting from a known roughness: the search brackets `alpha0` by a factor of
+/// 1.5 either way instead of scanning the whole range (the refit with new normals, where `α`
+/// moves little).
+#[allow(clippy::too_many_arguments)]
+pub fn refit_trace(
+    obs: &[Vec<f64>; 3],
+    valid: &[Vec<bool>; 3],
+    tubes: &[Tube],
+    p: V3,
+    n: V3,
+    v: V3,
+    q: &Quadrature,
+    alpha0: f64,
+) -> TraceFit {
+    fit_trace_from(obs, valid, tubes, p, n, v, q, Some(alpha0))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn fit_trace_from(
+    obs: &[Vec<f64>; 3],
+    valid: &[Vec<bool>; 3],
+    tubes: &[Tube],
+    p: V3,
+    n: V3,
+    v: V3,
+    q: &Quadrature,
+    alpha0: Option<f64>,
+) -> TraceFit {
     let qd = Quadrature::diffuse();
     let d: Vec<f64> = tubes.iter().map(|t| response(p, n, v, t, None, &qd).diffuse).collect();
     let residual_with = |alpha: f64, q: &Quadrature| -> (f64, [f64; 3], [f64; 3]) {
@@ -170,12 +201,16 @@ pub fn fit_trace(
     // log α with the fit's, kept inside the bracket around the grid's best point (a golden
     // section step where the parabola is no help).
     const GRID: [f64; 8] = [0.025, 0.04, 0.06, 0.09, 0.13, 0.19, 0.28, 0.42];
-    let coarse = Quadrature::new(8, 12, 6);
-    let scores: Vec<f64> = GRID.iter().map(|&a| residual_with(a, &coarse).0).collect();
-    let best = scores.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1)).map_or(0, |b| b.0);
-    let (lo, hi) = (GRID[best.saturating_sub(1)].ln(), GRID[(best + 1).min(GRID.len() - 1)].ln());
-    let mut pts: Vec<(f64, f64)> =
-        [lo, GRID[best].ln(), hi].iter().map(|&x| (x, residual_at(x.exp()).0)).collect();
+    let (lo, mid, hi) = match alpha0 {
+        Some(a) if a > 0.0 => (a.ln() - 1.5f64.ln(), a.ln(), a.ln() + 1.5f64.ln()),
+        _ => {
+            let coarse = Quadrature::coarse();
+            let scores: Vec<f64> = GRID.iter().map(|&a| residual_with(a, &coarse).0).collect();
+            let best = scores.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1)).map_or(0, |b| b.0);
+            (GRID[best.saturating_sub(1)].ln(), GRID[best].ln(), GRID[(best + 1).min(GRID.len() - 1)].ln())
+        }
+    };
+    let mut pts: Vec<(f64, f64)> = [lo, mid, hi].iter().map(|&x| (x, residual_at(x.exp()).0)).collect();
     for _ in 0..8 {
         pts.sort_by(|a, b| a.1.total_cmp(&b.1));
         let [(x0, f0), (x1, f1), (x2, f2)] = [pts[0], pts[1], pts[2]];
@@ -206,6 +241,168 @@ pub fn fit_trace(
     }
     let residual = if oo > 0.0 && count > 0 { (r / oo).sqrt() } else { 0.0 };
     TraceFit { diffuse, specular, alpha, residual }
+}
+
+/// One pass of one pixel for [`fit_normal`]: observations and validity per channel as for
+/// [`fit_trace`], and the tube at every frame.
+#[derive(Debug, Clone, Copy)]
+pub struct PassTrace<'a> {
+    /// `obs[c][k]`, in units of the tube's radiance.
+    pub obs: &'a [Vec<f64>; 3],
+    /// `valid[c][k]`.
+    pub valid: &'a [Vec<bool>; 3],
+    /// The tube at frame `k`.
+    pub tubes: &'a [Tube],
+}
+
+/// The normal from the diagonal passes (Gardner et al.'s ±15° mounts): with the roughness
+/// known from the straight pass, the normal `(−gx, −gy, 1)` whose model traces fit `passes`
+/// best. The albedos are solved linearly at every step (they absorb any shading the slopes do
+/// not explain); the slopes by Gauss–Newton from `n0`, the Jacobian by finite differences of
+/// the model traces. A turned mount moves both lobes with the slope along its own cross
+/// direction, so two mounts turned opposite ways pin down both slopes. `None` when the
+/// traces carry no information (dark pixel) or the iteration leaves the plausible range.
+/// `q` integrates the specular lobe: [`Quadrature::coarse`] is enough (the normal moves the
+/// lobe; the last 1e-3 of its shape does not move it).
+pub fn fit_normal(passes: &[PassTrace], p: V3, n0: V3, v: V3, alpha: f64, q: &Quadrature) -> Option<V3> {
+    if n0[2] <= 0.0 {
+        return None;
+    }
+    let qd = Quadrature::diffuse();
+    let normal = |g: [f64; 2]| normalize([-g[0], -g[1], 1.0]);
+    // The diffuse lobe is linear in the normal: one integration per frame serves every trial.
+    let e: Vec<V3> =
+        passes.iter().flat_map(|pt| pt.tubes.iter().map(|t| diffuse_vector(p, t, &qd))).collect();
+    let tubes: Vec<&Tube> = passes.iter().flat_map(|pt| pt.tubes.iter()).collect();
+    // Model traces (D, S) of every pass for slopes g, concatenated.
+    let model = |g: [f64; 2]| -> (Vec<f64>, Vec<f64>) {
+        let n = normal(g);
+        let d = e.iter().map(|e| dot(n, *e).max(0.0)).collect();
+        let s = tubes.iter().map(|t| specular_response(p, n, v, t, alpha, q)).collect();
+        (d, s)
+    };
+    let obs: [Vec<f64>; 3] =
+        std::array::from_fn(|c| passes.iter().flat_map(|pt| pt.obs[c].iter().copied()).collect());
+    let valid: [Vec<bool>; 3] =
+        std::array::from_fn(|c| passes.iter().flat_map(|pt| pt.valid[c].iter().copied()).collect());
+    // Per channel albedos and the residual.
+    let predict = |d: &[f64], s: &[f64]| -> ([(f64, f64); 3], f64) {
+        let mut ab = [(0.0, 0.0); 3];
+        let mut total = 0.0;
+        for c in 0..3 {
+            let (a, b, r) = two_lobes(&obs[c], d, s, &valid[c]);
+            ab[c] = (a, b);
+            total += r;
+        }
+        (ab, total)
+    };
+    const EPS: f64 = 0.005;
+    let mut g = [-n0[0] / n0[2], -n0[1] / n0[2]];
+    let (mut d, mut s) = model(g);
+    let (mut ab, mut cost) = predict(&d, &s);
+    if ab.iter().all(|&(a, b)| a == 0.0 && b == 0.0) {
+        return None;
+    }
+    for _ in 0..4 {
+        // The Jacobian of the model with its albedos re-solved at each trial (variable
+        // projection): the albedos and the slopes trade off, and ignoring that makes the
+        // iteration crawl.
+        let (dx, sx) = model([g[0] + EPS, g[1]]);
+        let (dy, sy) = model([g[0], g[1] + EPS]);
+        let (abx, _) = predict(&dx, &sx);
+        let (aby, _) = predict(&dy, &sy);
+        // Normal equations of Σ (o − m − Jx·δx − Jy·δy)² over valid samples.
+        let (mut a11, mut a12, mut a22, mut b1, mut b2) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for c in 0..3 {
+            let (a, b) = ab[c];
+            let ((ax, bx), (ay, by)) = (abx[c], aby[c]);
+            for k in 0..d.len() {
+                if !valid[c][k] {
+                    continue;
+                }
+                let m = a * d[k] + b * s[k];
+                let jx = (ax * dx[k] + bx * sx[k] - m) / EPS;
+                let jy = (ay * dy[k] + by * sy[k] - m) / EPS;
+                let r = obs[c][k] - m;
+                a11 += jx * jx;
+                a12 += jx * jy;
+                a22 += jy * jy;
+                b1 += jx * r;
+                b2 += jy * r;
+            }
+        }
+        let det = a11 * a22 - a12 * a12;
+        if det <= 1e-30 * (a11 * a22).max(1e-300) {
+            return None;
+        }
+        let mut step = [(b1 * a22 - b2 * a12) / det, (b2 * a11 - b1 * a12) / det];
+        // At most 0.05 in slope (3°) per step, halved until the cost falls.
+        let len = step[0].hypot(step[1]);
+        if len > 0.05 {
+            step = [step[0] * 0.05 / len, step[1] * 0.05 / len];
+        }
+        let mut accepted = false;
+        for _ in 0..4 {
+            let trial = [g[0] + step[0], g[1] + step[1]];
+            let (td, ts) = model(trial);
+            let (tab, tcost) = predict(&td, &ts);
+            if tcost <= cost {
+                (g, d, s, ab, cost, accepted) = (trial, td, ts, tab, tcost, true);
+                break;
+            }
+            step = [step[0] / 2.0, step[1] / 2.0];
+        }
+        // Converged below 0.005° of slope, or no step helps.
+        if !accepted || step[0].hypot(step[1]) < 1e-4 {
+            break;
+        }
+    }
+    (g[0].hypot(g[1]) < 1.0).then(|| normal(g))
+}
+
+/// Gardner et al.'s blend: the normals' fine detail from the reflectance passes (`photo`),
+/// their low frequencies from the displacement map (`geom`), which the shading cannot bias.
+/// In slope space: `g = G_σ∗g_geom + (g_photo − G_σ∗g_photo)`, with `G_σ` a Gaussian of
+/// `sigma` pixels normalised over the pixels that have both normals. Pixels with only one
+/// normal keep it.
+pub fn blend_normals(
+    photo: &[Option<V3>],
+    geom: &[Option<V3>],
+    width: usize,
+    height: usize,
+    sigma: f64,
+) -> Vec<Option<V3>> {
+    let slope = |n: V3| [-n[0] / n[2], -n[1] / n[2]];
+    let both: Vec<Option<([f64; 2], [f64; 2])>> = photo
+        .iter()
+        .zip(geom)
+        .map(|(a, b)| match (a, b) {
+            (Some(a), Some(b)) if a[2] > 0.0 && b[2] > 0.0 => Some((slope(*a), slope(*b))),
+            _ => None,
+        })
+        .collect();
+    let r = (3.0 * sigma).ceil() as usize;
+    let kernel: Vec<f64> = (0..=r).map(|k| (-((k * k) as f64) / (2.0 * sigma * sigma)).exp()).collect();
+    (0..width * height)
+        .map(|i| {
+            let Some((gp, _)) = both[i] else { return photo[i].or(geom[i]) };
+            let (x, y) = (i % width, i / width);
+            let (mut wsum, mut lp, mut lg) = (0.0, [0.0; 2], [0.0; 2]);
+            for yy in y.saturating_sub(r)..(y + r + 1).min(height) {
+                for xx in x.saturating_sub(r)..(x + r + 1).min(width) {
+                    let Some((a, b)) = both[yy * width + xx] else { continue };
+                    let w = kernel[x.abs_diff(xx)] * kernel[y.abs_diff(yy)];
+                    wsum += w;
+                    for k in 0..2 {
+                        lp[k] += w * a[k];
+                        lg[k] += w * b[k];
+                    }
+                }
+            }
+            let g: Vec<f64> = (0..2).map(|k| lg[k] / wsum + gp[k] - lp[k] / wsum).collect();
+            Some(normalize([-g[0], -g[1], 1.0]))
+        })
+        .collect()
 }
 
 /// One pixel's trace for [`strip_scale`]: observations and validity per channel, and the model
@@ -291,8 +488,9 @@ mod tests {
     fn fit_recovers_a_noiseless_trace() {
         let q = Quadrature::fit();
         let (p, n, v) = ([1.0, 2.0, 0.3], normalize([0.02, -0.03, 1.0]), normalize([-0.5, 0.02, 0.866]));
-        let tubes: Vec<Tube> =
-            (-140..=100).map(|g| Tube { x: g as f64, z: 50.0, radius: 6.0, y0: -150.0, y1: 150.0 }).collect();
+        let tubes: Vec<Tube> = (-140..=100)
+            .map(|g| Tube { x: g as f64, z: 50.0, radius: 6.0, y0: -150.0, y1: 150.0, yaw: 0.0 })
+            .collect();
         for (rd, rs, alpha) in
             [([0.3, 0.2, 0.1], [0.06, 0.058, 0.055], 0.04), ([0.5, 0.15, 0.1], [0.12; 3], 0.22)]
         {
@@ -312,5 +510,75 @@ mod tests {
                 assert!((f.specular[c] / rs[c] - 1.0).abs() < 3e-3, "ρs {:?} vs {rs:?}", f.specular);
             }
         }
+    }
+
+    #[test]
+    fn diagonal_passes_recover_the_normal() {
+        let (p, v) = ([1.0, 2.0, 0.3], normalize([-0.5, 0.02, 0.866]));
+        let truth = normalize([0.06, -0.045, 1.0]);
+        for (rd, rs, alpha) in
+            [([0.3, 0.2, 0.1], [0.06, 0.058, 0.055], 0.05), ([0.5, 0.15, 0.1], [0.02; 3], 0.2)]
+        {
+            let mut traces = Vec::new();
+            for yaw in [15f64, -15.0] {
+                let tubes: Vec<Tube> = (-140..=100)
+                    .map(|g| Tube::through([g as f64, 0.0, 50.0], yaw.to_radians(), 6.0, 300.0))
+                    .collect();
+                let mut obs: [Vec<f64>; 3] = Default::default();
+                for t in &tubes {
+                    let r = response(p, truth, v, t, Some(alpha), &Quadrature::render());
+                    for c in 0..3 {
+                        obs[c].push(rd[c] * r.diffuse + rs[c] * r.specular);
+                    }
+                }
+                let valid: [Vec<bool>; 3] = std::array::from_fn(|_| vec![true; tubes.len()]);
+                traces.push((obs, valid, tubes));
+            }
+            let passes: Vec<PassTrace> =
+                traces.iter().map(|(obs, valid, tubes)| PassTrace { obs, valid, tubes }).collect();
+            // From the plane's normal, 4.3° away.
+            let n = fit_normal(&passes, p, [0.0, 0.0, 1.0], v, alpha, &Quadrature::coarse()).unwrap();
+            // The fit's quadrature differs from the render's by ~1e-4 of the lobes, and the
+            // iteration stops below 0.006° of slope: a few hundredths of a degree remain.
+            let err = crate::vec3::angle(n, truth).to_degrees();
+            assert!(err < 0.05, "α {alpha}: {err}° off");
+        }
+    }
+
+    #[test]
+    fn blending_keeps_the_geometry_s_low_frequencies() {
+        let (w, h) = (24, 16);
+        // Geometry: a gentle tilt. Photometric: the same plus fine ripples, plus a bias.
+        let geom: Vec<Option<V3>> =
+            (0..w * h).map(|i| Some(normalize([0.02 + 0.001 * (i % w) as f64, -0.01, 1.0]))).collect();
+        let ripple = |i: usize| 0.01 * if (i % w + i / w).is_multiple_of(2) { 1.0 } else { -1.0 };
+        let photo: Vec<Option<V3>> = (0..w * h)
+            .map(|i| geom[i].map(|n| normalize([n[0] / n[2] + 0.03, n[1] / n[2] - 0.02, 1.0])))
+            .collect();
+        // A constant bias is all low frequency: the blend removes it exactly.
+        let out = blend_normals(&photo, &geom, w, h, 2.0);
+        for i in 0..w * h {
+            let a = crate::vec3::angle(out[i].unwrap(), geom[i].unwrap());
+            // Away from the edges the Gaussian sees a symmetric linear field: exact there.
+            let (x, y) = (i % w, i / w);
+            if (6..w - 6).contains(&x) && (6..h - 6).contains(&y) {
+                assert!(a < 1e-9, "pixel {i}: {a}");
+            }
+        }
+        // Fine ripples in the photometric normals survive the blend.
+        let rippled: Vec<Option<V3>> = (0..w * h)
+            .map(|i| geom[i].map(|n| normalize([n[0] / n[2] + ripple(i), n[1] / n[2], 1.0])))
+            .collect();
+        let out = blend_normals(&rippled, &geom, w, h, 2.0);
+        let (x, y) = (12, 8);
+        let i = y * w + x;
+        let got = out[i].unwrap();
+        let nx = got[0] / got[2];
+        let base = geom[i].unwrap()[0] / geom[i].unwrap()[2];
+        assert!((nx - base - ripple(i)).abs() < 0.002, "{} vs {}", nx - base, ripple(i));
+        // Only one normal: kept.
+        let mut lone = geom.clone();
+        lone[0] = None;
+        assert_eq!(blend_normals(&photo, &lone, w, h, 2.0)[0], photo[0]);
     }
 }

@@ -18,7 +18,10 @@
 
 mod fit;
 
-pub use fit::{fit_trace, normals_from_points, point_on_sheet, strip_scale, stripe_peak, TraceFit};
+pub use fit::{
+    blend_normals, fit_normal, fit_trace, normals_from_points, point_on_sheet, refit_trace, strip_scale,
+    stripe_peak, PassTrace, TraceFit,
+};
 
 use lightrig_imaging::calib::{find_chessboard, pixel_ray, pose_from_board, Board, Intrinsics, Pose};
 use lightrig_imaging::io::Image;
@@ -40,15 +43,15 @@ pub struct Light {
 }
 
 impl Light {
-    /// The tube at gantry position `g`.
+    /// The tube at gantry position `g`, mounted across the gantry's travel.
     pub fn at(&self, g: f64) -> Tube {
-        Tube {
-            x: g + self.offset,
-            z: self.height,
-            radius: self.radius,
-            y0: -self.length / 2.0,
-            y1: self.length / 2.0,
-        }
+        self.mounted(g, 0.0)
+    }
+
+    /// The tube at gantry position `g` on a mount turned by `yaw` (radians, counter-clockwise
+    /// seen from above) about the vertical through its centre: the diagonal passes.
+    pub fn mounted(&self, g: f64, yaw: f64) -> Tube {
+        Tube::through([g + self.offset, 0.0, self.height], yaw, self.radius, self.length)
     }
 }
 
