@@ -51,7 +51,7 @@ pub fn read_sidecar(path: &Path) -> Result<Vec<Exposure>, String> {
 /// Response curves as stored by `hdr calibrate`: one per channel.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ResponseFile {
-    /// Levels per channel (256 or 65536).
+    /// Levels per channel (256 for 8-bit files; for 16-bit files the data's: 4096 for 12-bit).
     pub levels: usize,
     /// `g = ln f⁻¹` per channel, `levels` values each.
     pub g: Vec<Vec<f32>>,
@@ -93,9 +93,20 @@ fn load(exposures: &[Exposure]) -> Result<Loaded, String> {
         BitDepth::Eight => Samples::Eight(
             images.iter().map(|im| im.data.iter().map(|&v| (v * 255.0).round() as u8).collect()).collect(),
         ),
-        BitDepth::Sixteen => Samples::Sixteen(
-            images.iter().map(|im| im.data.iter().map(|&v| (v * 65535.0).round() as u16).collect()).collect(),
-        ),
+        BitDepth::Sixteen => {
+            let mut v: Vec<Vec<u16>> = images
+                .iter()
+                .map(|im| im.data.iter().map(|&v| (v * 65535.0).round() as u16).collect())
+                .collect();
+            // 10/12/14-bit data in 16-bit files: MSB-aligned data (low bits always zero) are
+            // shifted down, so that levels are the sensor's and its clip level is the top one.
+            let all = v.iter().flatten().fold(0u16, |a, &z| a | z);
+            let shift = if all == 0 { 0 } else { all.trailing_zeros().min(8) };
+            if shift > 0 {
+                v.iter_mut().flatten().for_each(|z| *z >>= shift);
+            }
+            Samples::Sixteen(v)
+        }
     };
     Ok(Loaded { width, height, channels, samples, times })
 }
@@ -116,11 +127,21 @@ fn on_stack<R>(
     r.map_err(|e| e.to_string())
 }
 
-fn recover(l: &Loaded) -> Result<ResponseFile, String> {
-    let levels = match l.samples {
+/// Levels of the data: 256 for 8-bit files, else the smallest power of two (≥ 256) above the
+/// largest sample, e.g. 4096 for 12-bit data in 16-bit files (whose clipped samples then sit
+/// at the top level and get zero weight).
+fn data_levels(l: &Loaded) -> usize {
+    match &l.samples {
         Samples::Eight(_) => 256,
-        Samples::Sixteen(_) => 65536,
-    };
+        Samples::Sixteen(v) => {
+            let max = v.iter().flatten().copied().max().unwrap_or(0) as usize;
+            (max + 1).next_power_of_two().max(256)
+        }
+    }
+}
+
+fn recover(l: &Loaded) -> Result<ResponseFile, String> {
+    let levels = data_levels(l);
     let opts = DebevecOptions::new(levels);
     let curves = on_stack(l, |s| hdr::debevec(s, levels, &opts), |s| hdr::debevec(s, levels, &opts))?;
     Ok(ResponseFile { levels, g: curves.into_iter().map(|r| r.g).collect() })
@@ -147,6 +168,9 @@ pub fn merge(exposures: &[Exposure], response: Option<&Path>, out: &Path) -> Res
         }
         None => recover(&l)?,
     };
+    if r.levels < data_levels(&l) {
+        return Err(format!("the response has {} levels, the images need {}", r.levels, data_levels(&l)));
+    }
     if r.g.len() != l.channels {
         return Err(format!("the response has {} channels, the images {}", r.g.len(), l.channels));
     }
@@ -212,5 +236,50 @@ mod tests {
             Exposure { path: "dir/a.png".into(), seconds: 0.5 }
         );
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// 12-bit data in 16-bit PNGs, LSB-aligned (0..=4095) and MSB-aligned (×16): the data's
+    /// 4096 levels are found, so clipped samples sit at the top level and get zero weight.
+    #[test]
+    fn twelve_bit_data_in_16_bit_png_files() {
+        for (align, mult) in [("lsb", 1.0), ("msb", 16.0)] {
+            let dir = std::env::temp_dir().join(format!("lightrig-hdr-cli16-{align}-{}", std::process::id()));
+            let _ = std::fs::remove_dir_all(&dir);
+            std::fs::create_dir_all(&dir).unwrap();
+            let (w, h) = (128u32, 64u32);
+            let radiance = |x: u32, y: u32| {
+                10f64.powf(-3.0 + 3.0 * f64::from(x) / f64::from(w - 1))
+                    * (1.0 + 0.2 * f64::from(y % 7) / 7.0)
+            };
+            let mut exposures = Vec::new();
+            for (k, t) in [1.0f32, 4.0, 16.0, 64.0, 256.0].iter().enumerate() {
+                let img = Image::from_fn(w, h, 1, |x, y, _| {
+                    let e = (radiance(x, y) * f64::from(*t) / 256.0).min(1.0);
+                    ((e.powf(1.0 / 2.2) * 4095.0).round() * mult / 65535.0) as f32
+                })
+                .with_encoding(io::Encoding::Srgb);
+                let name = format!("e{k}.png");
+                io::write_png(dir.join(&name), &img, BitDepth::Sixteen).unwrap();
+                exposures.push(Exposure { path: dir.join(&name), seconds: *t });
+            }
+            let resp = calibrate(&exposures, &dir.join("response.json")).unwrap();
+            assert_eq!((resp.levels, resp.g.len()), (4096, 1), "{align}");
+            merge(&exposures, Some(&dir.join("response.json")), &dir.join("hdr.exr")).unwrap();
+            let out = io::read(dir.join("hdr.exr")).unwrap();
+            let at = |x: u32, y: u32| f64::from(out.get(x, y, 0));
+            let (rx, ry) = (96, 3);
+            let mut worst = 0.0f64;
+            for y in (0..h).step_by(5) {
+                for x in (w / 3..w - 4).step_by(3) {
+                    let got = at(x, y) / at(rx, ry);
+                    let want = radiance(x, y) / radiance(rx, ry);
+                    worst = worst.max((got / want - 1.0).abs());
+                }
+            }
+            eprintln!("12-bit in 16-bit PNG ({align}): worst relative error {worst}");
+            // Noise-free 12-bit data over the two brighter decades: quantisation-limited.
+            assert!(worst < 0.005, "{align}: worst relative error {worst}");
+            std::fs::remove_dir_all(&dir).unwrap();
+        }
     }
 }

@@ -6,12 +6,19 @@
 //! [`Response`] stores `g(Z) = ln f⁻¹(Z)`, the log exposure of each level, per channel.
 //!
 //! - [`debevec`]: Debevec–Malik (1997). Least squares over sampled pixels:
-//!   `min Σ_ij [w(Z_ij)(g(Z_ij) − ln E_i − ln Δt_j)]² + λ² Σ_z [w_s(z)·g''(z)]²` with
-//!   `g(mid) = 0`, solved densely through the normal equations (Cholesky). Inputs with more
-//!   than [`DebevecOptions::max_bins`] levels are binned and the curve interpolated back.
+//!   `min Σ_ij [w(Z_ij)(g(Z_ij) − ln E_i − ln Δt_j)]² + λ²ρ ∫ [w_s(u)·g''(u)]² du` with
+//!   `g(mid) = 0`, `u = z/(levels−1)` and `ρ = Σ w²`. `g` is piecewise linear on at most
+//!   [`DebevecOptions::max_bins`] knots (each sample enters at its own level, no rounding to
+//!   bins); the `ln E_i` are eliminated exactly, so thousands of samples cost little.
 //! - [`robertson`]: Robertson–Borman–Stevenson (2003). Alternates
 //!   `E_i = Σ_j w_ij f⁻¹(Z_ij) Δt_j / Σ_j w_ij Δt_j²` and `f⁻¹(m) = mean{E_i Δt_j : Z_ij = m}`,
-//!   normalised to `f⁻¹(mid) = 1` (the same gauge as Debevec's `g(mid) = 0`).
+//!   the latter smoothed with the same penalty (see [`robertson`] for why), normalised to
+//!   `f⁻¹(mid) = 1` (the same gauge as Debevec's `g(mid) = 0`).
+//!
+//! Accuracy (tests/hdr.rs): response recovered from the stack itself, then merged, 12- and
+//! 16-bit stacks with shot and read noise: median relative radiance error ≤ 0.1 %, p99 ≤ 0.5 %
+//! with `black` set at the read-noise floor. 8-bit stacks are bounded by quantisation
+//! (≈ 0.16 % median at 1-stop spacing even with the true response).
 //! - [`merge`]: `E = Σ_j w(Z_j) f⁻¹(Z_j)/Δt_j / Σ_j w(Z_j)`, in the linear domain, with
 //!   weights that are exactly zero at `Z ≤ black` and `Z ≥ saturation`. [`merge_linear`] is
 //!   the same with `f⁻¹(Z) = max(Z − black, 0)` for linear machine-vision sensors.
@@ -475,23 +482,23 @@ fn accumulate_dyn<T: Sample>(
 }
 
 /// Picks up to `count` pixels of channel `c` spread evenly over the radiance range, ranking
-/// pixels (on a grid of at most ~65 k) by `Σ_j Z_ij`, keeping only pixels with at least one
-/// sample of non-zero weight.
+/// pixels (on a grid of at most ~256 k) by `Σ_j Z_ij`, keeping only pixels with at least two
+/// samples of non-zero weight (one alone says nothing about the response).
 fn select_samples<T: Sample>(stack: &Stack<T>, c: usize, count: usize, w: &[f64]) -> Vec<usize> {
     let pixels = stack.width * stack.height;
-    let stride = (pixels / 65536).max(1);
+    let stride = (pixels / 262_144).max(1);
     let mut cand: Vec<(u64, usize)> = (0..pixels)
         .step_by(stride)
         .filter_map(|p| {
             let i = p * stack.channels + c;
             let mut sum = 0u64;
-            let mut usable = false;
+            let mut usable = 0;
             for img in &stack.images {
                 let z = img[i].level();
                 sum += z as u64;
-                usable |= w.get(z).is_some_and(|&w| w > 0.0);
+                usable += usize::from(w.get(z).is_some_and(|&w| w > 0.0));
             }
-            usable.then_some((sum, i))
+            (usable >= 2).then_some((sum, i))
         })
         .collect();
     cand.sort_unstable();
@@ -509,22 +516,37 @@ fn select_samples<T: Sample>(stack: &Stack<T>, c: usize, count: usize, w: &[f64]
 pub struct DebevecOptions {
     /// Data weights; samples at or beyond the thresholds do not enter the fit.
     pub weights: Weights,
-    /// Smoothness `λ` on `g''` (per bin when binned), as in Debevec–Malik.
+    /// Smoothness `λ`: the penalty is `λ²·ρ·∫ w_s(u)² g''(u)² du` over the normalised level
+    /// `u = z/(levels−1)`, `ρ` the total squared data weight, so the same `λ` means the same
+    /// thing at any bit depth, knot count and sample count.
     pub lambda: f64,
-    /// Pixels sampled per channel (need `samples·(P−1) > levels`).
+    /// Pixels sampled per channel, at most (spread evenly over the radiance range).
     pub samples: usize,
-    /// Largest number of unknowns for `g`; finer inputs are binned to this many.
+    /// Largest number of knots for `g`; with fewer knots than levels, `g` is piecewise linear
+    /// between evenly spaced knots (each sample enters the fit at its own level).
     pub max_bins: usize,
 }
 
 impl DebevecOptions {
-    /// λ = 10, 200 samples, at most 1024 bins, hat weights over the full range.
+    /// λ = 10⁻⁴, up to 20 000 samples, at most 1024 knots, hat weights over the full range.
     pub fn new(levels: usize) -> Self {
-        DebevecOptions { weights: Weights::full(levels), lambda: 10.0, samples: 200, max_bins: 1024 }
+        DebevecOptions { weights: Weights::full(levels), lambda: 1e-4, samples: 20_000, max_bins: 1024 }
     }
 }
 
+/// Knot interpolation for level `z`: `g(z) = (1−t)·x[k] + t·x[k+1]`.
+#[inline]
+fn knot(z: usize, per_level: f64, nk: usize) -> (usize, f64) {
+    let u = z as f64 * per_level;
+    let k = (u.floor() as usize).min(nk - 2);
+    (k, u - k as f64)
+}
+
 /// Recovers one response per channel with Debevec–Malik; `g(levels/2) = 0`.
+///
+/// The per-pixel unknowns `ln E_i` are eliminated exactly (each touches only its own
+/// samples), so the dense system has only the knots as unknowns and the sample count costs
+/// `O(samples·P²)`, not `O(samples³)`.
 pub fn debevec<T: Sample>(
     stack: &Stack<T>,
     levels: usize,
@@ -538,80 +560,94 @@ pub fn debevec<T: Sample>(
     if options.samples < 2 || options.max_bins < 4 {
         return Err(HdrError::InvalidParameter("need at least 2 samples and 4 bins"));
     }
-    let bin = levels.div_ceil(options.max_bins);
-    let nb = levels.div_ceil(bin);
+    let nk = options.max_bins.min(levels);
+    let per_level = (nk - 1) as f64 / (levels - 1) as f64;
     let w = options.weights.table(T::RANGE, None);
     let w: Vec<f64> = w.iter().enumerate().map(|(z, &x)| if z < levels { x } else { 0.0 }).collect();
     let mid = levels / 2;
     let ln_t: Vec<f64> = stack.times.iter().map(|&t| (t as f64).ln()).collect();
     let mut out = Vec::with_capacity(stack.channels);
+    // Per sample: Σ w²·a_j (sparse over knots) and the observations.
+    let mut a_sum: Vec<(usize, f64)> = Vec::with_capacity(4 * stack.len());
     for c in 0..stack.channels {
         let samples = select_samples(stack, c, options.samples, &w);
         if samples.is_empty() {
             return Err(HdrError::NoUsablePixels);
         }
-        let n = nb + samples.len();
-        let mut m = vec![0.0f64; n * n];
-        let mut b = vec![0.0f64; n];
-        for (s, &i) in samples.iter().enumerate() {
-            let e = nb + s;
+        let mut m = vec![0.0f64; nk * nk];
+        let mut b = vec![0.0f64; nk];
+        let mut rho = 0.0;
+        for &i in &samples {
+            a_sum.clear();
+            let (mut s, mut l_sum) = (0.0, 0.0);
             for (img, &lt) in stack.images.iter().zip(&ln_t) {
                 let z = img[i].level();
-                let wz = w[z];
-                if wz == 0.0 {
+                let w2 = w[z] * w[z];
+                if w2 == 0.0 {
                     continue;
                 }
-                let k = z / bin;
-                let w2 = wz * wz;
-                m[k * n + k] += w2;
-                m[e * n + e] += w2;
-                m[k * n + e] -= w2;
-                m[e * n + k] -= w2;
-                b[k] += w2 * lt;
-                b[e] -= w2 * lt;
+                let (k, t) = knot(z, per_level, nk);
+                let (a0, a1) = (1.0 - t, t);
+                m[k * nk + k] += w2 * a0 * a0;
+                m[k * nk + k + 1] += w2 * a0 * a1;
+                m[(k + 1) * nk + k] += w2 * a0 * a1;
+                m[(k + 1) * nk + k + 1] += w2 * a1 * a1;
+                b[k] += w2 * a0 * lt;
+                b[k + 1] += w2 * a1 * lt;
+                for (kk, a) in [(k, a0), (k + 1, a1)] {
+                    match a_sum.iter_mut().find(|e| e.0 == kk) {
+                        Some(e) => e.1 += w2 * a,
+                        None => a_sum.push((kk, w2 * a)),
+                    }
+                }
+                s += w2;
+                l_sum += w2 * lt;
+            }
+            if s == 0.0 {
+                continue;
+            }
+            rho += s;
+            // Schur complement of ln E_i = (Σ w²(a·g − ln Δt))/Σ w².
+            for &(p, ap) in &a_sum {
+                b[p] -= ap * l_sum / s;
+                for &(q, aq) in &a_sum {
+                    m[p * nk + q] -= ap * aq / s;
+                }
             }
         }
-        // Smoothness on bins: λ·w_s(k)·(g[k−1] − 2g[k] + g[k+1]), w_s a full-range hat with a
-        // floor so that bins no sample reaches are still tied to their neighbours.
-        for k in 1..nb - 1 {
-            let hat = (k.min(nb - 1 - k) as f64) / (0.5 * (nb - 1) as f64);
-            let cf = options.lambda * hat.max(1.0 / nb as f64);
-            let c2 = cf * cf;
+        if rho == 0.0 {
+            return Err(HdrError::NoUsablePixels);
+        }
+        // Smoothness on knots: λ²ρ·Σ_k w_s(k)²·(Δ²g_k)²·(nk−1)³ ≈ λ²ρ∫w_s²g''² du.
+        let base = options.lambda * options.lambda * rho * ((nk - 1) as f64).powi(3);
+        for k in 1..nk - 1 {
+            let c2 = base * smooth_weight(k, nk).powi(2);
             let idx = [k - 1, k, k + 1];
             let coef = [1.0, -2.0, 1.0];
             for a in 0..3 {
                 for bb in 0..3 {
-                    m[idx[a] * n + idx[bb]] += c2 * coef[a] * coef[bb];
+                    m[idx[a] * nk + idx[bb]] += c2 * coef[a] * coef[bb];
                 }
             }
         }
-        // Gauge g(mid) = 0.
-        let km = mid / bin;
-        m[km * n + km] += 1.0;
-        // A tiny ridge keeps the factorisation defined when lambda = 0 leaves gaps.
-        for k in 0..n {
-            m[k * n + k] += 1e-9;
+        // Gauge g(mid) = 0 (only the null space g + const needs fixing; the exact value is
+        // subtracted below), and a tiny ridge for lambda = 0 with unobserved knots.
+        let (km, tm) = knot(mid, per_level, nk);
+        let gauge = rho / nk as f64;
+        m[km * nk + km] += gauge * (1.0 - tm) * (1.0 - tm);
+        m[km * nk + km + 1] += gauge * (1.0 - tm) * tm;
+        m[(km + 1) * nk + km] += gauge * (1.0 - tm) * tm;
+        m[(km + 1) * nk + km + 1] += gauge * tm * tm;
+        for k in 0..nk {
+            m[k * nk + k] += 1e-12 * rho;
         }
-        let x = cholesky_solve(&mut m, &mut b, n).ok_or(HdrError::NoUsablePixels)?;
-        // Back to levels: linear interpolation between bin centres.
-        let centre = |k: usize| (k * bin) as f64 + 0.5 * ((bin.min(levels - k * bin)) as f64 - 1.0);
-        let mut g = Vec::with_capacity(levels);
-        for z in 0..levels {
-            let k = z / bin;
-            let v = if bin == 1 {
-                x[k]
-            } else {
-                let (k0, k1) =
-                    if (z as f64) < centre(k) { (k.saturating_sub(1), k) } else { (k, (k + 1).min(nb - 1)) };
-                if k0 == k1 {
-                    x[k0]
-                } else {
-                    let t = (z as f64 - centre(k0)) / (centre(k1) - centre(k0));
-                    x[k0] + t * (x[k1] - x[k0])
-                }
-            };
-            g.push(v);
-        }
+        let x = cholesky_solve(&mut m, &mut b, nk).ok_or(HdrError::NoUsablePixels)?;
+        let g: Vec<f64> = (0..levels)
+            .map(|z| {
+                let (k, t) = knot(z, per_level, nk);
+                (1.0 - t) * x[k] + t * x[k + 1]
+            })
+            .collect();
         let g0 = g[mid];
         out.push(Response { levels, g: g.into_iter().map(|v| (v - g0) as f32).collect() });
     }
@@ -653,24 +689,43 @@ fn cholesky_solve(m: &mut [f64], b: &mut [f64], n: usize) -> Option<Vec<f64>> {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RobertsonOptions {
     pub weights: Weights,
+    /// Smoothness `λ` of the response step, in the same units as [`DebevecOptions::lambda`];
+    /// 0 gives the plain per-level mean of the paper.
+    pub lambda: f64,
+    /// Largest number of knots for `g` in the smoothed response step.
+    pub max_bins: usize,
     /// Iteration limit.
     pub max_iterations: usize,
-    /// Stop when the mean squared change of `f⁻¹` falls below this.
+    /// Stop when no weighted level's `g = ln f⁻¹` moves by more than this in one iteration.
     pub tolerance: f64,
 }
 
 impl RobertsonOptions {
-    /// Hat weights over the full range, 30 iterations, tolerance 1e-10.
+    /// Hat weights over the full range, λ = 10⁻⁴, 1024 knots, at most 80 iterations,
+    /// tolerance 10⁻⁶.
     pub fn new(levels: usize) -> Self {
-        RobertsonOptions { weights: Weights::full(levels), max_iterations: 30, tolerance: 1e-10 }
+        RobertsonOptions {
+            weights: Weights::full(levels),
+            lambda: 1e-4,
+            max_bins: 1024,
+            max_iterations: 80,
+            tolerance: 1e-6,
+        }
     }
 }
 
 /// Recovers one response per channel with Robertson's iteration; `f⁻¹(levels/2) = 1`.
 /// The weights are the fixed table of `options.weights` (use [`WeightShape::Hat`]; the
 /// response-dependent [`WeightShape::Snr`] falls back to its edge taper here).
-/// Uses every pixel (on a grid of at most ~256 k pixels). Levels never observed are
-/// interpolated between observed neighbours.
+/// Uses every pixel (on a grid of at most ~256 k pixels).
+///
+/// The response step differs from the paper's plain mean per level: `ln` of the means is fitted
+/// by a piecewise-linear `g` with the smoothness penalty of [`debevec`]. With exposure times in
+/// a fixed ratio (e.g. 1 stop apart) the data cannot tell `f⁻¹` from `f⁻¹·p(ln f⁻¹)` for any
+/// `p` periodic with the log ratio (the radiances absorb it), so the plain iteration keeps the
+/// periodic part of its starting curve's error for good: several % on a gamma-2.2 curve from
+/// a linear start. The penalty damps that component every iteration and fills levels no
+/// sample reached.
 pub fn robertson<T: Sample>(
     stack: &Stack<T>,
     levels: usize,
@@ -678,19 +733,30 @@ pub fn robertson<T: Sample>(
 ) -> Result<Vec<Response>, HdrError> {
     check_levels::<T>(levels)?;
     options.weights.check()?;
+    if !(options.lambda.is_finite() && options.lambda >= 0.0) {
+        return Err(HdrError::InvalidParameter("lambda must be finite and non-negative"));
+    }
+    if options.max_bins < 4 {
+        return Err(HdrError::InvalidParameter("need at least 4 bins"));
+    }
     let w = options.weights.table(T::RANGE, None);
     let mid = levels / 2;
+    let nk = options.max_bins.min(levels);
     let times: Vec<f64> = stack.times.iter().map(|&t| t as f64).collect();
     let pixels = stack.width * stack.height;
     let stride = (pixels / 262_144).max(1);
     let mut out = Vec::with_capacity(stack.channels);
     for c in 0..stack.channels {
         let idx: Vec<usize> = (0..pixels).step_by(stride).map(|p| p * stack.channels + c).collect();
-        let mut inv: Vec<f64> = (0..levels).map(|z| z as f64 / mid as f64).collect();
+        let mut g: Vec<f64> = (0..levels).map(|z| (z as f64 / mid as f64).ln()).collect();
+        let mut inv: Vec<f64> = g.iter().map(|v| v.exp()).collect();
         let mut e = vec![0.0f64; idx.len()];
         let mut sum = vec![0.0f64; levels];
         let mut cnt = vec![0u32; levels];
-        for _ in 0..options.max_iterations.max(1) {
+        for it in 0..options.max_iterations.max(1) {
+            // Continuation: a strong penalty first flattens the periodic part of the starting
+            // curve's error, which the data never correct; it then relaxes to `lambda`.
+            let relax = (START_FACTOR * RELAX.powi(it as i32)).max(1.0);
             // Radiance: E_i = Σ w f⁻¹(Z) Δt / Σ w Δt².
             let mut any = false;
             for (ei, &i) in e.iter_mut().zip(&idx) {
@@ -706,7 +772,7 @@ pub fn robertson<T: Sample>(
             if !any {
                 return Err(HdrError::NoUsablePixels);
             }
-            // Response: f⁻¹(m) = mean of E_i Δt_j over samples at level m.
+            // Response: f⁻¹(m) = mean of E_i Δt_j over the weighted samples at level m.
             sum.fill(0.0);
             cnt.fill(0);
             for (&ei, &i) in e.iter().zip(&idx) {
@@ -719,44 +785,111 @@ pub fn robertson<T: Sample>(
                     cnt[z] += 1;
                 }
             }
-            let mut new: Vec<f64> =
-                sum.iter().zip(&cnt).map(|(&s, &n)| if n > 0 { s / n as f64 } else { f64::NAN }).collect();
-            fill_gaps(&mut new);
-            let norm = new[mid];
-            if !(norm.is_finite() && norm > 0.0) {
+            let data: Vec<(usize, f64, f64)> = (0..levels)
+                .filter(|&z| w[z] > 0.0 && cnt[z] > 0 && sum[z] > 0.0)
+                .map(|z| (z, (sum[z] / cnt[z] as f64).ln(), cnt[z] as f64 * w[z]))
+                .collect();
+            if data.len() < 2 {
                 return Err(HdrError::NoUsablePixels);
             }
-            new.iter_mut().for_each(|v| *v /= norm);
-            let change: f64 =
-                new.iter().zip(&inv).map(|(a, b)| (a - b) * (a - b)).sum::<f64>() / levels as f64;
-            inv = new;
-            if change < options.tolerance {
+            let mut new =
+                smooth_fit(levels, nk, &data, options.lambda * relax).ok_or(HdrError::NoUsablePixels)?;
+            let g0 = new[mid];
+            new.iter_mut().for_each(|v| *v -= g0);
+            let change =
+                (0..levels).filter(|&z| w[z] > 0.0).map(|z| (new[z] - g[z]).abs()).fold(0.0, f64::max);
+            g = new;
+            inv = g.iter().map(|v| v.exp()).collect();
+            if relax == 1.0 && change < options.tolerance {
                 break;
             }
         }
-        out.push(Response { levels, g: inv.iter().map(|&v| v.ln() as f32).collect() });
+        out.push(Response { levels, g: g.iter().map(|&v| v as f32).collect() });
     }
     Ok(out)
 }
 
-/// Replaces NaN entries by linear interpolation between the nearest finite neighbours
-/// (constant beyond the ends).
-fn fill_gaps(v: &mut [f64]) {
-    let known: Vec<usize> = (0..v.len()).filter(|&i| v[i].is_finite()).collect();
-    let (Some(&first), Some(&last)) = (known.first(), known.last()) else {
-        return;
-    };
-    for i in 0..first {
-        v[i] = v[first];
+/// Robertson's penalty schedule: `λ·max(1, START_FACTOR·RELAXⁱ)` at iteration `i`.
+const START_FACTOR: f64 = 1000.0;
+const RELAX: f64 = 0.7;
+
+/// Fits `g` (piecewise linear on `nk` evenly spaced knots, returned per level) to
+/// `(level, value, weight)` data: `min Σ weight·(g(level) − value)² + λ²·W·Σ_k w_s(k)²·
+/// (Δ²g_k)²·(nk−1)³`, `W` the total weight; the penalty is the one of [`debevec`]. The
+/// normal matrix is pentadiagonal, solved by banded Cholesky.
+fn smooth_fit(levels: usize, nk: usize, data: &[(usize, f64, f64)], lambda: f64) -> Option<Vec<f64>> {
+    let per_level = (nk - 1) as f64 / (levels - 1) as f64;
+    // Lower band: a[i][d] = M[i][i − d], d = 0..=2.
+    let mut a = vec![[0.0f64; 3]; nk];
+    let mut b = vec![0.0f64; nk];
+    let mut total = 0.0;
+    for &(z, v, wt) in data {
+        let (k, t) = knot(z, per_level, nk);
+        let (a0, a1) = (1.0 - t, t);
+        a[k][0] += wt * a0 * a0;
+        a[k + 1][0] += wt * a1 * a1;
+        a[k + 1][1] += wt * a0 * a1;
+        b[k] += wt * a0 * v;
+        b[k + 1] += wt * a1 * v;
+        total += wt;
     }
-    for i in last + 1..v.len() {
-        v[i] = v[last];
+    let base = lambda * lambda * total * ((nk - 1) as f64).powi(3);
+    for k in 1..nk - 1 {
+        let c2 = base * smooth_weight(k, nk).powi(2);
+        // (1, −2, 1) on (k−1, k, k+1).
+        a[k - 1][0] += c2;
+        a[k][0] += 4.0 * c2;
+        a[k + 1][0] += c2;
+        a[k][1] -= 2.0 * c2;
+        a[k + 1][1] -= 2.0 * c2;
+        a[k + 1][2] += c2;
     }
-    for pair in known.windows(2) {
-        let (a, b) = (pair[0], pair[1]);
-        for i in a + 1..b {
-            let t = (i - a) as f64 / (b - a) as f64;
-            v[i] = v[a] + t * (v[b] - v[a]);
+    for row in a.iter_mut() {
+        row[0] += 1e-12 * total;
+    }
+    // Banded Cholesky, L stored in place of a.
+    for i in 0..nk {
+        for d in (0..=2.min(i)).rev() {
+            let j = i - d;
+            let mut s = a[i][d];
+            for k in i.saturating_sub(2)..j {
+                s -= a[i][i - k] * a[j][j - k];
+            }
+            if d == 0 {
+                if s.is_nan() || s <= 0.0 {
+                    return None;
+                }
+                a[i][0] = s.sqrt();
+            } else {
+                a[i][d] = s / a[j][0];
+            }
         }
     }
+    for i in 0..nk {
+        let s: f64 = (i.saturating_sub(2)..i).map(|k| a[i][i - k] * b[k]).sum();
+        b[i] = (b[i] - s) / a[i][0];
+    }
+    for i in (0..nk).rev() {
+        let s: f64 = (i + 1..(i + 3).min(nk)).map(|k| a[k][k - i] * b[k]).sum();
+        b[i] = (b[i] - s) / a[i][0];
+    }
+    if !b.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    Some(
+        (0..levels)
+            .map(|z| {
+                let (k, t) = knot(z, per_level, nk);
+                (1.0 - t) * b[k] + t * b[k + 1]
+            })
+            .collect(),
+    )
+}
+
+/// Weight of the smoothness term at knot `k` of `nk`: a full-range hat (the curvature of
+/// usual responses is largest at the dark end) with a floor so that knots no sample reaches
+/// are still tied to their neighbours.
+fn smooth_weight(k: usize, nk: usize) -> f64 {
+    let hat = (k.min(nk - 1 - k) as f64) / (0.5 * (nk - 1) as f64);
+    hat.max(1.0 / nk as f64)
 }

@@ -7,6 +7,9 @@
 //! scale (seeded Gaussian). 16 exposures, 1 stop apart, the shortest putting the brightest
 //! gradient value at `X = 0.9`.
 //!
+//! The recovery tests also use a second response shape (`Curve::Filmic`, a shoulder) and
+//! 12- and 16-bit quantisation of the same scene.
+//!
 //! Run with `--nocapture` to see the figures.
 
 use lightrig_imaging::hdr::{
@@ -225,8 +228,9 @@ fn debevec_recovers_the_response() {
     let r = debevec(&stack, 256, &DebevecOptions::new(256)).unwrap();
     assert_eq!(r.len(), 3);
     assert!(r.iter().all(|r| r.g[128] == 0.0));
-    let (med, p99) = recovered_check("Debevec", &r, &stack, &e, 0.02);
-    assert!(med <= 0.01 && p99 <= 0.03, "{med} {p99}");
+    let (med, p99) = recovered_check("Debevec", &r, &stack, &e, 0.005);
+    // 8-bit: the quantisation bound (≈ 0.16 % median with the known response), not 0.1 %.
+    assert!(med <= 0.002 && p99 <= 0.01, "{med} {p99}");
 }
 
 #[test]
@@ -236,9 +240,9 @@ fn robertson_recovers_the_response() {
     let stack = Stack::new(W, H, C, imgs.iter().map(|v| v.as_slice()).collect(), times).unwrap();
     let r = robertson(&stack, 256, &RobertsonOptions::new(256)).unwrap();
     assert!(r.iter().all(|r| r.g[128].abs() < 1e-6));
-    let (med, p99) = recovered_check("Robertson", &r, &stack, &e, 0.08);
-    // Robertson with the hat is biased on this gamma curve (≈ 6 % in f⁻¹ at the ends).
-    assert!(med <= 0.03 && p99 <= 0.08, "{med} {p99}");
+    let (med, p99) = recovered_check("Robertson", &r, &stack, &e, 0.005);
+    // The plain iteration was off by ≈ 6 % here (the 1-stop ambiguity, see `robertson`).
+    assert!(med <= 0.002 && p99 <= 0.01, "{med} {p99}");
 }
 
 #[test]
@@ -251,7 +255,7 @@ fn debevec_bins_16_bit_input() {
     for r in &r {
         let err = curve_error(r, 4000, 65000);
         eprintln!("Debevec 16-bit (512 bins): max |Δg| over 4000..=65000: {err:.4}");
-        assert!(err < 0.05, "{err}");
+        assert!(err < 0.01, "{err}");
     }
 }
 
@@ -366,4 +370,133 @@ fn bad_input_gives_typed_errors() {
     assert!(matches!(merge_linear(&s, 256, &o).unwrap_err(), HdrError::InvalidParameter(_)));
     let d = DebevecOptions { lambda: f64::NAN, ..DebevecOptions::new(256) };
     assert!(matches!(debevec(&s, 256, &d).unwrap_err(), HdrError::InvalidParameter(_)));
+}
+
+#[derive(Clone, Copy, Debug)]
+enum Curve {
+    Gamma,
+    Filmic,
+}
+
+impl Curve {
+    /// Normalised exposure → normalised signal.
+    fn forward(self, x: f64) -> f64 {
+        match self {
+            Curve::Gamma => x.powf(1.0 / GAMMA),
+            // Reinhard-style shoulder then a 1/1.5 power: s = ((1+k)X/(X+k))^(1/1.5).
+            Curve::Filmic => ((1.0 + FK) * x / (x + FK)).powf(1.0 / 1.5),
+        }
+    }
+    fn inverse(self, s: f64) -> f64 {
+        match self {
+            Curve::Gamma => s.powf(GAMMA),
+            Curve::Filmic => {
+                let y = s.powf(1.5);
+                FK * y / (1.0 + FK - y)
+            }
+        }
+    }
+}
+const FK: f64 = 0.5;
+const FULL_WELL: f64 = 1e6;
+const READ_NOISE: f64 = 1e-4;
+
+fn expose_curve(e: &[f64], times: &[f32], levels: usize, curve: Curve, seed: u64) -> Vec<Vec<u16>> {
+    let mut rng = Rng(seed);
+    let top = (levels - 1) as f64;
+    times
+        .iter()
+        .map(|&t| {
+            e.iter()
+                .map(|&e| {
+                    let x = e * t as f64;
+                    let x = x + (x / FULL_WELL).sqrt() * rng.normal() + READ_NOISE * rng.normal();
+                    (top * curve.forward(x.clamp(0.0, 1.0))).round() as u16
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// Merge black level for a recovery test: the level a dark frame reaches at 3σ of read noise.
+/// Below it samples carry no radiance information (their `f⁻¹` cannot be recovered either),
+/// so they get zero weight, as a camera's measured black level would give them.
+fn noise_floor(curve: Curve, levels: usize) -> u32 {
+    (((levels - 1) as f64) * curve.forward(3.0 * READ_NOISE)).ceil() as u32
+}
+
+/// Median and p99 of the relative radiance error (after the global scale) of a merge with
+/// `r`, black level at the noise floor.
+fn merged_error<T: lightrig_imaging::hdr::Sample>(
+    stack: &Stack<T>,
+    r: &[Response],
+    e: &[f64],
+    black: u32,
+) -> (f64, f64) {
+    let levels = r[0].levels;
+    let o = MergeOptions { weights: Weights { black, ..Weights::snr(levels) }, threads: 2 };
+    let hdr = merge(stack, r, &o).unwrap();
+    let errs = errors(&hdr, e, scale_to_truth(&hdr, e));
+    (percentile(&errs, 0.5), percentile(&errs, 0.99))
+}
+
+/// The target with the response recovered from the stack itself, on 12- and 16-bit
+/// stacks of two response shapes. Seeds 100–102 were checked when this was written (all
+/// within 0.081 % median and 0.32 % p99); the test runs one.
+#[test]
+fn recovered_responses_meet_accuracy_target_at_12_and_16_bit() {
+    let (e, times) = scene(100);
+    for curve in [Curve::Gamma, Curve::Filmic] {
+        for levels in [4096usize, 65536] {
+            let imgs = expose_curve(&e, &times, levels, curve, 200);
+            let stack =
+                Stack::new(W, H, C, imgs.iter().map(|v| v.as_slice()).collect(), times.clone()).unwrap();
+            let black = noise_floor(curve, levels);
+            let weights = Weights { black, ..Weights::full(levels) };
+            let known = Response::from_inverse(levels, |z| curve.inverse(z as f64 / (levels - 1) as f64));
+            let rd =
+                debevec(&stack, levels, &DebevecOptions { weights, ..DebevecOptions::new(levels) }).unwrap();
+            let rr =
+                robertson(&stack, levels, &RobertsonOptions { weights, ..RobertsonOptions::new(levels) })
+                    .unwrap();
+            for (name, r) in [("known", vec![known; 3]), ("Debevec", rd), ("Robertson", rr)] {
+                assert!(name == "known" || r.iter().all(|r| r.g[levels / 2].abs() < 1e-6), "gauge");
+                let (med, p99) = merged_error(&stack, &r, &e, black);
+                eprintln!(
+                    "{levels} levels, {curve:?}, {name} response: median {:.4} %, p99 {:.4} % (black {black})",
+                    med * 100.0,
+                    p99 * 100.0
+                );
+                assert!(med <= 0.001 && p99 <= 0.005, "{levels} {curve:?} {name}: {med} {p99}");
+            }
+        }
+    }
+}
+
+/// 8-bit gamma-2.2 data with half-stop instead of 1-stop spacing (32 exposures over the
+/// same range): twice the samples per pixel, so quantisation error averages down by ≈ √2.
+#[test]
+fn eight_bit_half_stop_spacing() {
+    let (e, times) = scene(15);
+    let t0 = times[0] as f64;
+    for (label, times) in [
+        ("1 stop", times.clone()),
+        ("1/2 stop", (0..31).map(|j| (t0 * 2f64.powf(j as f64 / 2.0)) as f32).collect::<Vec<_>>()),
+    ] {
+        let imgs = to_u8(&expose_curve(&e, &times, 256, Curve::Gamma, 16));
+        let stack = Stack::new(W, H, C, imgs.iter().map(|v| v.as_slice()).collect(), times).unwrap();
+        let black = noise_floor(Curve::Gamma, 256);
+        let weights = Weights { black, ..Weights::full(256) };
+        let rd = debevec(&stack, 256, &DebevecOptions { weights, ..DebevecOptions::new(256) }).unwrap();
+        let rr = robertson(&stack, 256, &RobertsonOptions { weights, ..RobertsonOptions::new(256) }).unwrap();
+        for (name, r) in [("known", vec![known(256); 3]), ("Debevec", rd), ("Robertson", rr)] {
+            let (med, p99) = merged_error(&stack, &r, &e, black);
+            eprintln!(
+                "8-bit, {label}, {name} response: median {:.4} %, p99 {:.4} %",
+                med * 100.0,
+                p99 * 100.0
+            );
+            assert!(med <= 0.002 && p99 <= 0.01, "{label} {name}: {med} {p99}");
+        }
+    }
 }
