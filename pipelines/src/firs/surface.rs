@@ -1,1 +1,0 @@
-//! Surface mode (`lightrig fit firs-surface`): to be written.
