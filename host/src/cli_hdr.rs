@@ -156,9 +156,14 @@ pub fn calibrate(exposures: &[Exposure], out: &Path) -> Result<ResponseFile, Str
 }
 
 /// `lightrig hdr merge`: merges the series into linear radiance with `response` (recovered from
-/// the series itself when `None`) and writes a float EXR. Returns the count of pixels clipped or
-/// black in every exposure.
-pub fn merge(exposures: &[Exposure], response: Option<&Path>, out: &Path) -> Result<usize, String> {
+/// the series itself when `None`) and writes a float EXR. Levels at or below `black` get no
+/// weight. Returns the count of pixels clipped or black in every exposure.
+pub fn merge(
+    exposures: &[Exposure],
+    response: Option<&Path>,
+    black: u32,
+    out: &Path,
+) -> Result<usize, String> {
     let l = load(exposures)?;
     let r = match response {
         Some(p) => {
@@ -175,7 +180,14 @@ pub fn merge(exposures: &[Exposure], response: Option<&Path>, out: &Path) -> Res
         return Err(format!("the response has {} channels, the images {}", r.g.len(), l.channels));
     }
     let responses: Vec<Response> = r.g.iter().map(|g| Response { levels: r.levels, g: g.clone() }).collect();
-    let opts = MergeOptions { weights: Weights::snr(r.levels), threads: 0 };
+    let weights = Weights { black, ..Weights::snr(r.levels) };
+    if weights.saturation < black + 2 {
+        return Err(format!(
+            "--black {black} leaves no usable levels below saturation ({}): give the black level in the data's levels",
+            weights.saturation
+        ));
+    }
+    let opts = MergeOptions { weights, threads: 0 };
     let merged = on_stack(&l, |s| hdr::merge(s, &responses, &opts), |s| hdr::merge(s, &responses, &opts))?;
     let mut image = Image::new(l.width as u32, l.height as u32, l.channels as u8);
     image.data = merged.radiance;
@@ -214,7 +226,7 @@ mod tests {
         assert_eq!(read_sidecar(&dir.join("times.txt")).unwrap(), exposures);
         let resp = calibrate(&exposures, &dir.join("response.json")).unwrap();
         assert_eq!((resp.levels, resp.g.len()), (256, 1));
-        merge(&exposures, Some(&dir.join("response.json")), &dir.join("hdr.exr")).unwrap();
+        merge(&exposures, Some(&dir.join("response.json")), 0, &dir.join("hdr.exr")).unwrap();
         let out = io::read(dir.join("hdr.exr")).unwrap();
         // Relative radiance: ratios to a reference pixel. 8-bit data through a recovered curve:
         // within 5 % over the two brighter decades (in the darkest decade the longest exposure
@@ -264,7 +276,7 @@ mod tests {
             }
             let resp = calibrate(&exposures, &dir.join("response.json")).unwrap();
             assert_eq!((resp.levels, resp.g.len()), (4096, 1), "{align}");
-            merge(&exposures, Some(&dir.join("response.json")), &dir.join("hdr.exr")).unwrap();
+            merge(&exposures, Some(&dir.join("response.json")), 0, &dir.join("hdr.exr")).unwrap();
             let out = io::read(dir.join("hdr.exr")).unwrap();
             let at = |x: u32, y: u32| f64::from(out.get(x, y, 0));
             let (rx, ry) = (96, 3);

@@ -140,6 +140,11 @@ enum HdrCmd {
         /// Response from `hdr calibrate` (recovered from the series itself if absent).
         #[arg(long)]
         response: Option<std::path::PathBuf>,
+        /// Largest level treated as black (weight zero), in the data's levels (0–4095 for
+        /// 12-bit data). Set it near 3σ of the camera's read noise: levels below the noise
+        /// floor cannot be inverted and only add error (docs/benchmarks.md, HDR accuracy).
+        #[arg(long, default_value_t = 0)]
+        black: u32,
         /// EXR file to write.
         #[arg(long)]
         out: std::path::PathBuf,
@@ -235,14 +240,16 @@ fn main() -> ExitCode {
                         )
                     })
                 }
-                HdrCmd::Merge { exposures: list, times, response, out } => exposures(&list, times.as_deref())
-                    .and_then(|e| cli_hdr::merge(&e, response.as_deref(), &out))
-                    .map(|bad| {
-                        eprintln!(
-                            "merged -> {} ({bad} pixels clipped or black in every exposure)",
-                            out.display()
-                        )
-                    }),
+                HdrCmd::Merge { exposures: list, times, response, black, out } => {
+                    exposures(&list, times.as_deref())
+                        .and_then(|e| cli_hdr::merge(&e, response.as_deref(), black, &out))
+                        .map(|bad| {
+                            eprintln!(
+                                "merged -> {} ({bad} pixels clipped or black in every exposure)",
+                                out.display()
+                            )
+                        })
+                }
             };
             match result {
                 Ok(()) => ExitCode::SUCCESS,
