@@ -17,10 +17,13 @@
 //! 5. Translucency: backlit over light box.
 
 mod fit;
+mod model;
+
+pub use model::TraceModel;
 
 pub use fit::{
-    blend_normals, fit_normal, fit_trace, normals_from_points, point_on_sheet, refit_trace, strip_scale,
-    stripe_peak, PassTrace, TraceFit,
+    blend_normals, fit_normal, fit_trace, normals_from_points, point_on_sheet, strip_scale, stripe_peak,
+    PassTrace, TraceFit,
 };
 
 use lightrig_imaging::calib::{find_chessboard, pixel_ray, pose_from_board, Board, Intrinsics, Pose};
