@@ -1,0 +1,543 @@
+//! The fluorescent-immersion scene (Hullin et al. 2008): a glass tank of fluorescent liquid
+//! seen through its flat front wall, a galvo-swept laser sheet, an opaque sphere on a
+//! turntable, and a planar chessboard target for the calibration passes.
+//!
+//! World frame, mm: `x` across the tank, `y` down (as the camera sees it), `z` into the tank
+//! (away from the camera). The liquid fills the box [`FirsSceneSpec::tank`]; its front face
+//! `z = tank.min.z` is the inner face of the front wall.
+//!
+//! - **Camera.** A pinhole in air, turned by `yaw_deg` about `y`. Each pixel's ray is refracted
+//!   (Snell's law, vector form) at both faces of the wall: air → glass → liquid. Inside the
+//!   liquid the ray is straight, which is what the pipeline's per-pixel line calibration relies
+//!   on; the pinhole model does not hold there, which is why the pipeline fits lines per pixel.
+//! - **Sheets.** The laser leaves the galvo mirror, whose image through the side wall sits at
+//!   `mirror` (the side wall's refraction is folded into that virtual position). Galvo code `c`
+//!   turns the sheet to the angle `θ = θ₀ + (c − zero)·urad_per_code` about the vertical line
+//!   through the mirror: sheet `c` is the plane through that line with horizontal direction
+//!   `(cos θ, 0, sin θ)`, so `z = m_z + tan θ·(x − m_x)`, a family the pipeline's 18-coefficient
+//!   model represents to microns (its `x` slope `tan θ` is quadratic in the code to `θ³`).
+//! - **Glow.** The liquid emits `glow` per mm of path with a Gaussian profile of width `σ`
+//!   about the sheet; a pixel integrates it along its ray over the lit liquid:
+//!   `glow/|n·d|·Σ[Φ(h(b)/σ) − Φ(h(a)/σ)]` over the lit stretches `[a, b]`, `h` the signed
+//!   distance from the sheet. The camera's long-pass filter blocks the laser's own scatter,
+//!   so only this fluorescence (and a weak stray term, below) reaches it.
+//! - **Object.** The sphere is opaque: the ray stops at it, and the liquid in its laser shadow
+//!   (the cone from the mirror point tangent to the sphere, beyond the tangent circle) is dark.
+//!   The turntable turns it about `turntable_axis`.
+//! - **Nuisance.** Fluorescence scattered back by the tank's back wall: a weak, smooth term
+//!   `stray·glow` varying slowly over the image and the sweep.
+//! - **Calibration target.** A chessboard plate parallel to the front wall at the `z` the
+//!   step's `meta.pose.z_mm` says (the position the operator typed into the rig file). The
+//!   `target-board` pass shows it under a lamp (laser off; 4×4 samples per pixel, for clean
+//!   corners); the `target-sweep` pass sweeps the sheet with the plate, not the sphere, in the
+//!   tank, so the glow cuts off on the plate.
+
+use serde::{Deserialize, Serialize};
+
+use super::camera::{RigState, Scene};
+use lightrig_pipelines::vec3::{add, dot, norm, normalize, scale, sub, V3};
+
+/// The pinhole camera in air.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FirsCamera {
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// Focal length, pixels.
+    pub focal_px: f64,
+    /// Centre of projection, mm.
+    pub position: V3,
+    /// Turn about `y`, degrees: the optical axis is `(sin ψ, 0, cos ψ)`.
+    pub yaw_deg: f64,
+}
+
+/// The flat front wall and the liquid.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FirsTank {
+    /// The liquid's box; its `min.z` face is the wall's inner face.
+    pub min: V3,
+    /// See `min`.
+    pub max: V3,
+    /// Wall thickness, mm.
+    pub wall_mm: f64,
+    /// Refractive index of the wall (glass).
+    pub n_wall: f64,
+    /// Refractive index of the liquid.
+    pub n_liquid: f64,
+}
+
+/// The galvo-swept laser sheet.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FirsSheet {
+    /// Virtual position of the mirror (its image through the side wall), mm.
+    pub mirror: V3,
+    /// Sheet angle at the galvo's zero code, degrees (from `+x` towards `+z`).
+    pub angle0_deg: f64,
+    /// Galvo zero code.
+    pub zero_code: u16,
+    /// Optical angle per code, µrad.
+    pub urad_per_code: f64,
+    /// Sheet thickness: Gaussian σ across the sheet, mm.
+    pub sigma_mm: f64,
+    /// Fluorescence per mm of path through the sheet's centre, radiance units.
+    pub glow: f64,
+    /// The stray term's size relative to `glow`.
+    pub stray: f64,
+    /// Laser channel.
+    pub laser: u8,
+    /// Galvo index.
+    pub galvo: u8,
+}
+
+/// The chessboard target: `cols × rows` inner corners, corner `(i, j)` at
+/// `(origin.x + i·square, origin.y + j·square, z)`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FirsTarget {
+    /// Inner corners per row.
+    pub cols: usize,
+    /// Rows of inner corners.
+    pub rows: usize,
+    /// Square size, mm.
+    pub square_mm: f64,
+    /// World `(x, y)` of inner corner `(0, 0)`, mm.
+    pub origin_mm: [f64; 2],
+    /// Lamp radiance on the white squares.
+    pub lamp: f64,
+}
+
+/// The whole scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FirsSceneSpec {
+    /// The camera.
+    pub camera: FirsCamera,
+    /// The tank.
+    pub tank: FirsTank,
+    /// The sheet.
+    pub sheet: FirsSheet,
+    /// The target.
+    pub target: FirsTarget,
+    /// The sphere at turntable angle 0: centre, mm.
+    pub sphere_centre: V3,
+    /// Its radius, mm.
+    pub sphere_radius: f64,
+    /// Turntable axis: a point and a direction (right-handed turns), mm.
+    pub turntable_point: V3,
+    /// See `turntable_point`.
+    pub turntable_dir: V3,
+    /// Turntable stepper axis index.
+    pub turntable_axis: u8,
+}
+
+impl FirsSceneSpec {
+    /// The standard scene: a 32 mm sphere in a 100 × 80 × 90 mm tank behind 6 mm of glass
+    /// (n 1.5) in water–glycerol (n 1.40), seen at 25° from 0.3 mm pixels; the sheet 0.14 mm
+    /// thick from a mirror 700 mm to the left, about 27° across the front wall.
+    pub fn new(width: u32, height: u32) -> Self {
+        let mut s = FirsSceneSpec {
+            camera: FirsCamera { width, height, focal_px: 960.0, position: [0.0, 0.0, 0.0], yaw_deg: 25.0 },
+            tank: FirsTank {
+                min: [-50.0, -40.0, -40.0],
+                max: [50.0, 40.0, 50.0],
+                wall_mm: 6.0,
+                n_wall: 1.5,
+                n_liquid: 1.40,
+            },
+            sheet: FirsSheet {
+                mirror: [-700.0, 0.0, -350.0],
+                angle0_deg: 0.5f64.atan().to_degrees(),
+                zero_code: 32768,
+                urad_per_code: 13.3158,
+                sigma_mm: 0.14,
+                glow: 1.0,
+                stray: 0.01,
+                laser: 0,
+                galvo: 0,
+            },
+            target: FirsTarget { cols: 13, rows: 10, square_mm: 4.0, origin_mm: [-24.0, -18.0], lamp: 1.0 },
+            sphere_centre: [1.5, 0.0, 0.0],
+            sphere_radius: 16.0,
+            turntable_point: [0.0, 0.0, 0.0],
+            turntable_dir: [0.0, -1.0, 0.0],
+            turntable_axis: 0,
+        };
+        // Aim the optical axis at the world origin through the wall: trace it from a camera
+        // 280 mm away along the axis, then shift the camera by the miss.
+        let psi = s.camera.yaw_deg.to_radians();
+        s.camera.position = [-280.0 * psi.sin(), 0.0, -280.0 * psi.cos()];
+        for _ in 0..3 {
+            if let Some((o, d)) = s.liquid_ray_dir(s.forward()) {
+                let at = add(o, scale(d, -o[2] / d[2]));
+                s.camera.position[0] -= at[0];
+            }
+        }
+        s
+    }
+
+    fn forward(&self) -> V3 {
+        let psi = self.camera.yaw_deg.to_radians();
+        [psi.sin(), 0.0, psi.cos()]
+    }
+
+    /// The camera ray of image point `(x, y)` (pixel centres at integers), in air.
+    pub fn air_dir(&self, x: f64, y: f64) -> V3 {
+        let psi = self.camera.yaw_deg.to_radians();
+        let (f, r, d) = (self.forward(), [psi.cos(), 0.0, -psi.sin()], [0.0, 1.0, 0.0]);
+        let c = &self.camera;
+        let u = (x - (f64::from(c.width) - 1.0) / 2.0) / c.focal_px;
+        let v = (y - (f64::from(c.height) - 1.0) / 2.0) / c.focal_px;
+        normalize(add(f, add(scale(r, u), scale(d, v))))
+    }
+
+    /// The ray in the liquid for an air direction from the camera: the point on the wall's
+    /// inner face and the unit direction; `None` if it misses the wall or reflects totally.
+    fn liquid_ray_dir(&self, dir: V3) -> Option<(V3, V3)> {
+        let t = &self.tank;
+        let (z_in, z_out) = (t.min[2], t.min[2] - t.wall_mm);
+        let c = self.camera.position;
+        if dir[2] <= 0.0 {
+            return None;
+        }
+        let n = [0.0, 0.0, -1.0];
+        let p1 = add(c, scale(dir, (z_out - c[2]) / dir[2]));
+        let d1 = refract(dir, n, 1.0 / t.n_wall)?;
+        let p2 = add(p1, scale(d1, (z_in - p1[2]) / d1[2]));
+        let d2 = refract(d1, n, t.n_wall / t.n_liquid)?;
+        Some((p2, d2))
+    }
+
+    /// The ray in the liquid of image point `(x, y)`.
+    pub fn liquid_ray(&self, x: f64, y: f64) -> Option<(V3, V3)> {
+        self.liquid_ray_dir(self.air_dir(x, y))
+    }
+
+    /// Sheet angle of galvo code `code`, radians.
+    pub fn sheet_angle(&self, code: u16) -> f64 {
+        let s = &self.sheet;
+        s.angle0_deg.to_radians() + (f64::from(code) - f64::from(s.zero_code)) * s.urad_per_code * 1e-6
+    }
+
+    /// The galvo code whose sheet crosses `x = 0` at depth `z` (rounded down).
+    pub fn code_for_depth(&self, z: f64) -> f64 {
+        let s = &self.sheet;
+        let theta = ((z - s.mirror[2]) / (0.0 - s.mirror[0])).atan();
+        f64::from(s.zero_code) + (theta - s.angle0_deg.to_radians()) / (s.urad_per_code * 1e-6)
+    }
+
+    /// The sphere's centre at turntable angle `deg`.
+    pub fn sphere_at(&self, deg: f64) -> V3 {
+        rotate(self.sphere_centre, self.turntable_point, self.turntable_dir, deg.to_radians())
+    }
+
+    /// The first point where pixel `(x, y)`'s ray meets the sphere at turntable angle `deg`,
+    /// inside the tank.
+    pub fn sphere_hit(&self, x: f64, y: f64, deg: f64) -> Option<V3> {
+        let (o, d) = self.liquid_ray(x, y)?;
+        let (_, exit) = box_interval(o, d, self.tank.min, self.tank.max)?;
+        let (e0, _) = sphere_interval(o, d, self.sphere_at(deg), self.sphere_radius)?;
+        (e0 > 0.0 && e0 < exit).then(|| add(o, scale(d, e0)))
+    }
+
+    /// Whether world `(x, y)` on the target plate is a white square (outside the board's
+    /// squares the plate is white too).
+    fn target_white(&self, x: f64, y: f64) -> bool {
+        let t = &self.target;
+        let a = ((x - t.origin_mm[0]) / t.square_mm).floor() as i64 + 1;
+        let b = ((y - t.origin_mm[1]) / t.square_mm).floor() as i64 + 1;
+        let inside = (0..=t.cols as i64).contains(&a) && (0..=t.rows as i64).contains(&b);
+        // Square (1, 1), the one between corners 0, 1, cols and cols + 1, is dark.
+        !(inside && (a + b).rem_euclid(2) == 0)
+    }
+
+    /// The plate's extent in `x` and `y`: the board plus one square all round.
+    fn plate(&self) -> ([f64; 2], [f64; 2]) {
+        let t = &self.target;
+        let (w, h) = ((t.cols + 3) as f64 * t.square_mm, (t.rows + 3) as f64 * t.square_mm);
+        let (x0, y0) = (t.origin_mm[0] - 2.0 * t.square_mm, t.origin_mm[1] - 2.0 * t.square_mm);
+        ([x0, x0 + w], [y0, y0 + h])
+    }
+
+    fn plate_hit(&self, o: V3, d: V3, z: f64) -> Option<f64> {
+        if d[2] <= 0.0 {
+            return None;
+        }
+        let s = (z - o[2]) / d[2];
+        let p = add(o, scale(d, s));
+        let (xr, yr) = self.plate();
+        (s > 0.0 && p[0] >= xr[0] && p[0] <= xr[1] && p[1] >= yr[0] && p[1] <= yr[1]).then_some(s)
+    }
+
+    /// Fluorescence seen along the liquid ray `(o, d)` with sheet code `code`, when the
+    /// opaque thing in the tank is `what`.
+    fn glow(&self, o: V3, d: V3, code: u16, what: Occluder) -> f64 {
+        let sh = &self.sheet;
+        let Some((_, exit)) = box_interval(o, d, self.tank.min, self.tank.max) else { return 0.0 };
+        let mut end = exit;
+        let mut shadow: Option<(f64, f64)> = None;
+        match what {
+            Occluder::Sphere(c) => {
+                if let Some((e0, _)) = sphere_interval(o, d, c, self.sphere_radius) {
+                    if e0 > 0.0 {
+                        end = end.min(e0);
+                    }
+                }
+                shadow = cone_shadow(o, d, sh.mirror, c, self.sphere_radius);
+            }
+            Occluder::Plate(z) => {
+                if let Some(s) = self.plate_hit(o, d, z) {
+                    end = end.min(s);
+                }
+            }
+        }
+        let mut segs: Vec<(f64, f64)> = vec![(0.0, end)];
+        if let Some((s0, s1)) = shadow {
+            segs = segs
+                .into_iter()
+                .flat_map(|(a, b)| {
+                    let (lo, hi) = (a.max(s0), b.min(s1));
+                    if lo < hi {
+                        vec![(a, lo), (hi, b)]
+                    } else {
+                        vec![(a, b)]
+                    }
+                })
+                .filter(|(a, b)| b > a)
+                .collect();
+        }
+        let th = self.sheet_angle(code);
+        let n = [-th.sin(), 0.0, th.cos()];
+        let nd = dot(n, d);
+        if nd.abs() < 1e-9 {
+            return 0.0;
+        }
+        let h = |s: f64| dot(n, sub(add(o, scale(d, s)), sh.mirror)) / sh.sigma_mm;
+        let lit: f64 = segs.iter().map(|&(a, b)| (phi(h(b)) - phi(h(a))).abs()).sum();
+        // The back wall's scattered fluorescence: smooth in the image and over the sweep.
+        let stray = sh.stray * (1.0 + 0.5 * (0.05 * o[0] + 3.0 * th).sin() * (0.04 * o[1]).cos());
+        sh.glow * (lit / nd.abs() + stray)
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+enum Occluder {
+    Sphere(V3),
+    Plate(f64),
+}
+
+/// Snell's law: `i` (unit) crossing into a medium with relative index `1/eta`, `n` the unit
+/// normal facing the incoming ray; `None` on total internal reflection.
+pub fn refract(i: V3, n: V3, eta: f64) -> Option<V3> {
+    let cosi = -dot(n, i);
+    let k = 1.0 - eta * eta * (1.0 - cosi * cosi);
+    (k >= 0.0).then(|| normalize(add(scale(i, eta), scale(n, eta * cosi - k.sqrt()))))
+}
+
+/// `p` turned by `angle` (right-handed) about the axis through `a` along `dir`.
+pub fn rotate(p: V3, a: V3, dir: V3, angle: f64) -> V3 {
+    lightrig_pipelines::firs::surface::rotate_about_axis(p, a, dir, angle)
+}
+
+fn box_interval(o: V3, d: V3, min: V3, max: V3) -> Option<(f64, f64)> {
+    let (mut lo, mut hi) = (f64::NEG_INFINITY, f64::INFINITY);
+    for i in 0..3 {
+        if d[i] == 0.0 {
+            if o[i] < min[i] || o[i] > max[i] {
+                return None;
+            }
+            continue;
+        }
+        let (a, b) = ((min[i] - o[i]) / d[i], (max[i] - o[i]) / d[i]);
+        lo = lo.max(a.min(b));
+        hi = hi.min(a.max(b));
+    }
+    (lo <= hi && hi > 0.0).then_some((lo.max(0.0), hi))
+}
+
+fn sphere_interval(o: V3, d: V3, c: V3, r: f64) -> Option<(f64, f64)> {
+    let oc = sub(o, c);
+    let b = dot(oc, d);
+    let disc = b * b - (dot(oc, oc) - r * r);
+    (disc > 0.0).then(|| (-b - disc.sqrt(), -b + disc.sqrt()))
+}
+
+/// The stretch of the ray `o + s·d` in the laser shadow of the sphere `(c, r)` lit from the
+/// point `m`: inside the cone from `m` tangent to the sphere and beyond the plane of the
+/// tangent circle.
+fn cone_shadow(o: V3, d: V3, m: V3, c: V3, r: f64) -> Option<(f64, f64)> {
+    let axis = sub(c, m);
+    let dist = norm(axis);
+    if dist <= r {
+        return None;
+    }
+    let u = scale(axis, 1.0 / dist);
+    let cos2 = 1.0 - (r / dist).powi(2);
+    // (w·u)² − cos²α·|w|² ≥ 0 with w = o + s·d − m.
+    let w0 = sub(o, m);
+    let (wu, du) = (dot(w0, u), dot(d, u));
+    let qa = du * du - cos2 * dot(d, d);
+    let qb = 2.0 * (wu * du - cos2 * dot(w0, d));
+    let qc = wu * wu - cos2 * dot(w0, w0);
+    let plane = dist * cos2;
+    // Axial position along the ray: wu + s·du > plane.
+    let behind = |s: f64| wu + s * du > plane;
+    let disc = qb * qb - 4.0 * qa * qc;
+    if disc < 0.0 || qa == 0.0 {
+        return None;
+    }
+    let (s1, s2) = {
+        let (a, b) = ((-qb - disc.sqrt()) / (2.0 * qa), (-qb + disc.sqrt()) / (2.0 * qa));
+        (a.min(b), a.max(b))
+    };
+    // Inside the cone (both nappes) is `s ∈ [s1, s2]` when qa < 0 is false... handle both.
+    let inside = |s: f64| {
+        let w = add(w0, scale(d, s));
+        let wu = dot(w, u);
+        wu > 0.0 && wu * wu >= cos2 * dot(w, w)
+    };
+    let mid = 0.5 * (s1 + s2);
+    let (lo, hi) = if inside(mid) {
+        (s1, s2)
+    } else if inside(s2 + 1.0) {
+        (s2, f64::INFINITY)
+    } else if inside(s1 - 1.0) {
+        (f64::NEG_INFINITY, s1)
+    } else {
+        return None;
+    };
+    // Clip to the part beyond the tangent plane.
+    let (lo, hi) = if du > 0.0 {
+        (lo.max((plane - wu) / du), hi)
+    } else if du < 0.0 {
+        (lo, hi.min((plane - wu) / du))
+    } else if behind(0.0) {
+        (lo, hi)
+    } else {
+        return None;
+    };
+    (lo < hi).then_some((lo, hi))
+}
+
+/// The standard normal distribution function, from erfc (Numerical Recipes' Chebyshev fit,
+/// relative error below 1.2e-7).
+pub fn phi(x: f64) -> f64 {
+    let z = x.abs() / std::f64::consts::SQRT_2;
+    let t = 1.0 / (1.0 + 0.5 * z);
+    let poly = -z * z - 1.265_512_23
+        + t * (1.000_023_68
+            + t * (0.374_091_96
+                + t * (0.096_784_18
+                    + t * (-0.186_288_06
+                        + t * (0.278_868_07
+                            + t * (-1.135_203_98
+                                + t * (1.488_515_87 + t * (-0.822_152_23 + t * 0.170_872_77))))))));
+    let erfc = t * poly.exp();
+    if x >= 0.0 {
+        1.0 - 0.5 * erfc
+    } else {
+        0.5 * erfc
+    }
+}
+
+/// The scene for the virtual camera.
+pub struct FirsScene {
+    /// Its definition (written beside the session as the ground truth).
+    pub spec: FirsSceneSpec,
+    /// Per pixel: the ray in the liquid.
+    rays: Vec<Option<(V3, V3)>>,
+}
+
+impl FirsScene {
+    /// The scene of `spec`, with its per-pixel rays traced once.
+    pub fn new(spec: FirsSceneSpec) -> Self {
+        let (w, h) = (spec.camera.width, spec.camera.height);
+        let rays = (0..w * h).map(|i| spec.liquid_ray(f64::from(i % w), f64::from(i / w))).collect();
+        FirsScene { spec, rays }
+    }
+
+    fn board(&self, x: u32, y: u32, z: f64) -> f64 {
+        const N: u32 = 4;
+        let mut white = 0;
+        for j in 0..N {
+            for i in 0..N {
+                let (sx, sy) = (
+                    f64::from(x) + (f64::from(i) + 0.5) / f64::from(N) - 0.5,
+                    f64::from(y) + (f64::from(j) + 0.5) / f64::from(N) - 0.5,
+                );
+                let hit = self.spec.liquid_ray(sx, sy).and_then(|(o, d)| {
+                    let s = self.spec.plate_hit(o, d, z)?;
+                    Some(add(o, scale(d, s)))
+                });
+                // Behind the plate: the dark tank.
+                if hit.is_some_and(|p| self.spec.target_white(p[0], p[1])) {
+                    white += 1;
+                }
+            }
+        }
+        let f = f64::from(white) / f64::from(N * N);
+        self.spec.target.lamp * (0.9 * f + 0.05 * (1.0 - f))
+    }
+}
+
+impl Scene for FirsScene {
+    fn size(&self) -> (u32, u32) {
+        (self.spec.camera.width, self.spec.camera.height)
+    }
+
+    fn radiance(&self, x: u32, y: u32, state: &RigState) -> [f64; 3] {
+        let s = &self.spec;
+        let laser = state.lasers & (1u8 << s.sheet.laser) != 0;
+        let target_z = state.meta.get("pose").and_then(|p| p.get("z_mm")).and_then(|z| z.as_f64());
+        let Some((o, d)) = self.rays[(y * s.camera.width + x) as usize] else { return [0.0; 3] };
+        let code = state.galvos.get(usize::from(s.sheet.galvo)).map(|g| g[0]).unwrap_or(s.sheet.zero_code);
+        let v = match (state.pass.as_deref(), target_z) {
+            (Some("target-board"), Some(z)) => self.board(x, y, z),
+            (Some("target-sweep"), Some(z)) if laser => self.spec.glow(o, d, code, Occluder::Plate(z)),
+            (Some("scan"), _) if laser => {
+                let deg = state.axes.get(usize::from(s.turntable_axis)).copied().unwrap_or(0.0);
+                self.spec.glow(o, d, code, Occluder::Sphere(s.sphere_at(deg)))
+            }
+            _ => 0.0,
+        };
+        // Eosin's emission is green-yellow: weights of a colour camera's channels.
+        [0.55 * v, v, 0.12 * v]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn refraction_obeys_snell() {
+        let i = normalize([0.5, 0.0, 1.0]);
+        let t = refract(i, [0.0, 0.0, -1.0], 1.0 / 1.5).unwrap();
+        let (si, st) = (i[0].hypot(i[1]), t[0].hypot(t[1]));
+        assert!((si - 1.5 * st).abs() < 1e-12, "{si} {st}");
+        // Total internal reflection.
+        assert!(refract(normalize([2.0, 0.0, 1.0]), [0.0, 0.0, -1.0], 1.5).is_none());
+    }
+
+    #[test]
+    fn the_optical_axis_meets_the_origin_and_rays_bend_at_the_wall() {
+        let s = FirsSceneSpec::new(201, 151);
+        let (o, d) = s.liquid_ray(100.0, 75.0).unwrap();
+        let at = add(o, scale(d, -o[2] / d[2]));
+        assert!(norm(at) < 1e-6, "{at:?}");
+        // In the liquid the ray is steeper than in air (n 1.40 > 1): sin ratio = 1/1.40.
+        let a = s.air_dir(100.0, 75.0);
+        assert!((a[0] / d[0] - 1.40).abs() < 1e-9, "{} {}", a[0], d[0]);
+    }
+
+    #[test]
+    fn the_shadow_cone_is_dark_behind_the_sphere_only() {
+        let (m, c, r) = ([-700.0, 0.0, -350.0], [0.0, 0.0, 0.0], 16.0);
+        let u = normalize(sub(c, m));
+        // A ray across the axis 30 mm behind the centre crosses the shadow; 30 mm in front
+        // (between mirror and sphere) does not.
+        let behind = add(c, scale(u, 30.0));
+        let s = cone_shadow(add(behind, [0.0, -50.0, 0.0]), [0.0, 1.0, 0.0], m, c, r).unwrap();
+        assert!((s.0 - 50.0).abs() < 17.0 && (s.1 - 50.0).abs() < 17.0, "{s:?}");
+        let front = sub(c, scale(u, 30.0));
+        assert!(cone_shadow(add(front, [0.0, -50.0, 0.0]), [0.0, 1.0, 0.0], m, c, r).is_none());
+    }
+}
