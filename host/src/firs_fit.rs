@@ -260,6 +260,138 @@ fn detect_sweep(
     Ok((depth, (w, h)))
 }
 
+/// The target's corners to a hundredth of a pixel: each detected corner is moved to the
+/// saddle point of the Gaussian-blurred image. A chessboard corner is point-symmetric (two
+/// straight edges crossing, whatever the perspective or the wall's local distortion), so the
+/// blurred image is even about it and its gradient vanishes there: a quadratic fitted to a
+/// window sampled symmetrically about the estimate has its stationary point at the corner.
+/// Iterated from the detector's estimate; a corner whose fit is not a saddle or runs away
+/// keeps the detector's position.
+pub fn refine_saddles(
+    img: &[f32],
+    w: usize,
+    h: usize,
+    corners: &[(f64, f64)],
+    sigma: f64,
+) -> Vec<(f64, f64)> {
+    let blurred = blur(img, w, h, sigma);
+    let at = |x: f64, y: f64| -> Option<f64> {
+        if x < 0.0 || y < 0.0 || x > (w - 1) as f64 || y > (h - 1) as f64 {
+            return None;
+        }
+        let (x0, y0) = ((x.floor() as usize).min(w - 2), (y.floor() as usize).min(h - 2));
+        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+        let v = |xx: usize, yy: usize| f64::from(blurred[yy * w + xx]);
+        Some(
+            v(x0, y0) * (1.0 - fx) * (1.0 - fy)
+                + v(x0 + 1, y0) * fx * (1.0 - fy)
+                + v(x0, y0 + 1) * (1.0 - fx) * fy
+                + v(x0 + 1, y0 + 1) * fx * fy,
+        )
+    };
+    let r = sigma.ceil() as i32 + 1;
+    corners
+        .iter()
+        .map(|&(cx, cy)| {
+            let (mut x, mut y) = (cx, cy);
+            for _ in 0..8 {
+                // Normal equations of v = a·u² + b·u·w + c·w² + d·u + e·w + f.
+                let mut ata = [[0.0f64; 6]; 6];
+                let mut atb = [0.0f64; 6];
+                for j in -r..=r {
+                    for i in -r..=r {
+                        let (u, v) = (f64::from(i), f64::from(j));
+                        let Some(val) = at(x + u, y + v) else { return (cx, cy) };
+                        let m = [u * u, u * v, v * v, u, v, 1.0];
+                        for p in 0..6 {
+                            atb[p] += m[p] * val;
+                            for q in 0..6 {
+                                ata[p][q] += m[p] * m[q];
+                            }
+                        }
+                    }
+                }
+                let Some(c) = solve6(ata, atb) else { return (cx, cy) };
+                let (a, b, cc, d, e) = (c[0], c[1], c[2], c[3], c[4]);
+                let det = 4.0 * a * cc - b * b;
+                // A saddle: the Hessian's determinant is negative.
+                if det >= 0.0 {
+                    return (cx, cy);
+                }
+                let dx = (-2.0 * cc * d + b * e) / det;
+                let dy = (-2.0 * a * e + b * d) / det;
+                x += dx;
+                y += dy;
+                if (x - cx).hypot(y - cy) > 2.0 {
+                    return (cx, cy);
+                }
+                if dx.hypot(dy) < 1e-4 {
+                    break;
+                }
+            }
+            (x, y)
+        })
+        .collect()
+}
+
+/// Separable Gaussian blur, edges clamped.
+fn blur(img: &[f32], w: usize, h: usize, sigma: f64) -> Vec<f32> {
+    let r = (3.0 * sigma).ceil() as i64;
+    let k: Vec<f64> = (-r..=r).map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp()).collect();
+    let ks: f64 = k.iter().sum();
+    let pass = |src: &[f32], horizontal: bool| -> Vec<f32> {
+        let mut out = vec![0f32; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let mut acc = 0.0;
+                for (o, kv) in (-r..=r).zip(&k) {
+                    let (xx, yy) = if horizontal {
+                        ((x as i64 + o).clamp(0, w as i64 - 1) as usize, y)
+                    } else {
+                        (x, (y as i64 + o).clamp(0, h as i64 - 1) as usize)
+                    };
+                    acc += kv * f64::from(src[yy * w + xx]);
+                }
+                out[y * w + x] = (acc / ks) as f32;
+            }
+        }
+        out
+    };
+    pass(&pass(img, true), false)
+}
+
+/// Gaussian elimination with partial pivoting; `None` if singular.
+fn solve6(mut a: [[f64; 6]; 6], mut b: [f64; 6]) -> Option<[f64; 6]> {
+    for c in 0..6 {
+        let p = (c..6).max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))?;
+        if a[p][c].abs() < 1e-12 {
+            return None;
+        }
+        a.swap(c, p);
+        b.swap(c, p);
+        let (pivot, pb) = (a[c], b[c]);
+        for (row, br) in a.iter_mut().zip(b.iter_mut()).skip(c + 1) {
+            let f = row[c] / pivot[c];
+            for (v, pv) in row.iter_mut().zip(pivot.iter()).skip(c) {
+                *v -= f * pv;
+            }
+            *br -= f * pb;
+        }
+    }
+    let mut x = [0.0; 6];
+    for c in (0..6).rev() {
+        let s: f64 = (c + 1..6).map(|k| a[c][k] * x[k]).sum();
+        x[c] = (b[c] - s) / a[c][c];
+    }
+    Some(x)
+}
+
+/// Mean of the colour channels, per pixel.
+fn luminance(img: &Image) -> Vec<f32> {
+    let ch = usize::from(img.channels);
+    img.data.chunks(ch).map(|p| p.iter().take(3).sum::<f32>() / ch.min(3) as f32).collect()
+}
+
 fn gray8(img: &Image) -> Vec<u8> {
     let ch = usize::from(img.channels);
     let vals: Vec<f32> =
@@ -420,6 +552,14 @@ pub fn fit_surface(dir: &Path, progress: &dyn Fn(u64, u64)) -> Result<FirsSurfac
                 tg.rows
             ))
         })?;
+        // Blur on the scale of a fifth of a square (in pixels, from the detected grid).
+        let pitch = corners
+            .windows(2)
+            .take(tg.cols - 1)
+            .map(|p| (p[1].0 - p[0].0).hypot(p[1].1 - p[0].1))
+            .sum::<f64>()
+            / (tg.cols - 1) as f64;
+        let corners = refine_saddles(&luminance(&img), w, h, &corners, (pitch / 5.0).clamp(1.0, 4.0));
         let view = TargetView {
             cols: tg.cols,
             rows: tg.rows,

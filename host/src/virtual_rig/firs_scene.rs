@@ -28,7 +28,7 @@
 //!   `stray·glow` varying slowly over the image and the sweep.
 //! - **Calibration target.** A chessboard plate parallel to the front wall at the `z` the
 //!   step's `meta.pose.z_mm` says (the position the operator typed into the rig file). The
-//!   `target-board` pass shows it under a lamp (laser off; 4×4 samples per pixel, for clean
+//!   `target-board` pass shows it under a lamp (laser off; 64 samples per pixel, for clean
 //!   corners); the `target-sweep` pass sweeps the sheet with the plate, not the sphere, in the
 //!   tank, so the glow cuts off on the plate.
 
@@ -455,13 +455,17 @@ impl FirsScene {
     }
 
     fn board(&self, x: u32, y: u32, z: f64) -> f64 {
-        const N: u32 = 4;
+        // 8×8 samples, each row's offset by an eighth of the column pitch (and each column's
+        // by an eighth of the row pitch): 64 distinct x and 64 distinct y positions, so an
+        // edge along a pixel row or column is not quantised to the grid's quarter pixels.
+        const N: u32 = 8;
         let mut white = 0;
         for j in 0..N {
             for i in 0..N {
+                let (fi, fj, n) = (f64::from(i), f64::from(j), f64::from(N));
                 let (sx, sy) = (
-                    f64::from(x) + (f64::from(i) + 0.5) / f64::from(N) - 0.5,
-                    f64::from(y) + (f64::from(j) + 0.5) / f64::from(N) - 0.5,
+                    f64::from(x) + (fi + (fj + 0.5) / n) / n - 0.5,
+                    f64::from(y) + (fj + (fi + 0.5) / n) / n - 0.5,
                 );
                 let hit = self.spec.liquid_ray(sx, sy).and_then(|(o, d)| {
                     let s = self.spec.plate_hit(o, d, z)?;
