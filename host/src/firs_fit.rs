@@ -403,6 +403,9 @@ fn gray8(img: &Image) -> Vec<u8> {
 /// The detector's parameters for `spec` (thresholds relative to the lit brightness, which the
 /// frames give as `[0, 1]` values).
 fn params(spec: &FirsFitSpec, laser: Option<[f64; 2]>) -> SurfaceParams {
+    // A transparent object casts no laser shadow and is cut by the sheet whichever way it
+    // faces: no laser-direction criterion.
+    let laser = if spec.first_surface { None } else { laser };
     SurfaceParams {
         strong: 0.12,
         weak: 0.05,

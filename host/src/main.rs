@@ -430,11 +430,22 @@ fn main() -> ExitCode {
 
 /// `lightrig demo firs`.
 fn firs_demo(quick: bool, out: &std::path::Path, seed: u64, check: bool) -> ExitCode {
-    let opts =
-        lightrig_host::firs_demo::FirsDemoOptions { quick, out: out.join("firs"), seed, progress: true };
+    use lightrig_host::firs_demo::FirsDemoObject;
+    let opts = lightrig_host::firs_demo::FirsDemoOptions {
+        objects: vec![FirsDemoObject::Sphere, FirsDemoObject::Faceted],
+        quick,
+        out: out.join("firs"),
+        seed,
+        progress: true,
+    };
     match lightrig_host::firs_demo::run_firs(&opts) {
-        Ok((acc, _)) => {
-            let missed: Vec<_> = acc.targets().into_iter().filter(|t| !t.3).map(|t| t.0).collect();
+        Ok((all, _)) => {
+            let missed: Vec<String> = all
+                .iter()
+                .flat_map(|(o, acc)| {
+                    acc.targets().into_iter().filter(|t| !t.3).map(move |t| format!("{}: {}", o.name(), t.0))
+                })
+                .collect();
             if check && !missed.is_empty() {
                 eprintln!("error: accuracy targets missed: {}", missed.join(", "));
                 return ExitCode::from(exit::FAILURE);

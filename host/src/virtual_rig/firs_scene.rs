@@ -106,6 +106,61 @@ pub struct FirsTarget {
     pub lamp: f64,
 }
 
+/// What stands on the turntable.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "kebab-case")]
+pub enum FirsObject {
+    /// An opaque sphere.
+    Sphere {
+        /// Centre at turntable angle 0, mm.
+        centre: V3,
+        /// Radius, mm.
+        radius: f64,
+    },
+    /// A transparent, convex, faceted solid of revolution about a vertical axis: `facets`
+    /// vertical faces at distance `radius` from the axis over `|y| ≤ band`, a ring of faces
+    /// bevelled by `bevel_deg` above and below each, and flat caps at `|y| = height`.
+    Faceted {
+        /// Centre at turntable angle 0, mm.
+        centre: V3,
+        /// Faces around.
+        facets: usize,
+        /// Distance of the vertical faces from the axis, mm.
+        radius: f64,
+        /// Half-height of the vertical faces, mm.
+        band: f64,
+        /// Tilt of the bevelled faces from vertical, degrees.
+        bevel_deg: f64,
+        /// Half-height to the caps, mm.
+        height: f64,
+        /// Azimuth of the first face, degrees.
+        phase_deg: f64,
+        /// Refractive index.
+        n: f64,
+    },
+}
+
+impl FirsObject {
+    /// The object's size for relative errors: the sphere's diameter, the faceted solid's
+    /// largest extent (twice the circumradius, or its height).
+    pub fn size_mm(&self) -> f64 {
+        match *self {
+            FirsObject::Sphere { radius, .. } => 2.0 * radius,
+            FirsObject::Faceted { facets, radius, height, .. } => {
+                (2.0 * radius / (std::f64::consts::PI / facets.max(3) as f64).cos()).max(2.0 * height)
+            }
+        }
+    }
+
+    /// Whether light passes through it.
+    pub fn transparent(&self) -> bool {
+        matches!(self, FirsObject::Faceted { .. })
+    }
+}
+
+/// The faceted solid's faces `(outward normal, a point on the face)`.
+type Planes = Vec<(V3, V3)>;
+
 /// The whole scene.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FirsSceneSpec {
@@ -117,10 +172,8 @@ pub struct FirsSceneSpec {
     pub sheet: FirsSheet,
     /// The target.
     pub target: FirsTarget,
-    /// The sphere at turntable angle 0: centre, mm.
-    pub sphere_centre: V3,
-    /// Its radius, mm.
-    pub sphere_radius: f64,
+    /// The object on the turntable (at turntable angle 0).
+    pub object: FirsObject,
     /// Turntable axis: a point and a direction (right-handed turns), mm.
     pub turntable_point: V3,
     /// See `turntable_point`.
@@ -130,6 +183,24 @@ pub struct FirsSceneSpec {
 }
 
 impl FirsSceneSpec {
+    /// The standard scene with the transparent faceted solid instead of the sphere: 8 faces
+    /// 13 mm from the axis, ±5 mm high, bevels at 40°, caps at ±11 mm, glass of n 1.5 (the
+    /// liquid's 1.40 does not match it: the camera sees the liquid behind it displaced).
+    pub fn faceted(width: u32, height: u32) -> Self {
+        let mut s = Self::new(width, height);
+        s.object = FirsObject::Faceted {
+            centre: [1.5, 0.0, 0.0],
+            facets: 8,
+            radius: 13.0,
+            band: 5.0,
+            bevel_deg: 40.0,
+            height: 11.0,
+            phase_deg: 11.0,
+            n: 1.5,
+        };
+        s
+    }
+
     /// The standard scene: a 32 mm sphere in a 100 × 80 × 90 mm tank behind 6 mm of glass
     /// (n 1.5) in water–glycerol (n 1.40), seen at 25° from 0.3 mm pixels; the sheet 0.14 mm
     /// thick from a mirror 700 mm to the left, about 27° across the front wall.
@@ -155,8 +226,7 @@ impl FirsSceneSpec {
                 galvo: 0,
             },
             target: FirsTarget { cols: 13, rows: 10, square_mm: 4.0, origin_mm: [-24.0, -18.0], lamp: 1.0 },
-            sphere_centre: [1.5, 0.0, 0.0],
-            sphere_radius: 16.0,
+            object: FirsObject::Sphere { centre: [1.5, 0.0, 0.0], radius: 16.0 },
             turntable_point: [0.0, 0.0, 0.0],
             turntable_dir: [0.0, -1.0, 0.0],
             turntable_axis: 0,
@@ -224,18 +294,98 @@ impl FirsSceneSpec {
         f64::from(s.zero_code) + (theta - s.angle0_deg.to_radians()) / (s.urad_per_code * 1e-6)
     }
 
-    /// The sphere's centre at turntable angle `deg`.
-    pub fn sphere_at(&self, deg: f64) -> V3 {
-        rotate(self.sphere_centre, self.turntable_point, self.turntable_dir, deg.to_radians())
+    /// The object's centre at turntable angle `deg`.
+    pub fn centre_at(&self, deg: f64) -> V3 {
+        let c = match self.object {
+            FirsObject::Sphere { centre, .. } | FirsObject::Faceted { centre, .. } => centre,
+        };
+        rotate(c, self.turntable_point, self.turntable_dir, deg.to_radians())
     }
 
-    /// The first point where pixel `(x, y)`'s ray meets the sphere at turntable angle `deg`,
+    /// The faceted solid's faces at turntable angle `deg` (empty for the sphere).
+    pub fn planes_at(&self, deg: f64) -> Planes {
+        let FirsObject::Faceted { centre, facets, radius, band, bevel_deg, height, phase_deg, .. } =
+            self.object
+        else {
+            return Vec::new();
+        };
+        let b = bevel_deg.to_radians();
+        let mut planes = Vec::new();
+        for k in 0..facets {
+            let phi = phase_deg.to_radians() + std::f64::consts::TAU * k as f64 / facets as f64;
+            let hz = [phi.cos(), 0.0, phi.sin()];
+            let rim = add(centre, scale(hz, radius));
+            planes.push((hz, rim));
+            planes.push((
+                normalize(add(scale(hz, b.cos()), [0.0, -b.sin(), 0.0])),
+                add(rim, [0.0, -band, 0.0]),
+            ));
+            planes
+                .push((normalize(add(scale(hz, b.cos()), [0.0, b.sin(), 0.0])), add(rim, [0.0, band, 0.0])));
+        }
+        planes.push(([0.0, -1.0, 0.0], add(centre, [0.0, -height, 0.0])));
+        planes.push(([0.0, 1.0, 0.0], add(centre, [0.0, height, 0.0])));
+        let a = deg.to_radians();
+        planes
+            .into_iter()
+            .map(|(n, q)| {
+                (
+                    rotate(n, [0.0; 3], self.turntable_dir, a),
+                    rotate(q, self.turntable_point, self.turntable_dir, a),
+                )
+            })
+            .collect()
+    }
+
+    /// The first point where pixel `(x, y)`'s ray meets the object at turntable angle `deg`,
     /// inside the tank.
-    pub fn sphere_hit(&self, x: f64, y: f64, deg: f64) -> Option<V3> {
+    pub fn object_hit(&self, x: f64, y: f64, deg: f64) -> Option<V3> {
         let (o, d) = self.liquid_ray(x, y)?;
         let (_, exit) = box_interval(o, d, self.tank.min, self.tank.max)?;
-        let (e0, _) = sphere_interval(o, d, self.sphere_at(deg), self.sphere_radius)?;
+        let e0 = match self.object {
+            FirsObject::Sphere { radius, .. } => sphere_interval(o, d, self.centre_at(deg), radius)?.0,
+            FirsObject::Faceted { .. } => convex_interval(o, d, &self.planes_at(deg))?.0,
+        };
         (e0 > 0.0 && e0 < exit).then(|| add(o, scale(d, e0)))
+    }
+
+    /// The outward normal of the object's surface at (or near) `p`, at turntable angle `deg`.
+    pub fn normal_at(&self, p: V3, deg: f64) -> V3 {
+        match self.object {
+            FirsObject::Sphere { .. } => normalize(sub(p, self.centre_at(deg))),
+            FirsObject::Faceted { .. } => self
+                .planes_at(deg)
+                .into_iter()
+                .max_by(|a, b| dot(a.0, sub(p, a.1)).total_cmp(&dot(b.0, sub(p, b.1))))
+                .map_or([0.0, 0.0, 1.0], |(n, _)| n),
+        }
+    }
+
+    /// Distance of `p` from the object's surface at turntable angle `deg`: exact for the
+    /// sphere; for the faceted solid the distance to the nearest face whose foot point lies on
+    /// the solid (exact off a face's interior), else the largest plane distance.
+    pub fn distance(&self, p: V3, deg: f64) -> f64 {
+        match self.object {
+            FirsObject::Sphere { radius, .. } => (norm(sub(p, self.centre_at(deg))) - radius).abs(),
+            FirsObject::Faceted { .. } => {
+                let planes = self.planes_at(deg);
+                let side = |q: V3| planes.iter().map(|(n, a)| dot(*n, sub(q, *a))).fold(f64::MIN, f64::max);
+                let on_face = planes
+                    .iter()
+                    .map(|(n, a)| {
+                        let h = dot(*n, sub(p, *a));
+                        (h.abs(), sub(p, scale(*n, h)))
+                    })
+                    .filter(|(_, foot)| side(*foot) <= 1e-9)
+                    .map(|(d, _)| d)
+                    .fold(f64::INFINITY, f64::min);
+                if on_face.is_finite() {
+                    on_face
+                } else {
+                    side(p).abs()
+                }
+            }
+        }
     }
 
     /// Whether world `(x, y)` on the target plate is a white square (outside the board's
@@ -269,20 +419,41 @@ impl FirsSceneSpec {
 
     /// Fluorescence seen along the liquid ray `(o, d)` with sheet code `code`, when the
     /// opaque thing in the tank is `what`.
-    fn glow(&self, o: V3, d: V3, code: u16, what: Occluder) -> f64 {
+    fn glow(&self, o: V3, d: V3, code: u16, what: Occluder<'_>) -> f64 {
         let sh = &self.sheet;
         let Some((_, exit)) = box_interval(o, d, self.tank.min, self.tank.max) else { return 0.0 };
         let mut end = exit;
         let mut shadow: Option<(f64, f64)> = None;
+        let mut behind = 0.0;
         match what {
-            Occluder::Sphere(c) => {
-                if let Some((e0, _)) = sphere_interval(o, d, c, self.sphere_radius) {
+            Occluder::Sphere(c, r) => {
+                if let Some((e0, _)) = sphere_interval(o, d, c, r) {
                     if e0 > 0.0 {
                         end = end.min(e0);
                     }
                 }
-                shadow = cone_shadow(o, d, sh.mirror, c, self.sphere_radius);
+                shadow = cone_shadow(o, d, sh.mirror, c, r);
             }
+            Occluder::Glass(planes, n) => {
+                if let Some((e0, _, i0, _)) =
+                    convex_interval(o, d, planes).filter(|v| v.0 > 0.0 && v.0 < exit)
+                {
+                    end = e0;
+                    // Through the glass and out into the liquid behind; 0.9 for the two
+                    // surfaces' Fresnel losses. The glass itself does not fluoresce.
+                    let p0 = add(o, scale(d, e0));
+                    let n_l = self.tank.n_liquid;
+                    if let Some(d1) = refract(d, planes[i0].0, n_l / n) {
+                        if let Some((_, e1, _, i1)) = convex_interval(p0, d1, planes) {
+                            let p1 = add(p0, scale(d1, e1));
+                            if let Some(d2) = refract(d1, scale(planes[i1].0, -1.0), n / n_l) {
+                                behind = 0.9 * self.glow(p1, d2, code, Occluder::None);
+                            }
+                        }
+                    }
+                }
+            }
+            Occluder::None => {}
             Occluder::Plate(z) => {
                 if let Some(s) = self.plate_hit(o, d, z) {
                     end = end.min(s);
@@ -314,14 +485,42 @@ impl FirsSceneSpec {
         let lit: f64 = segs.iter().map(|&(a, b)| (phi(h(b)) - phi(h(a))).abs()).sum();
         // The back wall's scattered fluorescence: smooth in the image and over the sweep.
         let stray = sh.stray * (1.0 + 0.5 * (0.05 * o[0] + 3.0 * th).sin() * (0.04 * o[1]).cos());
-        sh.glow * (lit / nd.abs() + stray)
+        let stray = if matches!(what, Occluder::None) { 0.0 } else { stray };
+        sh.glow * (lit / nd.abs() + stray) + behind
     }
 }
 
 #[derive(Debug, Clone, Copy)]
-enum Occluder {
-    Sphere(V3),
+enum Occluder<'a> {
+    /// Nothing in the way.
+    None,
+    /// Opaque sphere: centre, radius.
+    Sphere(V3, f64),
+    /// Transparent convex solid: faces, refractive index.
+    Glass(&'a [(V3, V3)], f64),
+    /// The target plate at depth `z`.
     Plate(f64),
+}
+
+/// The parameter interval of the ray inside the convex solid `{p : n·(p − q) ≤ 0}` and the
+/// faces it enters and leaves by.
+fn convex_interval(o: V3, d: V3, planes: &[(V3, V3)]) -> Option<(f64, f64, usize, usize)> {
+    let (mut lo, mut hi, mut ilo, mut ihi) = (f64::NEG_INFINITY, f64::INFINITY, 0, 0);
+    for (i, (n, q)) in planes.iter().enumerate() {
+        let (num, den) = (dot(*n, sub(*q, o)), dot(*n, d));
+        if den == 0.0 {
+            if num < 0.0 {
+                return None;
+            }
+        } else if den > 0.0 {
+            if num / den < hi {
+                (hi, ihi) = (num / den, i);
+            }
+        } else if num / den > lo {
+            (lo, ilo) = (num / den, i);
+        }
+    }
+    (lo < hi && lo.is_finite() && hi.is_finite()).then_some((lo, hi, ilo, ihi))
 }
 
 /// Snell's law: `i` (unit) crossing into a medium with relative index `1/eta`, `n` the unit
@@ -498,7 +697,17 @@ impl Scene for FirsScene {
             (Some("target-sweep"), Some(z)) if laser => self.spec.glow(o, d, code, Occluder::Plate(z)),
             (Some("scan"), _) if laser => {
                 let deg = state.axes.get(usize::from(s.turntable_axis)).copied().unwrap_or(0.0);
-                self.spec.glow(o, d, code, Occluder::Sphere(s.sphere_at(deg)))
+                match s.object {
+                    FirsObject::Sphere { radius, .. } => {
+                        self.spec.glow(o, d, code, Occluder::Sphere(s.centre_at(deg), radius))
+                    }
+                    FirsObject::Faceted { n, .. } => {
+                        // The faces at this angle, cached per angle would be faster; 26 planes
+                        // are cheap next to the glow integral.
+                        let planes = s.planes_at(deg);
+                        self.spec.glow(o, d, code, Occluder::Glass(&planes, n))
+                    }
+                }
             }
             _ => 0.0,
         };
