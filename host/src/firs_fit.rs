@@ -195,6 +195,7 @@ fn detect_sweep(
     galvo: usize,
     params: SurfaceParams,
     what: &str,
+    band_bytes: usize,
 ) -> Result<(DepthMap, (usize, usize)), FitError> {
     let lit: Vec<&(PathBuf, TriggerEvent)> =
         frames.iter().filter(|(_, t)| t.snapshot.lasers & laser_bit != 0).collect();
@@ -221,7 +222,7 @@ fn detect_sweep(
     let (w, h) = (first.width as usize, first.height as usize);
     let n = lit.len();
     let mut det = SurfaceDetector::new(w, h, n, params).map_err(|e| fail(format!("{what}: {e}")))?;
-    let band = (BAND_BYTES / (w * n * 4).max(1)).clamp(1, h);
+    let band = (band_bytes / (w * n * 4).max(1)).clamp(1, h);
     let mut r0 = 0;
     let mut cache = Some(first);
     while r0 < h {
@@ -474,6 +475,16 @@ fn laser_image_dir(
 /// Fits a fluorescent-immersion session's surface. `progress(done, total)` is called after each
 /// sweep.
 pub fn fit_surface(dir: &Path, progress: &dyn Fn(u64, u64)) -> Result<FirsSurface, FitError> {
+    fit_surface_banded(dir, BAND_BYTES, progress)
+}
+
+/// [`fit_surface`] reading each stack in bands of at most `band_bytes` of samples (at least
+/// one image row per band).
+pub fn fit_surface_banded(
+    dir: &Path,
+    band_bytes: usize,
+    progress: &dyn Fn(u64, u64),
+) -> Result<FirsSurface, FitError> {
     let (session, _) = Session::read(dir).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
     let manifest = session.manifest().clone();
     let rig = RigFile::parse(&manifest.rig, &dir.join("manifest.json")).map_err(|e| fail(e.to_string()))?;
@@ -607,6 +618,7 @@ pub fn fit_surface(dir: &Path, progress: &dyn Fn(u64, u64)) -> Result<FirsSurfac
             galvo,
             params(&spec, None),
             &format!("{}: step {}", dir.display(), s.id),
+            band_bytes,
         )?;
         if size != (w, h) {
             return Err(fail(format!(
@@ -657,7 +669,8 @@ pub fn fit_surface(dir: &Path, progress: &dyn Fn(u64, u64)) -> Result<FirsSurfac
         let steps_at = t0.snapshot.axes.get(usize::from(table.axis)).copied().unwrap_or(0);
         let angle_deg = table.units(i64::from(steps_at)).unwrap_or(f64::from(steps_at));
         let what = format!("{}: step {}", dir.display(), s.id);
-        let (depth, size) = detect_sweep(&frames, laser_bit, galvo, params(&spec, Some(laser)), &what)?;
+        let (depth, size) =
+            detect_sweep(&frames, laser_bit, galvo, params(&spec, Some(laser)), &what, band_bytes)?;
         if size != (w, h) {
             return Err(fail(format!("{what}: frame size differs from the board frames'")));
         }

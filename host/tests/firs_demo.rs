@@ -56,6 +56,14 @@ fn firs_quick_demo_opaque_sphere_within_half_a_permille() {
     let spec: FirsSceneSpec =
         serde_json::from_str(&std::fs::read_to_string(dir.join("truth/scene.json")).unwrap()).unwrap();
     assert_eq!(firs_accuracy(&spec, &again), acc);
+    // Read in bands of 16 rows (not the whole stack at once): the same result.
+    let banded =
+        lightrig_host::firs_fit::fit_surface_banded(&dir.join("session"), 208 * 365 * 4 * 16, &|_, _| {})
+            .unwrap();
+    assert_eq!(firs_accuracy(&spec, &banded), acc);
+    // A missing session is named.
+    let e = lightrig_host::firs_fit::fit_surface(&out.join("nowhere"), &|_, _| {}).unwrap_err();
+    assert!(e.to_string().contains("nowhere"), "{e}");
 
     // The check can fail: the same points against a sphere 0.1 mm larger are far off target.
     let mut bigger = spec.clone();

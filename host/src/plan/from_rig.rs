@@ -490,3 +490,39 @@ fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
     };
     bispectral::plan(&p).map_err(|e| rig.error("plan", e.0))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rig_with(targets: &str) -> RigFile {
+        let text = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../docs/rigs/fluorescent-immersion.toml"
+        ))
+        .unwrap()
+        .replace("views = 36 ", "views = 2 ")
+        .replace("sheet_positions = 400 ", "sheet_positions = 5 ")
+        .replace("# calibration_targets = [{ z_mm = -12.0 }, { z_mm = 8.0 }]", targets);
+        RigFile::parse(&text, std::path::Path::new("rig.toml")).unwrap()
+    }
+
+    #[test]
+    fn calibration_targets_become_board_and_sweep_steps() {
+        let info = crate::selfcheck::virtual_device_info();
+        let plan =
+            super::plan(&rig_with("calibration_targets = [{ z_mm = -12.0 }, { z_mm = 8 }]"), &info).unwrap();
+        // Two positions × (board, sweep), then 2 views.
+        assert_eq!(plan.steps.len(), 6);
+        assert_eq!(plan.steps[0].meta["pose"]["z_mm"], -12.0);
+        assert_eq!(plan.steps[3].meta["pose"]["z_mm"], 8);
+        assert_eq!(plan.summary().triggers, 2 * (1 + 1 + 5) + 2 * 5);
+        for bad in [
+            "calibration_targets = [{ z_mm = -12.0 }]",
+            "calibration_targets = [{ z = 1.0 }, { z_mm = 2.0 }]",
+        ] {
+            let e = super::plan(&rig_with(bad), &info).unwrap_err().to_string();
+            assert!(e.contains("plan.calibration_targets"), "{bad}: {e}");
+        }
+    }
+}
