@@ -9,6 +9,8 @@
 //! - [`rigfile`]: the TOML rig description, validated with file:line:field errors.
 //! - [`selfcheck`]: the protocol self-check over a lossy simulated wire.
 //! - [`virtual_rig`]: the virtual rig: simulated board from a rig file, virtual camera, scenes.
+//! - [`firs_fit`], [`firs_demo`]: fluorescent immersion range scanning: `lightrig fit
+//!   firs-surface` and `lightrig demo firs`.
 
 pub mod acquire;
 pub mod cli_acquire;
@@ -17,6 +19,8 @@ pub mod cli_hdr;
 pub mod client;
 pub mod clock;
 pub mod demo;
+pub mod firs_demo;
+pub mod firs_fit;
 pub mod frames;
 pub mod lls_fit;
 pub mod plan;

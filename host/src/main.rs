@@ -22,7 +22,7 @@ enum Cmd {
     /// Run a whole acquisition and fit on the virtual rig and compare the fit with the ground
     /// truth (the default method is the linear light source).
     Demo {
-        /// Method: `lls` (linear light source).
+        /// Method: `lls` (linear light source) or `firs` (fluorescent immersion).
         #[arg(default_value = "lls")]
         method: String,
         /// A small scene for a quick check (about half a minute).
@@ -38,9 +38,10 @@ enum Cmd {
         #[arg(long)]
         check: bool,
     },
-    /// Fit a session: `lightrig fit lls SESSION --out DIR [--calibration cam.toml]`.
+    /// Fit a session: `lightrig fit lls SESSION --out DIR [--calibration cam.toml]`, or
+    /// `lightrig fit firs-surface SESSION --out DIR`.
     Fit {
-        /// Pipeline: `lls`.
+        /// Pipeline: `lls` or `firs-surface`.
         pipeline: String,
         /// Session directory.
         session: std::path::PathBuf,
@@ -261,8 +262,11 @@ fn main() -> ExitCode {
             }
         }
         Cmd::Demo { method, quick, out, seed, check } => {
+            if method == "firs" || method == "fluorescent-immersion" {
+                return firs_demo(quick, &out, seed, check);
+            }
             if method != "lls" && method != "linear-light-source" {
-                eprintln!("error: `lightrig demo {method}`: the methods with a demo are: lls");
+                eprintln!("error: `lightrig demo {method}`: the methods with a demo are: lls, firs");
                 return ExitCode::from(exit::USAGE);
             }
             let opts = lightrig_host::demo::DemoOptions { quick, out: out.join("lls"), seed, progress: true };
@@ -282,8 +286,11 @@ fn main() -> ExitCode {
             }
         }
         Cmd::Fit { pipeline, session, out, calibration } => {
+            if pipeline == "firs-surface" {
+                return fit_firs_surface(&session, &out);
+            }
             if pipeline != "lls" {
-                eprintln!("error: `lightrig fit {pipeline}`: the pipelines are: lls");
+                eprintln!("error: `lightrig fit {pipeline}`: the pipelines are: lls, firs-surface");
                 return ExitCode::from(exit::USAGE);
             }
             let bar = indicatif::ProgressBar::new(0);
@@ -418,6 +425,64 @@ fn main() -> ExitCode {
                     ExitCode::from(exit::FAILURE)
                 }
             }
+        }
+    }
+}
+
+/// `lightrig demo firs`.
+fn firs_demo(quick: bool, out: &std::path::Path, seed: u64, check: bool) -> ExitCode {
+    use lightrig_host::firs_demo::FirsDemoObject;
+    let opts = lightrig_host::firs_demo::FirsDemoOptions {
+        objects: vec![FirsDemoObject::Sphere, FirsDemoObject::Faceted],
+        quick,
+        out: out.join("firs"),
+        seed,
+        progress: true,
+    };
+    match lightrig_host::firs_demo::run_firs(&opts) {
+        Ok((all, _)) => {
+            let missed: Vec<String> = all
+                .iter()
+                .flat_map(|(o, acc)| {
+                    acc.targets().into_iter().filter(|t| !t.3).map(move |t| format!("{}: {}", o.name(), t.0))
+                })
+                .collect();
+            if check && !missed.is_empty() {
+                eprintln!("error: accuracy targets missed: {}", missed.join(", "));
+                return ExitCode::from(exit::FAILURE);
+            }
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("error: {}", e.message);
+            ExitCode::from(e.code)
+        }
+    }
+}
+
+/// `lightrig fit firs-surface SESSION --out DIR`.
+fn fit_firs_surface(session: &std::path::Path, out: &std::path::Path) -> ExitCode {
+    let fit = lightrig_host::firs_fit::fit_surface(session, &|done, total| eprintln!("sweep {done}/{total}"));
+    match fit.and_then(|s| {
+        println!(
+            "{} pixels with a ray; sheets: {} samples, {:.2} µm RMS; {} points merged from {} orientation(s)",
+            s.ray_pixels,
+            s.sheet_samples,
+            s.sheet_rms * 1e3,
+            s.merged.len(),
+            s.scans.len()
+        );
+        lightrig_host::firs_fit::write_outputs(&s, out)
+    }) {
+        Ok(files) => {
+            for f in files {
+                println!("{}", f.display());
+            }
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(exit::FAILURE)
         }
     }
 }

@@ -50,6 +50,7 @@ fn state(pass: Option<&str>, gantry: f64, lasers: u8) -> RigState {
         lasers,
         filters: vec![],
         exposure_s: 0.004,
+        ..RigState::default()
     }
 }
 

@@ -12,7 +12,8 @@
 //!
 //! - fluorescent-immersion: `views` (turntable positions over a full turn), `sheet_positions`
 //!   (spread over the galvo's X range; Y at its zero code), `laser` (name; the first laser),
-//!   `exposure_us`, `readout_us`, `calibration` (true), `frame_bytes`.
+//!   `exposure_us`, `readout_us`, `calibration` (true), `frame_bytes`, `calibration_targets`
+//!   (the target's positions, `[{ z_mm = … }, …]`, front to back: a board frame and a sweep at each).
 //! - brdf-display: `patterns.NAME = { frequencies_hz = […], amplitudes = […] }` (amplitudes as
 //!   fractions of full scale, the same on every voice coil), `captures` (3), `ramp_ms` (200),
 //!   `settle_ms` (2000), `exposure_us`, `readout_us`, `frame_bytes`.
@@ -295,7 +296,29 @@ fn immersion_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         frame_bytes: frame_bytes(rig)?,
         tick_hz: hz,
     };
-    immersion::plan(&p).map_err(|e| rig.error("plan", e.0))
+    immersion::plan_with_targets(&p, &targets(rig)?).map_err(|e| rig.error("plan", e.0))
+}
+
+/// `[plan] calibration_targets`: the calibration target's positions, front to back, each a
+/// table the operator fills in (`{ z_mm = -12.0 }`: the target plane's depth in the tank's
+/// frame); carried into the calibration steps' `meta.pose` for the fit and the virtual camera.
+fn targets(rig: &RigFile) -> Result<Vec<serde_json::Value>, RigError> {
+    let Some(v) = rig.plan.get("calibration_targets") else { return Ok(Vec::new()) };
+    let key = "plan.calibration_targets";
+    let list =
+        v.as_array().ok_or_else(|| rig.error(key, "must be a list of tables, e.g. [{ z_mm = -12.0 }]"))?;
+    if list.len() < 2 {
+        return Err(rig.error(key, "per-pixel rays need at least 2 target positions (front and back)"));
+    }
+    list.iter()
+        .map(|t| {
+            let z = t.get("z_mm").and_then(|z| z.as_float().or_else(|| z.as_integer().map(|i| i as f64)));
+            if !t.is_table() || !z.is_some_and(f64::is_finite) {
+                return Err(rig.error(key, "each position needs z_mm, the target plane's depth in mm"));
+            }
+            serde_json::to_value(t).map_err(|e| rig.error(key, e.to_string()))
+        })
+        .collect()
 }
 
 fn display_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
@@ -466,4 +489,40 @@ fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         tick_hz: hz,
     };
     bispectral::plan(&p).map_err(|e| rig.error("plan", e.0))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rig_with(targets: &str) -> RigFile {
+        let text = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../docs/rigs/fluorescent-immersion.toml"
+        ))
+        .unwrap()
+        .replace("views = 36 ", "views = 2 ")
+        .replace("sheet_positions = 400 ", "sheet_positions = 5 ")
+        .replace("# calibration_targets = [{ z_mm = -12.0 }, { z_mm = 8.0 }]", targets);
+        RigFile::parse(&text, std::path::Path::new("rig.toml")).unwrap()
+    }
+
+    #[test]
+    fn calibration_targets_become_board_and_sweep_steps() {
+        let info = crate::selfcheck::virtual_device_info();
+        let plan =
+            super::plan(&rig_with("calibration_targets = [{ z_mm = -12.0 }, { z_mm = 8 }]"), &info).unwrap();
+        // Two positions × (board, sweep), then 2 views.
+        assert_eq!(plan.steps.len(), 6);
+        assert_eq!(plan.steps[0].meta["pose"]["z_mm"], -12.0);
+        assert_eq!(plan.steps[3].meta["pose"]["z_mm"], 8);
+        assert_eq!(plan.summary().triggers, 2 * (1 + 1 + 5) + 2 * 5);
+        for bad in [
+            "calibration_targets = [{ z_mm = -12.0 }]",
+            "calibration_targets = [{ z = 1.0 }, { z_mm = 2.0 }]",
+        ] {
+            let e = super::plan(&rig_with(bad), &info).unwrap_err().to_string();
+            assert!(e.contains("plan.calibration_targets"), "{bad}: {e}");
+        }
+    }
 }

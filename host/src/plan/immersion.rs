@@ -6,6 +6,12 @@
 //! jump the sheet (blanked while the mirror settles), wait out the settle time, expose. A
 //! calibration step first: a dark frame (laser off) and a sweep with the calibration target in
 //! the tank (the operator places it; the step's `meta` says so).
+//!
+//! With known target positions ([`plan_with_targets`]) the calibration is what the pipeline's
+//! per-pixel rays and sheet fit need: for each position (front to back of the volume) a
+//! `target-board` step (one frame of the target under the lamp, laser off: its corners) and a
+//! `target-sweep` step (a dark frame and the sweep: the glow cuts off on the target, which
+//! gives the sheets). Each step's `meta.pose` carries the position as the operator typed it.
 
 use lightrig_protocol::config::Xy;
 use lightrig_protocol::sequence::{Action, WaitFor};
@@ -55,6 +61,13 @@ pub fn sheet_codes(from: u16, to: u16, n: u32) -> Vec<u16> {
 
 /// The immersion plan: calibration (optional), then one step per orientation.
 pub fn plan(p: &ImmersionParams) -> Result<Plan, PlanError> {
+    plan_with_targets(p, &[])
+}
+
+/// The immersion plan with a calibration target at each of `targets` (the operator's
+/// description of each position, e.g. `{"z_mm": -12.0}`, copied into the steps' `meta.pose`),
+/// front to back; with no targets (or `calibration` off) the same as [`plan`].
+pub fn plan_with_targets(p: &ImmersionParams, targets: &[serde_json::Value]) -> Result<Plan, PlanError> {
     let (from, to, n) = p.sweep;
     if n < 2 || p.orientations.is_empty() {
         return Err(PlanError("immersion: need at least 2 sheets and 1 orientation".into()));
@@ -75,7 +88,31 @@ pub fn plan(p: &ImmersionParams) -> Result<Plan, PlanError> {
         b.then(Action::Laser { channel: p.laser, on: false });
     };
     let mut steps = Vec::new();
-    if p.calibration {
+    if p.calibration && !targets.is_empty() {
+        for (k, pose) in targets.iter().enumerate() {
+            let mut b = StepBuilder::default();
+            b.move_to(p.turntable, p.orientations[0], p.timeout);
+            b.then(Action::Laser { channel: p.laser, on: false });
+            b.shoot(p.camera, p.exposure, format!("target {k}"));
+            b.wait(p.frame_gap);
+            let meta = json!({
+                "kind": "calibration", "pass": "target-board", "target": k, "pose": pose,
+                "operator": format!("remove the object; place the calibration target at position {k} ({pose}); lamp on"),
+            });
+            steps.push(b.build(steps.len() as u32, format!("calibration target {k}"), meta));
+            let mut b = StepBuilder::default();
+            b.move_to(p.turntable, p.orientations[0], p.timeout);
+            b.shoot(p.camera, p.exposure, "dark");
+            b.wait(p.frame_gap);
+            sweep(&mut b, "calibration");
+            let meta = json!({
+                "kind": "calibration", "pass": "target-sweep", "target": k, "pose": pose,
+                "codes": codes, "sheet_y": p.sheet_y,
+                "operator": format!("target at position {k} ({pose}); lamp off"),
+            });
+            steps.push(b.build(steps.len() as u32, format!("calibration sweep {k}"), meta));
+        }
+    } else if p.calibration {
         let mut b = StepBuilder::default();
         b.move_to(p.turntable, p.orientations[0], p.timeout);
         b.shoot(p.camera, p.exposure, "dark");
@@ -88,8 +125,61 @@ pub fn plan(p: &ImmersionParams) -> Result<Plan, PlanError> {
         let mut b = StepBuilder::default();
         b.move_to(p.turntable, angle, p.timeout);
         sweep(&mut b, "scan");
-        let meta = json!({ "kind": "scan", "orientation": o, "turntable": angle, "codes": codes, "sheet_y": p.sheet_y });
+        let meta = json!({ "kind": "scan", "pass": "scan", "orientation": o, "turntable": angle, "codes": codes, "sheet_y": p.sheet_y });
         steps.push(b.build(steps.len() as u32, format!("orientation {o}"), meta));
     }
     Ok(Plan { method: "fluorescent-immersion".into(), tick_hz: p.tick_hz, steps, frame_bytes: p.frame_bytes })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lightrig_protocol::sequence::Action;
+
+    fn params() -> ImmersionParams {
+        ImmersionParams {
+            turntable: 0,
+            orientations: vec![0, 100],
+            laser: 0,
+            galvo: 0,
+            sweep: (1000, 2000, 6),
+            sheet_y: 32768,
+            camera: 0,
+            exposure: 100,
+            settle: 10,
+            frame_gap: 200,
+            calibration: true,
+            timeout: 1_000_000,
+            frame_bytes: 1,
+            tick_hz: 1_000_000,
+        }
+    }
+
+    #[test]
+    fn each_target_position_gets_a_board_frame_and_a_sweep() {
+        let poses = [json!({ "z_mm": -12.0 }), json!({ "z_mm": 8.0 })];
+        let p = plan_with_targets(&params(), &poses).unwrap();
+        // Board + (dark + sweep) per target, then the two orientations.
+        assert_eq!(p.steps.len(), 2 * 2 + 2);
+        assert_eq!(p.summary().triggers, 2 * (1 + 1 + 6) + 2 * 6);
+        for (k, pose) in poses.iter().enumerate() {
+            let (board, sweep) = (&p.steps[2 * k], &p.steps[2 * k + 1]);
+            assert_eq!(board.meta["pass"], "target-board");
+            assert_eq!(sweep.meta["pass"], "target-sweep");
+            assert_eq!((&board.meta["pose"], &sweep.meta["pose"]), (pose, pose));
+            assert_eq!(board.meta["target"], k);
+            assert_eq!(board.shots.len(), 1);
+            assert_eq!(sweep.shots.len(), 7);
+            // The board frame is taken with the laser off.
+            assert!(board.items.iter().any(|i| matches!(i.action, Action::Laser { on: false, .. })));
+            assert!(!board.items.iter().any(|i| matches!(i.action, Action::Laser { on: true, .. })));
+        }
+        assert_eq!(p.steps[4].meta["pass"], "scan");
+        // Step ids are the plan order.
+        assert!(p.steps.iter().enumerate().all(|(i, s)| s.id == i as u32));
+        // Without targets: the single calibration step as before.
+        let old = plan_with_targets(&params(), &[]).unwrap();
+        assert_eq!(old, super::plan(&params()).unwrap());
+        assert_eq!(old.steps.len(), 3);
+    }
 }

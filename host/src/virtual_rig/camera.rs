@@ -16,7 +16,7 @@ use crate::plan::Step;
 use crate::rigfile::RigFile;
 
 /// The rig at a trigger, in the rig file's units.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct RigState {
     /// The step's `meta.pass` (or `meta.kind`), if it has one: tells a scene what is on the
     /// rig (the board, the bare light box, the sample).
@@ -32,6 +32,10 @@ pub struct RigState {
     pub filters: Vec<Option<u8>>,
     /// Exposure, seconds.
     pub exposure_s: f64,
+    /// Each galvo pair's codes `[x, y]`, by index, from the trigger's snapshot.
+    pub galvos: Vec<[u16; 2]>,
+    /// The step's whole `meta` (e.g. the immersion calibration target's pose); `Null` if none.
+    pub meta: serde_json::Value,
 }
 
 /// Something the virtual camera can look at.
@@ -53,6 +57,7 @@ pub struct VirtualCamera<S: Scene> {
     axis_units: Vec<Option<crate::rigfile::Stepper>>,
     pass: Option<String>,
     mount_deg: f64,
+    meta: serde_json::Value,
     input: DirectoryInput,
     on_frame: Option<Box<dyn FnMut(u64)>>,
 }
@@ -85,6 +90,7 @@ impl<S: Scene> VirtualCamera<S> {
             axis_units,
             pass: None,
             mount_deg: 0.0,
+            meta: serde_json::Value::Null,
             input,
             on_frame: None,
         })
@@ -122,6 +128,8 @@ impl<S: Scene> VirtualCamera<S> {
             lasers: t.snapshot.lasers,
             filters: t.snapshot.filters.iter().copied().collect(),
             exposure_s: f64::from(t.width) / self.tick_hz,
+            galvos: t.snapshot.galvos.iter().map(|g| [g.x, g.y]).collect(),
+            meta: self.meta.clone(),
         }
     }
 
@@ -165,6 +173,7 @@ impl<S: Scene> FrameInput for VirtualCamera<S> {
             .and_then(|p| p.as_str())
             .map(str::to_string);
         self.mount_deg = step.meta.get("mount_deg").and_then(|m| m.as_f64()).unwrap_or(0.0);
+        self.meta = step.meta.clone();
         self.input.begin_step(step)
     }
 

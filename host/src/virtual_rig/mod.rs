@@ -10,8 +10,10 @@
 //!   into a numbered file in a watched directory, exactly where a real camera's software would
 //!   write it, so the pipelines cannot tell the difference.
 //! - [`lls_scene`]: the linear-light-source scene and its ground truth.
+//! - [`firs_scene`]: the fluorescent-immersion tank scene and its ground truth.
 
 pub mod camera;
+pub mod firs_scene;
 pub mod lls_scene;
 pub mod sensor;
 

@@ -1,0 +1,152 @@
+//! Fluorescent immersion range scanning end to end on the virtual rig: the quick demo (an
+//! opaque sphere behind a refracting wall) acquired, calibrated and fitted, checked against the
+//! scene's ground truth; the tank scene's renders checked for determinism.
+
+use lightrig_host::firs_demo::{firs_accuracy, run_firs, FirsAccuracy, FirsDemoObject, FirsDemoOptions};
+use lightrig_host::virtual_rig::camera::{RigState, VirtualCamera};
+use lightrig_host::virtual_rig::firs_scene::{FirsObject, FirsScene, FirsSceneSpec};
+use lightrig_host::virtual_rig::sensor::Sensor;
+use lightrig_pipelines::firs::mesh::read_ply;
+
+/// Runs the quick demo for `object` and checks what every object must meet; returns the
+/// accuracy and the object's output directory.
+fn quick_demo(object: FirsDemoObject, seed: u64) -> (FirsAccuracy, std::path::PathBuf) {
+    let out = std::env::temp_dir().join(format!(
+        "lightrig-firs-demo-test-{}-{}",
+        object.name(),
+        std::process::id()
+    ));
+    let opts =
+        FirsDemoOptions { objects: vec![object], quick: true, out: out.clone(), seed, progress: false };
+    let (all, report) = run_firs(&opts).unwrap();
+    assert_eq!(all.len(), 1);
+    let acc = all[0].1.clone();
+    for (name, value, limit, met) in acc.targets() {
+        assert!(met, "{}: {name}: {value} against {limit}", object.name());
+    }
+    assert_eq!(acc.orientations.len(), 1);
+    // The calibration itself against the truth: rays through the wall to a few µm (measured
+    // 1.2 µm), sheets to well under the sheet spacing of 140 µm (measured 5 µm RMS).
+    assert!(acc.ray_rms_mm < 0.005, "{acc:?}");
+    assert!(acc.sheet_err_mm.0 < 0.015, "{acc:?}");
+    let text = std::fs::read_to_string(report).unwrap();
+    assert!(text.contains("| RMS distance to the true surface, % of size |"), "{text}");
+    let dir = out.join(object.name());
+    for f in ["rig.toml", "truth/scene.json", "session/journal.jsonl", "fit/summary.json"] {
+        assert!(dir.join(f).exists(), "{f} missing");
+    }
+    // The PLY files hold the points: the merged set has every recovered point.
+    let merged = read_ply(&mut std::fs::File::open(dir.join("fit/merged.ply")).unwrap()).unwrap();
+    assert_eq!(merged.vertices.len(), acc.merged.0);
+    let mesh = read_ply(&mut std::fs::File::open(dir.join("fit/orientation_00.ply")).unwrap()).unwrap();
+    assert!(mesh.triangles.len() > merged.vertices.len(), "{} triangles", mesh.triangles.len());
+    (acc, out)
+}
+
+#[test]
+fn firs_quick_demo_opaque_sphere_within_half_a_permille() {
+    let (acc, out) = quick_demo(FirsDemoObject::Sphere, 5);
+    // The target: 0.05 % of the sphere's 32 mm (16 µm) RMS. Measured: about 4.7 µm.
+    assert!(acc.rms_percent() <= 0.05, "{acc:?}");
+    assert!(acc.merged.0 > 5000, "{acc:?}");
+
+    // `lightrig fit firs-surface` on the session gives the same result.
+    let dir = out.join("sphere");
+    let again = lightrig_host::firs_fit::fit_surface(&dir.join("session"), &|_, _| {}).unwrap();
+    let spec: FirsSceneSpec =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("truth/scene.json")).unwrap()).unwrap();
+    assert_eq!(firs_accuracy(&spec, &again), acc);
+    // Read in bands of 16 rows (not the whole stack at once): the same result.
+    let banded =
+        lightrig_host::firs_fit::fit_surface_banded(&dir.join("session"), 208 * 365 * 4 * 16, &|_, _| {})
+            .unwrap();
+    assert_eq!(firs_accuracy(&spec, &banded), acc);
+    // A missing session is named.
+    let e = lightrig_host::firs_fit::fit_surface(&out.join("nowhere"), &|_, _| {}).unwrap_err();
+    assert!(e.to_string().contains("nowhere"), "{e}");
+
+    // The check can fail: the same points against a sphere 0.1 mm larger are far off target.
+    let mut bigger = spec.clone();
+    if let FirsObject::Sphere { radius, .. } = &mut bigger.object {
+        *radius += 0.1;
+    }
+    let off = firs_accuracy(&bigger, &again);
+    assert!(off.merged.1 > 0.08, "{off:?}");
+    std::fs::remove_dir_all(&out).ok();
+}
+
+#[test]
+fn firs_quick_demo_transparent_faceted_solid_within_a_permille() {
+    let (acc, out) = quick_demo(FirsDemoObject::Faceted, 6);
+    // 0.1 % of the solid's 28.1 mm (28 µm) RMS. Measured: about 10 µm; the worst points
+    // (about 0.14 mm) sit along the creases between faces.
+    assert!(acc.transparent);
+    assert!(acc.rms_percent() <= 0.1, "{acc:?}");
+    assert!(acc.merged.0 > 4000, "{acc:?}");
+    std::fs::remove_dir_all(&out).ok();
+}
+
+#[test]
+fn tank_frames_are_deterministic_given_the_seed() {
+    let spec = FirsSceneSpec::new(64, 48);
+    let rig_text = lightrig_host::firs_demo::firs_rig_text(&spec, (30000, 36000, 10), 1);
+    let rig = lightrig_host::rigfile::RigFile::parse(&rig_text, std::path::Path::new("rig.toml")).unwrap();
+    let dir = std::env::temp_dir().join(format!("lightrig-firs-det-{}", std::process::id()));
+    let cam = |seed| {
+        let sensor = Sensor { gain: 1e6, seed, ..Sensor::default() };
+        VirtualCamera::new(&rig, 0, FirsScene::new(spec.clone()), sensor, 1_000_000, &dir).unwrap()
+    };
+    let state = RigState {
+        pass: Some("scan".into()),
+        axes: vec![0.0],
+        lasers: 1,
+        exposure_s: 0.02,
+        // The sheet 2 mm in front of the sphere on the optical axis.
+        galvos: vec![[spec.code_for_depth(-18.0).round() as u16, 32768]],
+        ..RigState::default()
+    };
+    let bits = |img: lightrig_imaging::io::Image| img.data.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+    let a = bits(cam(3).render(&state, 17));
+    assert_eq!(a, bits(cam(3).render(&state, 17)), "same seed, same frame");
+    assert_ne!(a, bits(cam(4).render(&state, 17)), "another seed, other noise");
+    // The sheet glows in front of the sphere; behind it (which the whole small field sees
+    // through the sphere) only the weak stray light is left.
+    let green =
+        |bits: &[u32]| bits.iter().skip(1).step_by(3).map(|&b| f32::from_bits(b)).fold(0f32, f32::max);
+    assert!(green(&a) > 0.5, "{}", green(&a));
+    let behind =
+        RigState { galvos: vec![[spec.code_for_depth(30.0).round() as u16, 32768]], ..state.clone() };
+    let b = bits(cam(3).render(&behind, 17));
+    assert!(green(&b) < 0.05, "{}", green(&b));
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn the_faceted_solid_shows_the_liquid_behind_it_and_the_sphere_does_not() {
+    use lightrig_host::virtual_rig::camera::Scene;
+    // The centre pixel looks through the solid (and into the sphere); a sheet 25 mm deep, well
+    // behind the solid's front but inside the tank, glows behind the glass and not behind the
+    // opaque sphere.
+    let (w, h) = (65, 49);
+    let state = |spec: &FirsSceneSpec| RigState {
+        pass: Some("scan".into()),
+        axes: vec![0.0],
+        lasers: 1,
+        exposure_s: 0.02,
+        galvos: vec![[spec.code_for_depth(25.0).round() as u16, 32768]],
+        ..RigState::default()
+    };
+    let glass = FirsSceneSpec::faceted(w, h);
+    let sphere = FirsSceneSpec::new(w, h);
+    assert!(glass.object_hit(32.0, 24.0, 0.0).is_some() && sphere.object_hit(32.0, 24.0, 0.0).is_some());
+    let through = FirsScene::new(glass.clone()).radiance(32, 24, &state(&glass))[1];
+    let opaque = FirsScene::new(sphere.clone()).radiance(32, 24, &state(&sphere))[1];
+    assert!(through > 0.5, "{through}");
+    assert!(opaque < 0.02, "{opaque}");
+    // Its surface distance: 0 on a face, the offset off it.
+    let p = glass.object_hit(32.0, 24.0, 0.0).unwrap();
+    assert!(glass.distance(p, 0.0) < 1e-9);
+    let n = glass.normal_at(p, 0.0);
+    let q = [p[0] + 0.05 * n[0], p[1] + 0.05 * n[1], p[2] + 0.05 * n[2]];
+    assert!((glass.distance(q, 0.0) - 0.05).abs() < 1e-9, "{}", glass.distance(q, 0.0));
+}
