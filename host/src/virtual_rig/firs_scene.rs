@@ -755,6 +755,9 @@ pub struct FirsScene {
     pub spec: FirsSceneSpec,
     /// Per pixel: the ray in the liquid.
     rays: Vec<Option<(V3, V3)>>,
+    /// The faceted solid's faces at the last turntable angle (by its bits): a frame's pixels
+    /// share them.
+    planes: std::sync::Mutex<Option<(u64, std::sync::Arc<Planes>)>>,
 }
 
 impl FirsScene {
@@ -762,7 +765,20 @@ impl FirsScene {
     pub fn new(spec: FirsSceneSpec) -> Self {
         let (w, h) = (spec.camera.width, spec.camera.height);
         let rays = (0..w * h).map(|i| spec.liquid_ray(f64::from(i % w), f64::from(i / w))).collect();
-        FirsScene { spec, rays }
+        FirsScene { spec, rays, planes: std::sync::Mutex::new(None) }
+    }
+
+    fn planes_for(&self, deg: f64) -> std::sync::Arc<Planes> {
+        let key = deg.to_bits();
+        let mut cache = self.planes.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        match cache.as_ref() {
+            Some((k, p)) if *k == key => p.clone(),
+            _ => {
+                let p = std::sync::Arc::new(self.spec.planes_at(deg));
+                *cache = Some((key, p.clone()));
+                p
+            }
+        }
     }
 
     fn board(&self, x: u32, y: u32, z: f64, tilt: f64) -> f64 {
@@ -813,9 +829,7 @@ impl Scene for FirsScene {
                         self.spec.glow(o, d, code, Occluder::Sphere(s.centre_at(deg), radius))
                     }
                     FirsObject::Faceted { n, .. } => {
-                        // The faces at this angle, cached per angle would be faster; 26 planes
-                        // are cheap next to the glow integral.
-                        let planes = s.planes_at(deg);
+                        let planes = self.planes_for(deg);
                         self.spec.glow(o, d, code, Occluder::Glass(&planes, n))
                     }
                     FirsObject::Matched { radius, absorb, .. } => {
