@@ -1,11 +1,12 @@
-//! `lightrig demo firs`: a fluorescent-immersion surface scan on the virtual rig, fitted and
-//! checked against the ground truth the frames were rendered from.
+//! `lightrig demo firs`: fluorescent-immersion scans on the virtual rig, fitted and checked
+//! against the ground truth the frames were rendered from.
 //!
-//! Scans the opaque sphere and the transparent faceted solid, each into its own directory
-//! (`sphere/`, `faceted/`) holding `rig.toml` (the rig the demo runs, with the target
-//! positions and the fit's geometry as an operator would type them), `truth/scene.json` (the
-//! whole scene: camera, wall, sheets, object), `camera/` (the frames), `session/`, `fit/`
-//! (meshes, merged points, summary); `report.md` covers both.
+//! Surface mode scans the opaque sphere and the transparent faceted solid, volume mode the
+//! index-matched sphere, each into its own directory (`sphere/`, `faceted/`, `volume/`) holding
+//! `rig.toml` (the rig the demo runs, with the target positions and the fit's geometry as an
+//! operator would type them), `truth/scene.json` (the whole scene: camera, wall, sheets,
+//! object), `camera/` (the frames), `session/` and `fit/` (meshes, points or volume, summary);
+//! `report.md` covers all of them.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};

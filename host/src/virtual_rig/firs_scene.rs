@@ -699,7 +699,8 @@ fn cone_shadow(o: V3, d: V3, m: V3, c: V3, r: f64) -> Option<(f64, f64)> {
         let (a, b) = ((-qb - disc.sqrt()) / (2.0 * qa), (-qb + disc.sqrt()) / (2.0 * qa));
         (a.min(b), a.max(b))
     };
-    // Inside the cone (both nappes) is `s ∈ [s1, s2]` when qa < 0 is false... handle both.
+    // The quadric's roots bound the double cone; which stretch lies in the forward nappe
+    // depends on the sign of `qa`, so test a point of each candidate.
     let inside = |s: f64| {
         let w = add(w0, scale(d, s));
         let wu = dot(w, u);
