@@ -21,8 +21,8 @@ use lightrig_imaging::io::{
 };
 use lightrig_pipelines::linear_light::{hides, response, Quadrature, Tube};
 use lightrig_pipelines::lls::{
-    blend_normals, fit_normal, fit_trace, normals_from_points, point_on_sheet, refit_trace, register,
-    strip_scale, stripe_peak, BoardGeometry, Light, PassTrace, Registration, Setup, Sheet, Strip, TraceFit,
+    blend_normals, fit_normal, fit_trace, normals_from_points, point_on_sheet, register, strip_scale,
+    stripe_peak, BoardGeometry, Light, PassTrace, Registration, Setup, Sheet, Strip, TraceFit, TraceModel,
 };
 use lightrig_pipelines::vec3::{normalize, sub, V3};
 use lightrig_pipelines::ward::Ward;
@@ -432,21 +432,17 @@ pub fn fit_session(
     };
     let trace_of = |i: usize, p: V3, v: V3, scale: [f64; 3]| trace_in(&reflect, &tubes, i, p, v, scale);
     // The light's scale from the diffuse strip (its inner part).
-    let qd = Quadrature::diffuse();
     let strip_traces: Vec<_> = (0..w * h)
         .filter(|&i| points[i].is_some_and(|p| setup.diffuse_strip.contains(p, 1.0)))
         .map(|i| {
             let p = points[i].unwrap_or([0.0; 3]);
             let v = normalize(sub(reg.rays[i].0, p));
             let (obs, valid) = trace_of(i, p, v, [1.0; 3]);
-            let d: Vec<f64> =
-                tubes.iter().map(|t| response(p, [0.0, 0.0, 1.0], v, t, None, &qd).diffuse).collect();
-            (obs, valid, d)
+            (obs, valid, TraceModel::new(p, v, &tubes).diffuse([0.0, 0.0, 1.0]))
         })
         .collect();
     let scale = strip_scale(&strip_traces, setup.diffuse_strip.albedo)
         .ok_or_else(|| fail("no pixel sees the diffuse calibration strip: check [plan.fit.diffuse_strip]"))?;
-    let q = Quadrature::fit();
     // Progress: the first fit, then (with diagonal passes) the normals and the refit.
     let rounds = if diagonal.is_empty() { 1 } else { 3 };
     let total = (w * h * rounds) as u64;
@@ -467,7 +463,7 @@ pub fn fit_session(
                 (true, Some(p), Some(n)) => {
                     let v = normalize(sub(reg.rays[i].0, p));
                     let (obs, valid) = trace_of(i, p, v, scale);
-                    fit_trace(&obs, &valid, &tubes, p, n, v, &q)
+                    fit_trace(&obs, &valid, &TraceModel::new(p, v, &tubes), n, None)
                 }
                 _ => TraceFit::default(),
             };
@@ -489,12 +485,14 @@ pub fn fit_session(
                             .zip(&diagonal_tubes)
                             .map(|((_, pass), t)| trace_in(pass, t, i, p, v, scale))
                             .collect();
+                        let models: Vec<TraceModel> =
+                            diagonal_tubes.iter().map(|t| TraceModel::new(p, v, t)).collect();
                         let passes: Vec<PassTrace> = traces
                             .iter()
-                            .zip(&diagonal_tubes)
-                            .map(|((obs, valid), tubes)| PassTrace { obs, valid, tubes })
+                            .zip(&models)
+                            .map(|((obs, valid), model)| PassTrace { obs, valid, model })
                             .collect();
-                        fit_normal(&passes, p, n, v, fit[i].alpha, &Quadrature::coarse())
+                        fit_normal(&passes, n, fit[i].alpha)
                     }
                     _ => None,
                 };
@@ -516,7 +514,8 @@ pub fn fit_session(
                     (true, Some(p), Some(n)) => {
                         let v = normalize(sub(reg.rays[i].0, p));
                         let (obs, valid) = trace_of(i, p, v, scale);
-                        Some(refit_trace(&obs, &valid, &tubes, p, n, v, &q, fit[i].alpha))
+                        let model = TraceModel::new(p, v, &tubes);
+                        Some(fit_trace(&obs, &valid, &model, n, Some(fit[i].alpha)))
                     }
                     _ => None,
                 };
@@ -562,7 +561,7 @@ pub fn fit_session(
             if let (true, Some(p), Some(n)) = (fitted[i], points[i], normals[i]) {
                 let v = normalize(sub(reg.rays[i].0, p));
                 let f = &fit[i];
-                let r = response(p, n, v, &tubes[k], Some(f.alpha.max(1e-3)), &q);
+                let r = response(p, n, v, &tubes[k], Some(f.alpha.max(1e-3)), &Quadrature::render());
                 for c in 0..3 {
                     px[c] = ((f.diffuse[c] * r.diffuse + f.specular[c] * r.specular) * scale[c]) as f32;
                 }

@@ -120,13 +120,16 @@ enum Cmd {
 
 #[derive(Subcommand)]
 enum HdrCmd {
-    /// Recover the camera response (Debevec–Malik) from an exposure series; write it as JSON.
+    /// Recover the camera response from an exposure series; write it as JSON.
     Calibrate {
         /// Exposures as FILE:SECONDS.
         exposures: Vec<String>,
         /// A sidecar file of `FILE SECONDS` lines instead.
         #[arg(long)]
         times: Option<std::path::PathBuf>,
+        /// `debevec` (Debevec–Malik, sampled pixels) or `robertson` (every pixel, iterated).
+        #[arg(long, default_value = "debevec")]
+        method: cli_hdr::Method,
         /// Response file to write.
         #[arg(long)]
         out: std::path::PathBuf,
@@ -231,16 +234,14 @@ fn main() -> ExitCode {
         Cmd::Calibrate(args) => cli_calibrate::run(&args),
         Cmd::Hdr(cmd) => {
             let result = match cmd {
-                HdrCmd::Calibrate { exposures: list, times, out } => {
-                    exposures(&list, times.as_deref()).and_then(|e| cli_hdr::calibrate(&e, &out)).map(|r| {
-                        eprintln!(
-                            "response: {} channel(s), {} levels -> {}",
-                            r.g.len(),
-                            r.levels,
-                            out.display()
-                        )
-                    })
-                }
+                HdrCmd::Calibrate { exposures: list, times, method, out } => exposures(
+                    &list,
+                    times.as_deref(),
+                )
+                .and_then(|e| cli_hdr::calibrate(&e, method, &out))
+                .map(|r| {
+                    eprintln!("response: {} channel(s), {} levels -> {}", r.g.len(), r.levels, out.display())
+                }),
                 HdrCmd::Merge { exposures: list, times, response, black, out } => {
                     exposures(&list, times.as_deref())
                         .and_then(|e| cli_hdr::merge(&e, response.as_deref(), black, &out))

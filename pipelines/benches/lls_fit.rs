@@ -1,22 +1,37 @@
-//! LLS fit throughput: pixel traces of 400 frames per second, one thread.
+//! LLS fit throughput against the time to read the same stack, both in pixel traces of 400
+//! frames per second on one thread:
 //!
-//! `cargo bench -p lightrig-pipelines --bench lls_fit`
+//! - `lls_fit`: one pixel's trace fitted (its [`TraceModel`] built, then ρd, ρs, α).
+//! - `lls_read`: a stack of 400 16-bit RGB PNG frames (what the virtual camera writes) read
+//!   from disk into memory, per pixel of the frame: the rate at which traces arrive.
+//!
+//! The target is fit time ≤ 3 × read time, i.e. `lls_fit` throughput ≥ ⅓ of
+//! `lls_read`'s. `cargo bench -p lightrig-pipelines --bench lls_fit`
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use lightrig_imaging::io::{read_with, write_png, BitDepth, Encoding, Image, ReadOptions};
 use lightrig_pipelines::linear_light::{response, Quadrature, Tube};
-use lightrig_pipelines::lls::fit_trace;
+use lightrig_pipelines::lls::{fit_trace, TraceModel};
 use lightrig_pipelines::vec3::normalize;
 
-fn bench(c: &mut Criterion) {
+const FRAMES: usize = 400;
+
+fn fit(c: &mut Criterion) {
     let (p, n, v) = ([1.0, 2.0, 0.3], normalize([0.02, -0.03, 1.0]), normalize([-0.5, 0.02, 0.866]));
     // 400 frames at 0.6 mm: the pass of a 240 mm gantry travel.
-    let tubes: Vec<Tube> = (0..400)
+    let tubes: Vec<Tube> = (0..FRAMES)
         .map(|k| Tube { x: -140.0 + 0.6 * k as f64, z: 50.0, radius: 6.0, y0: -150.0, y1: 150.0, yaw: 0.0 })
         .collect();
-    let q = Quadrature::fit();
+    let q = Quadrature::render();
     let mut g = c.benchmark_group("lls_fit");
     g.throughput(Throughput::Elements(1));
-    g.sample_size(10);
+    g.sample_size(20);
+    // Its parts: the pixel's bands, and one trial of (n, α) (the search makes about 20).
+    g.bench_function(format!("model of {FRAMES} frames"), |b| b.iter(|| TraceModel::new(p, v, &tubes)));
+    let model = TraceModel::new(p, v, &tubes);
+    for alpha in [0.04, 0.3] {
+        g.bench_function(format!("specular trace, alpha {alpha}"), |b| b.iter(|| model.specular(n, alpha)));
+    }
     for alpha in [0.04, 0.3] {
         let mut obs: [Vec<f64>; 3] = Default::default();
         let valid: [Vec<bool>; 3] = std::array::from_fn(|_| vec![true; tubes.len()]);
@@ -26,12 +41,52 @@ fn bench(c: &mut Criterion) {
                 o.push(0.3 / (c + 1) as f64 * r.diffuse + 0.06 * r.specular);
             }
         }
-        g.bench_function(format!("trace of 400 frames, alpha {alpha}"), |b| {
-            b.iter(|| fit_trace(&obs, &valid, &tubes, p, n, v, &q))
+        g.bench_function(format!("trace of {FRAMES} frames, alpha {alpha}"), |b| {
+            b.iter(|| fit_trace(&obs, &valid, &TraceModel::new(p, v, &tubes), n, None))
         });
     }
     g.finish();
 }
 
-criterion_group!(benches, bench);
+fn read(c: &mut Criterion) {
+    let (w, h) = (160u32, 120u32);
+    let dir = std::env::temp_dir().join("lightrig-bench-lls-read");
+    let _ = std::fs::create_dir_all(&dir);
+    // A bright band moving across a shaded sample, with noise (a fixed LCG): compresses like a
+    // real frame, not like a flat one.
+    let mut seed = 0x2545_f491_4f6c_dd1du64;
+    let paths: Vec<_> = (0..FRAMES)
+        .map(|k| {
+            let path = dir.join(format!("frame-{k:04}.png"));
+            let img = Image::from_fn(w, h, 3, |x, y, ch| {
+                seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                let noise = ((seed >> 40) as f32 / (1u64 << 24) as f32 - 0.5) * 0.004;
+                let band = (-((x as f32 - k as f32 * 0.4).powi(2)) / 200.0).exp();
+                (0.2 + 0.1 * (y as f32 / h as f32) + 0.6 * band) / (1.0 + ch as f32 * 0.3) + noise
+            });
+            if !path.exists() {
+                write_png(&path, &img, BitDepth::Sixteen).expect("write a bench frame");
+            }
+            path
+        })
+        .collect();
+    let mut g = c.benchmark_group("lls_read");
+    // Per pixel of the frame: one trace of FRAMES frames arrives per pixel.
+    g.throughput(Throughput::Elements(u64::from(w * h)));
+    g.sample_size(10);
+    g.bench_function(format!("{FRAMES} frames of {w}x{h} RGB16 PNG"), |b| {
+        b.iter(|| {
+            paths
+                .iter()
+                .map(|p| {
+                    read_with(p, ReadOptions { assume: Encoding::Linear, expect_depth: None })
+                        .expect("read a bench frame")
+                })
+                .collect::<Vec<_>>()
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, fit, read);
 criterion_main!(benches);

@@ -5,8 +5,8 @@
 //! - [`quad`]: Gauss–Legendre quadrature.
 //! - [`ward`]: the isotropic Ward (1992) BRDF.
 //! - [`linear_light`]: a cylindrical light source's diffuse and specular response at a surface
-//!   point, integrated numerically over its width and length (shared by the virtual camera,
-//!   at high order, and the linear-light-source fit).
+//!   point, integrated numerically over its width and length (the virtual camera renders
+//!   with it; the fit's faster [`lls::TraceModel`] is tested against it).
 //! - [`lls`]: the linear light source reflectometry fit (Gardner et al. 2003).
 //! - [`firs`]: fluorescent immersion range scanning (Hullin et al. 2008).
 

@@ -1,9 +1,8 @@
 //! The per-pixel maths of the LLS fit.
 
-use crate::linear_light::{diffuse_vector, response, specular_response, Quadrature, Tube};
-use crate::vec3::{add, dot, normalize, scale, V3};
+use crate::vec3::{add, normalize, scale, V3};
 
-use super::Sheet;
+use super::{Sheet, TraceModel};
 
 /// The gantry position at which a trace peaks, between samples: a Gaussian through the largest
 /// sample and its two neighbours (exact for a Gaussian profile). `None` when the peak is below
@@ -141,52 +140,19 @@ fn two_lobes(o: &[f64], d: &[f64], s: &[f64], valid: &[bool]) -> (f64, f64, f64)
 
 /// Fits one pixel's trace. `obs[c][k]`: channel `c` at frame `k`, in units of the tube's
 /// radiance (exposure and light scale divided out); `valid[c][k]` false for frames to ignore
-/// (clipped, the tube in the way); `tubes[k]` the tube at frame `k`; `p`, `n`, `v` the point, its
-/// normal and the direction to the camera.
+/// (clipped, the tube in the way); `model` the pixel's view of the pass ([`TraceModel`]); `n`
+/// its normal. `alpha0`, when known (the refit with new normals, where `α` moves little),
+/// narrows the roughness search to a factor of 1.5 either way of it.
 pub fn fit_trace(
     obs: &[Vec<f64>; 3],
     valid: &[Vec<bool>; 3],
-    tubes: &[Tube],
-    p: V3,
+    model: &TraceModel,
     n: V3,
-    v: V3,
-    q: &Quadrature,
-) -> TraceFit {
-    fit_trace_from(obs, valid, tubes, p, n, v, q, None)
-}
-
-/// [`fit_trace`] starting from a known roughness: the search brackets `alpha0` by a factor of
-/// 1.5 either way instead of scanning the whole range (the refit with new normals, where `α`
-/// moves little).
-#[allow(clippy::too_many_arguments)]
-pub fn refit_trace(
-    obs: &[Vec<f64>; 3],
-    valid: &[Vec<bool>; 3],
-    tubes: &[Tube],
-    p: V3,
-    n: V3,
-    v: V3,
-    q: &Quadrature,
-    alpha0: f64,
-) -> TraceFit {
-    fit_trace_from(obs, valid, tubes, p, n, v, q, Some(alpha0))
-}
-
-#[allow(clippy::too_many_arguments)]
-fn fit_trace_from(
-    obs: &[Vec<f64>; 3],
-    valid: &[Vec<bool>; 3],
-    tubes: &[Tube],
-    p: V3,
-    n: V3,
-    v: V3,
-    q: &Quadrature,
     alpha0: Option<f64>,
 ) -> TraceFit {
-    let qd = Quadrature::diffuse();
-    let d: Vec<f64> = tubes.iter().map(|t| response(p, n, v, t, None, &qd).diffuse).collect();
-    let residual_with = |alpha: f64, q: &Quadrature| -> (f64, [f64; 3], [f64; 3]) {
-        let s: Vec<f64> = tubes.iter().map(|t| specular_response(p, n, v, t, alpha, q)).collect();
+    let d = model.diffuse(n);
+    let residual_at = |alpha: f64| -> (f64, [f64; 3], [f64; 3]) {
+        let s = model.specular(n, alpha);
         let (mut total, mut da, mut sa) = (0.0, [0.0; 3], [0.0; 3]);
         for c in 0..3 {
             let (a, b, r) = two_lobes(&obs[c], &d, &s, &valid[c]);
@@ -196,24 +162,37 @@ fn fit_trace_from(
         }
         (total, da, sa)
     };
-    let residual_at = |alpha: f64| residual_with(alpha, q);
-    // Coarse grid on log α with a cheap quadrature, then successive parabolic interpolation on
-    // log α with the fit's, kept inside the bracket around the grid's best point (a golden
-    // section step where the parabola is no help).
+    // A grid on log α, then successive parabolic interpolation on log α, kept inside
+    // the bracket around the grid's best point (a golden section step where the parabola is
+    // no help).
     const GRID: [f64; 8] = [0.025, 0.04, 0.06, 0.09, 0.13, 0.19, 0.28, 0.42];
-    let (lo, mid, hi) = match alpha0 {
-        Some(a) if a > 0.0 => (a.ln() - 1.5f64.ln(), a.ln(), a.ln() + 1.5f64.ln()),
+    // Every trial as (log α, residual, ρd, ρs): the grid's bracket and the best point are
+    // reused rather than evaluated again.
+    let trial = |x: f64| {
+        let (r, d, s) = residual_at(x.exp());
+        (x, r, d, s)
+    };
+    let (lo, hi, mut pts) = match alpha0 {
+        Some(a) if a > 0.0 => {
+            let (lo, hi) = (a.ln() - 1.5f64.ln(), a.ln() + 1.5f64.ln());
+            (lo, hi, vec![trial(lo), trial(a.ln()), trial(hi)])
+        }
         _ => {
-            let coarse = Quadrature::coarse();
-            let scores: Vec<f64> = GRID.iter().map(|&a| residual_with(a, &coarse).0).collect();
-            let best = scores.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1)).map_or(0, |b| b.0);
-            (GRID[best.saturating_sub(1)].ln(), GRID[best].ln(), GRID[(best + 1).min(GRID.len() - 1)].ln())
+            let grid: Vec<_> = GRID.iter().map(|a| trial(a.ln())).collect();
+            let best = grid.iter().enumerate().min_by(|a, b| a.1 .1.total_cmp(&b.1 .1)).map_or(0, |b| b.0);
+            let (i0, i1) = (best.saturating_sub(1), (best + 1).min(GRID.len() - 1));
+            let mut pts = vec![grid[i0], grid[best], grid[i1]];
+            if i0 == best || i1 == best {
+                // At the grid's end: a third point halfway into the bracket.
+                let x = (grid[i0].0 + grid[i1].0) / 2.0;
+                pts[if i0 == best { 0 } else { 2 }] = trial(x);
+            }
+            (grid[i0].0, grid[i1].0, pts)
         }
     };
-    let mut pts: Vec<(f64, f64)> = [lo, mid, hi].iter().map(|&x| (x, residual_at(x.exp()).0)).collect();
     for _ in 0..8 {
         pts.sort_by(|a, b| a.1.total_cmp(&b.1));
-        let [(x0, f0), (x1, f1), (x2, f2)] = [pts[0], pts[1], pts[2]];
+        let [(x0, f0, ..), (x1, f1, ..), (x2, f2, ..)] = [pts[0], pts[1], pts[2]];
         let den = (x1 - x0) * (f1 - f2) - (x1 - x2) * (f1 - f0);
         let num = (x1 - x0).powi(2) * (f1 - f2) - (x1 - x2).powi(2) * (f1 - f0);
         let mut x = if den.abs() > 1e-300 { x1 - 0.5 * num / den } else { f64::NAN };
@@ -222,14 +201,14 @@ fn fit_trace_from(
             x = x0 + 0.382 * (if hi - x0 > x0 - lo { hi - x0 } else { lo - x0 });
         }
         let step = (x - x0).abs();
-        pts[2] = (x, residual_at(x.exp()).0);
+        pts[2] = trial(x);
         if step < 1e-3 {
             break;
         }
     }
     pts.sort_by(|a, b| a.1.total_cmp(&b.1));
-    let alpha = pts[0].0.exp();
-    let (r, diffuse, specular) = residual_at(alpha);
+    let (x, r, diffuse, specular) = pts[0];
+    let alpha = x.exp();
     let (mut oo, mut count) = (0.0, 0usize);
     for c in 0..3 {
         for k in 0..obs[c].len() {
@@ -251,8 +230,8 @@ pub struct PassTrace<'a> {
     pub obs: &'a [Vec<f64>; 3],
     /// `valid[c][k]`.
     pub valid: &'a [Vec<bool>; 3],
-    /// The tube at frame `k`.
-    pub tubes: &'a [Tube],
+    /// The pixel's view of the pass.
+    pub model: &'a TraceModel,
 }
 
 /// The normal from the diagonal passes (Gardner et al.'s ±15° mounts): with the roughness
@@ -262,23 +241,16 @@ pub struct PassTrace<'a> {
 /// the model traces. A turned mount moves both lobes with the slope along its own cross
 /// direction, so two mounts turned opposite ways pin down both slopes. `None` when the
 /// traces carry no information (dark pixel) or the iteration leaves the plausible range.
-/// `q` integrates the specular lobe: [`Quadrature::coarse`] is enough (the normal moves the
-/// lobe; the last 1e-3 of its shape does not move it).
-pub fn fit_normal(passes: &[PassTrace], p: V3, n0: V3, v: V3, alpha: f64, q: &Quadrature) -> Option<V3> {
+pub fn fit_normal(passes: &[PassTrace], n0: V3, alpha: f64) -> Option<V3> {
     if n0[2] <= 0.0 {
         return None;
     }
-    let qd = Quadrature::diffuse();
     let normal = |g: [f64; 2]| normalize([-g[0], -g[1], 1.0]);
-    // The diffuse lobe is linear in the normal: one integration per frame serves every trial.
-    let e: Vec<V3> =
-        passes.iter().flat_map(|pt| pt.tubes.iter().map(|t| diffuse_vector(p, t, &qd))).collect();
-    let tubes: Vec<&Tube> = passes.iter().flat_map(|pt| pt.tubes.iter()).collect();
     // Model traces (D, S) of every pass for slopes g, concatenated.
     let model = |g: [f64; 2]| -> (Vec<f64>, Vec<f64>) {
         let n = normal(g);
-        let d = e.iter().map(|e| dot(n, *e).max(0.0)).collect();
-        let s = tubes.iter().map(|t| specular_response(p, n, v, t, alpha, q)).collect();
+        let d = passes.iter().flat_map(|pt| pt.model.diffuse(n)).collect();
+        let s = passes.iter().flat_map(|pt| pt.model.specular(n, alpha)).collect();
         (d, s)
     };
     let obs: [Vec<f64>; 3] =
@@ -443,6 +415,7 @@ pub fn strip_scale(traces: &[StripTrace], albedo: f64) -> Option<[f64; 3]> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::linear_light::{response, Quadrature, Tube};
 
     #[test]
     fn stripe_peak_is_exact_for_a_gaussian() {
@@ -486,7 +459,6 @@ mod tests {
 
     #[test]
     fn fit_recovers_a_noiseless_trace() {
-        let q = Quadrature::fit();
         let (p, n, v) = ([1.0, 2.0, 0.3], normalize([0.02, -0.03, 1.0]), normalize([-0.5, 0.02, 0.866]));
         let tubes: Vec<Tube> = (-140..=100)
             .map(|g| Tube { x: g as f64, z: 50.0, radius: 6.0, y0: -150.0, y1: 150.0, yaw: 0.0 })
@@ -503,7 +475,7 @@ mod tests {
                     valid[c].push(true);
                 }
             }
-            let f = fit_trace(&obs, &valid, &tubes, p, n, v, &q);
+            let f = fit_trace(&obs, &valid, &TraceModel::new(p, v, &tubes), n, None);
             assert!((f.alpha / alpha - 1.0).abs() < 2e-3, "α {} vs {alpha}", f.alpha);
             for c in 0..3 {
                 assert!((f.diffuse[c] - rd[c]).abs() < 1e-3, "ρd {:?} vs {rd:?}", f.diffuse);
@@ -532,13 +504,13 @@ mod tests {
                     }
                 }
                 let valid: [Vec<bool>; 3] = std::array::from_fn(|_| vec![true; tubes.len()]);
-                traces.push((obs, valid, tubes));
+                traces.push((obs, valid, TraceModel::new(p, v, &tubes)));
             }
             let passes: Vec<PassTrace> =
-                traces.iter().map(|(obs, valid, tubes)| PassTrace { obs, valid, tubes }).collect();
+                traces.iter().map(|(obs, valid, model)| PassTrace { obs, valid, model }).collect();
             // From the plane's normal, 4.3° away.
-            let n = fit_normal(&passes, p, [0.0, 0.0, 1.0], v, alpha, &Quadrature::coarse()).unwrap();
-            // The fit's quadrature differs from the render's by ~1e-4 of the lobes, and the
+            let n = fit_normal(&passes, [0.0, 0.0, 1.0], alpha).unwrap();
+            // The model traces differ from the render's by ~1e-4 of the lobes, and the
             // iteration stops below 0.006° of slope: a few hundredths of a degree remain.
             let err = crate::vec3::angle(n, truth).to_degrees();
             assert!(err < 0.05, "α {alpha}: {err}° off");

@@ -10,17 +10,20 @@
 //! 3. [`normals_from_points`]: normals from the displacement map (a plane fitted to each
 //!    pixel's neighbourhood).
 //! 4. [`fit_trace`]: per pixel, the Ward lobes integrated over the real tube for that pixel's
-//!    point, normal and view ([`crate::linear_light::response`]) at every frame's tube
-//!    position; `ρd`, `ρs` per channel by linear least squares for a given `α`, and `α` by a
-//!    search on the residual (coarse grid, then golden section on `log α`). The light's scale
-//!    comes from the diffuse calibration strip ([`strip_scale`]).
+//!    point, normal and view at every frame's tube position ([`TraceModel`], one integration
+//!    per trial for a whole pass); `ρd`, `ρs` per channel by linear least squares for a given
+//!    `α`, and `α` by a search on the residual (a grid, then parabolic steps on `log α`). The
+//!    light's scale comes from the diffuse calibration strip ([`strip_scale`]).
 //! 5. Translucency: backlit over light box.
 
 mod fit;
+mod model;
+
+pub use model::TraceModel;
 
 pub use fit::{
-    blend_normals, fit_normal, fit_trace, normals_from_points, point_on_sheet, refit_trace, strip_scale,
-    stripe_peak, PassTrace, TraceFit,
+    blend_normals, fit_normal, fit_trace, normals_from_points, point_on_sheet, strip_scale, stripe_peak,
+    PassTrace, TraceFit,
 };
 
 use lightrig_imaging::calib::{find_chessboard, pixel_ray, pose_from_board, Board, Intrinsics, Pose};
