@@ -1,11 +1,12 @@
-//! `lightrig demo firs`: a fluorescent-immersion surface scan on the virtual rig, fitted and
-//! checked against the ground truth the frames were rendered from.
+//! `lightrig demo firs`: fluorescent-immersion scans on the virtual rig, fitted and checked
+//! against the ground truth the frames were rendered from.
 //!
-//! Scans the opaque sphere and the transparent faceted solid, each into its own directory
-//! (`sphere/`, `faceted/`) holding `rig.toml` (the rig the demo runs, with the target
-//! positions and the fit's geometry as an operator would type them), `truth/scene.json` (the
-//! whole scene: camera, wall, sheets, object), `camera/` (the frames), `session/`, `fit/`
-//! (meshes, merged points, summary); `report.md` covers both.
+//! Surface mode scans the opaque sphere and the transparent faceted solid, volume mode the
+//! index-matched sphere, each into its own directory (`sphere/`, `faceted/`, `volume/`) holding
+//! `rig.toml` (the rig the demo runs, with the target positions and the fit's geometry as an
+//! operator would type them), `truth/scene.json` (the whole scene: camera, wall, sheets,
+//! object), `camera/` (the frames), `session/` and `fit/` (meshes, points or volume, summary);
+//! `report.md` covers all of them.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -15,15 +16,16 @@ use lightrig_pipelines::vec3::{add, dot, norm, normalize, scale, sub};
 
 use crate::acquire::{plan_summary, run};
 use crate::cli_acquire::{bring_up_on, CliError, FAILURE, INPUT};
-use crate::firs_fit::{fit_surface, write_outputs, FirsSurface};
+use crate::firs_fit::{fit_surface, fit_volume, write_outputs, write_volume_outputs, FirsSurface};
 use crate::plan::from_rig;
 use crate::rigfile::RigFile;
 use crate::selfcheck::virtual_device_info;
 use crate::session::{Manifest, Session};
 use crate::transport::Transport;
 use crate::virtual_rig::camera::VirtualCamera;
-use crate::virtual_rig::firs_scene::{FirsScene, FirsSceneSpec};
+use crate::virtual_rig::firs_scene::{FirsObject, FirsScene, FirsSceneSpec};
 use crate::virtual_rig::sensor::Sensor;
+use lightrig_pipelines::firs::mesh::{edge_defects, marching_cubes, surface_distance, Grid, Mesh, Solid};
 
 /// What the demo scans.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -57,6 +59,8 @@ impl FirsDemoObject {
 pub struct FirsDemoOptions {
     /// The objects, each its own acquisition and fit in its own directory.
     pub objects: Vec<FirsDemoObject>,
+    /// Also volume mode (`volume/`): the index-matched sphere.
+    pub volume: bool,
     /// One turntable orientation instead of four.
     pub quick: bool,
     /// Output directory.
@@ -116,8 +120,12 @@ fn io(path: &Path) -> impl Fn(std::io::Error) -> CliError + '_ {
     move |e| CliError { code: FAILURE, message: format!("{}: {e}", path.display()) }
 }
 
-/// Target positions (front and back of the working volume), mm.
-pub const TARGET_Z: [f64; 2] = [-12.0, 8.0];
+/// Target positions for surface mode (front and back of the working volume), mm, and tilts
+/// (degrees about `y`; parallel to the front wall, which the sheets cross at 27°).
+pub const TARGETS: [(f64, f64); 2] = [(-12.0, 0.0), (8.0, 0.0)];
+
+/// The surface scenes' calibrated box, mm.
+pub const VOLUME: ([f64; 3], [f64; 3]) = ([-45.0, -35.0, -38.0], [45.0, 35.0, 40.0]);
 
 /// The galvo code range that sweeps the sheet over everything the scan and the calibration
 /// need: the visible object and both target plates, with a margin of sheets before and
@@ -136,7 +144,7 @@ fn sweep_codes(spec: &FirsSceneSpec, views: &[f64]) -> (u16, u16, u32) {
         }
     }
     let t = &spec.target;
-    for z in TARGET_Z {
+    for (z, _) in TARGETS {
         for x in [t.origin_mm[0] - t.square_mm, t.origin_mm[0] + (t.cols as f64 + 0.0) * t.square_mm] {
             zs.push(z - k * x);
         }
@@ -149,9 +157,23 @@ fn sweep_codes(spec: &FirsSceneSpec, views: &[f64]) -> (u16, u16, u32) {
     (c0.clamp(0.0, 65535.0) as u16, c1.clamp(0.0, 65535.0) as u16, n)
 }
 
-/// The demo's rig file.
-pub fn firs_rig_text(spec: &FirsSceneSpec, sweep: (u16, u16, u32), views: u32) -> String {
+/// The demo's rig file: the sweep `(first code, last code, sheets)`, the turntable views, the
+/// calibration target's positions `(z_mm, tilt_deg)` and the calibrated box.
+pub fn firs_rig_text(
+    spec: &FirsSceneSpec,
+    sweep: (u16, u16, u32),
+    views: u32,
+    targets: &[(f64, f64)],
+    volume: ([f64; 3], [f64; 3]),
+) -> String {
     let first_surface = spec.object.transparent();
+    let targets = targets
+        .iter()
+        .map(|(z, t)| format!("{{ z_mm = {z:?}, tilt_deg = {t:?} }}"))
+        .collect::<Vec<_>>()
+        .join(", ");
+    let (vmin, vmax) =
+        (volume.0.map(|v| format!("{v:?}")).join(", "), volume.1.map(|v| format!("{v:?}")).join(", "));
     let s = &spec.sheet;
     let t = &spec.target;
     format!(
@@ -210,12 +232,12 @@ views = {views}
 sheet_positions = {n}
 camera_filter = "long-pass 550 nm"
 # The calibration target's positions (the plate parallel to the front wall, depth in mm).
-calibration_targets = [{{ z_mm = {z0} }}, {{ z_mm = {z1} }}]
+calibration_targets = [{targets}]
 
 # The fit's geometry, measured once for the rig.
 [plan.fit]
 target = {{ cols = {tc}, rows = {tr}, square_mm = {ts}, origin_mm = [{tx}, {ty}] }}
-volume = {{ min_mm = [-45.0, -35.0, -38.0], max_mm = [45.0, 35.0, 40.0] }}
+volume = {{ min_mm = [{vmin}], max_mm = [{vmax}] }}
 laser_dir = [1.0, 0.0, 0.0]
 turntable = {{ point_mm = [{ax}, {ay}, {az}], dir = [{dx}, {dy}, {dz}] }}
 first_surface = {first_surface}
@@ -228,8 +250,6 @@ first_surface = {first_surface}
         urad = s.urad_per_code,
         laser = s.laser,
         axis = spec.turntable_axis,
-        z0 = TARGET_Z[0],
-        z1 = TARGET_Z[1],
         tc = t.cols,
         tr = t.rows,
         ts = t.square_mm,
@@ -318,34 +338,197 @@ pub fn firs_accuracy(spec: &FirsSceneSpec, fit: &FirsSurface) -> FirsAccuracy {
     }
 }
 
-/// Runs the demo for each object in `opts.objects` (each in `out/<object>/`), writes
-/// `out/report.md`; returns each object's accuracy and the report's path.
-pub fn run_firs(opts: &FirsDemoOptions) -> Result<(Vec<(FirsDemoObject, FirsAccuracy)>, PathBuf), CliError> {
+/// What the demo measured.
+#[derive(Debug, Clone)]
+pub struct FirsDemoResult {
+    /// Surface mode, per object.
+    pub surfaces: Vec<(FirsDemoObject, FirsAccuracy)>,
+    /// Volume mode, if run.
+    pub volume: Option<FirsVolumeAccuracy>,
+    /// `report.md`.
+    pub report: PathBuf,
+}
+
+impl FirsDemoResult {
+    /// The targets missed, named.
+    pub fn missed(&self) -> Vec<String> {
+        let mut m: Vec<String> = self
+            .surfaces
+            .iter()
+            .flat_map(|(o, acc)| {
+                acc.targets().into_iter().filter(|t| !t.3).map(move |t| format!("{}: {}", o.name(), t.0))
+            })
+            .collect();
+        if let Some(v) = &self.volume {
+            m.extend(v.targets().into_iter().filter(|t| !t.3).map(|t| format!("volume: {}", t.0)));
+        }
+        m
+    }
+}
+
+/// Runs the demo for each object in `opts.objects` (each in `out/<object>/`) and volume mode
+/// (`out/volume/`) if asked, writes `out/report.md`.
+pub fn run_firs(opts: &FirsDemoOptions) -> Result<FirsDemoResult, CliError> {
     std::fs::create_dir_all(&opts.out).map_err(io(&opts.out))?;
-    let mut all = Vec::new();
-    let mut report = String::from("# lightrig demo: fluorescent immersion range scanning (surface mode)\n\n");
+    let mut surfaces = Vec::new();
+    let mut report = String::from("# lightrig demo: fluorescent immersion range scanning\n\n");
     for &object in &opts.objects {
         let (acc, text) = run_one(opts, object)?;
         report.push_str(&text);
-        all.push((object, acc));
+        surfaces.push((object, acc));
     }
+    let volume = if opts.volume {
+        let (acc, text) = run_volume(opts)?;
+        report.push_str(&text);
+        Some(acc)
+    } else {
+        None
+    };
     let report_path = opts.out.join("report.md");
     std::fs::write(&report_path, &report).map_err(io(&report_path))?;
     if opts.progress {
         println!("{report}");
         println!("report: {}", report_path.display());
     }
-    Ok((all, report_path))
+    Ok(FirsDemoResult { surfaces, volume, report: report_path })
 }
 
-fn run_one(opts: &FirsDemoOptions, object: FirsDemoObject) -> Result<(FirsAccuracy, String), CliError> {
+/// Volume mode against the truth.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FirsVolumeAccuracy {
+    /// Voxel size, mm.
+    pub voxel_mm: f64,
+    /// Symmetric surface distance to the true sphere: mean, RMS, largest, in voxels.
+    pub distance_vox: (f64, f64, f64),
+    /// Enclosed volume against the true one, percent.
+    pub volume_err_pct: f64,
+    /// The mesh is closed and oriented.
+    pub closed: bool,
+    /// The slice map's RMS off the calibrated rays and sheets, mm.
+    pub map_rms_mm: f64,
+}
+
+impl FirsVolumeAccuracy {
+    /// The targets, `(name, value, limit, met)`: the symmetric surface distance of at
+    /// most one voxel (taken as the RMS; the largest is reported) and volume within 1 %.
+    pub fn targets(&self) -> [(&'static str, f64, f64, bool); 3] {
+        let (_, rms, _) = self.distance_vox;
+        let ve = self.volume_err_pct.abs();
+        [
+            ("symmetric surface distance, RMS, voxels", rms, 1.0, rms <= 1.0),
+            ("enclosed volume error, %", ve, 1.0, ve <= 1.0),
+            ("closed mesh (1 = yes)", f64::from(u8::from(self.closed)), 1.0, self.closed),
+        ]
+    }
+}
+
+/// The true surface of the volume scene's sphere as a mesh: marching cubes on a 0.1 mm grid of
+/// its distance field, for the symmetric surface distance.
+fn true_sphere_mesh(c: [f64; 3], r: f64) -> Option<Mesh> {
+    let h = 0.1;
+    let n = ((2.0 * r + 2.0) / h).ceil() as usize + 1;
+    let origin = [c[0] - r - 1.0, c[1] - r - 1.0, c[2] - r - 1.0];
+    let grid = Grid { dims: [n; 3], voxel: [h; 3], origin };
+    let values: Vec<f32> = (0..n * n * n)
+        .map(|i| {
+            let (x, y, z) = (i % n, (i / n) % n, i / (n * n));
+            let p = [origin[0] + x as f64 * h, origin[1] + y as f64 * h, origin[2] + z as f64 * h];
+            (norm(sub(p, c)) - r) as f32
+        })
+        .collect();
+    marching_cubes(&values, &grid, 0.0, Solid::Below).ok()
+}
+
+/// Volume mode on the virtual rig: acquire, fit, compare.
+fn run_volume(opts: &FirsDemoOptions) -> Result<(FirsVolumeAccuracy, String), CliError> {
     let t0 = Instant::now();
-    let out = &opts.out.join(object.name());
+    let out = &opts.out.join("volume");
     std::fs::create_dir_all(out).map_err(io(out))?;
-    let spec = object.spec();
-    let views: Vec<f64> = if opts.quick { vec![0.0] } else { vec![0.0, 90.0, 180.0, 270.0] };
-    let sweep = sweep_codes(&spec, &views);
-    let text = firs_rig_text(&spec, sweep, views.len() as u32);
+    let spec = FirsSceneSpec::volume(100, 80);
+    // Sheets 0.3 mm apart (20 codes) from z = −22 to 22: the sphere (⌀ 20 mm) darkens each
+    // pixel in fewer than half the frames, which the median reference needs.
+    let n = 147u32;
+    let c0 = spec.code_for_depth(-22.0).round() as u16;
+    let sweep = (c0, c0 + 20 * (n as u16 - 1), n);
+    let targets = [(-6.0, 30.0), (6.0, 30.0)];
+    let text = firs_rig_text(&spec, sweep, 1, &targets, ([-15.0, -12.0, -24.0], [15.0, 12.0, 24.0]));
+    let (session_dir, triggers) = acquire(opts, out, &spec, &text, n, 1)?;
+    let t_acq = t0.elapsed();
+    let fit = fit_volume(&session_dir, &|_, _| {})
+        .map_err(|e| CliError { code: FAILURE, message: e.to_string() })?;
+    let files = write_volume_outputs(&fit, &out.join("fit"))
+        .map_err(|e| CliError { code: FAILURE, message: e.to_string() })?;
+    let t_all = t0.elapsed();
+    let FirsObject::Matched { centre, radius, .. } = spec.object else {
+        return Err(CliError {
+            code: FAILURE,
+            message: "the volume scene has no index-matched sphere".into(),
+        });
+    };
+    let truth = true_sphere_mesh(centre, radius);
+    let voxel = fit.grid.voxel[0];
+    let d = truth.as_ref().and_then(|t| surface_distance(&fit.mesh, t));
+    let distance_vox =
+        d.map_or((f64::NAN, f64::NAN, f64::NAN), |d| (d.mean / voxel, d.rms / voxel, d.max / voxel));
+    let true_volume = 4.0 / 3.0 * std::f64::consts::PI * radius.powi(3);
+    let acc = FirsVolumeAccuracy {
+        voxel_mm: voxel,
+        distance_vox,
+        volume_err_pct: 100.0 * (fit.enclosed_mm3 / true_volume - 1.0),
+        closed: edge_defects(&fit.mesh).is_closed(),
+        map_rms_mm: fit.map_rms,
+    };
+    let mut r = String::new();
+    let _ = writeln!(r, "## volume\n");
+    let _ = writeln!(
+        r,
+        "Virtual rig, {}×{} px telecentric at 90° to the sheets, sphere ⌀ {} mm index-matched (n {}) absorbing {} /mm, {n} slices of {voxel:.2} mm, {triggers} frames, seed {}. Acquisition {:.1} s, total {:.1} s.\n",
+        spec.camera.width,
+        spec.camera.height,
+        2.0 * radius,
+        spec.tank.n_liquid,
+        if let FirsObject::Matched { absorb, .. } = spec.object { absorb } else { 0.0 },
+        opts.seed,
+        t_acq.as_secs_f64(),
+        t_all.as_secs_f64()
+    );
+    let _ = writeln!(
+        r,
+        "Slice map off the calibrated rays and sheets by {:.2} µm RMS; grid {:?} of {voxel:.2} mm; {} triangles; enclosed {:.1} mm³ (true {:.1} mm³).\n",
+        fit.map_rms * 1e3,
+        fit.grid.dims,
+        fit.mesh.triangles.len(),
+        fit.enclosed_mm3,
+        true_volume
+    );
+    let _ = writeln!(
+        r,
+        "Symmetric surface distance to the true sphere: mean {:.3}, RMS {:.3}, largest {:.3} voxels.\n",
+        distance_vox.0, distance_vox.1, distance_vox.2
+    );
+    let _ = writeln!(r, "| target | value | limit | met |\n|---|---|---|---|");
+    for (name, v, limit, met) in acc.targets() {
+        let _ = writeln!(r, "| {name} | {v:.4} | {limit} | {} |", if met { "yes" } else { "**no**" });
+    }
+    let _ = writeln!(r, "\nOutputs:\n");
+    for f in &files {
+        let _ = writeln!(r, "- `{}`", f.display());
+    }
+    let _ = writeln!(r);
+    Ok((acc, r))
+}
+
+/// Writes the rig file and the truth, and acquires on the virtual rig, exactly as `lightrig
+/// acquire` does; returns the session directory and the frame count.
+fn acquire(
+    opts: &FirsDemoOptions,
+    out: &Path,
+    spec: &FirsSceneSpec,
+    text: &str,
+    sheets: u32,
+    views: usize,
+) -> Result<(PathBuf, usize), CliError> {
+    let text = text.to_string();
     let rig_path = out.join("rig.toml");
     std::fs::write(&rig_path, &text).map_err(io(&rig_path))?;
     let rig =
@@ -373,8 +556,8 @@ fn run_one(opts: &FirsDemoOptions, object: FirsDemoObject) -> Result<(FirsAccura
             "lightrig demo firs: {}×{} px, {} views, {} sheets per sweep, {} frames, output in {}",
             spec.camera.width,
             spec.camera.height,
-            views.len(),
-            sweep.2,
+            views,
+            sheets,
             summary.triggers,
             out.display()
         );
@@ -389,8 +572,19 @@ fn run_one(opts: &FirsDemoOptions, object: FirsDemoObject) -> Result<(FirsAccura
             .map_err(io(&camera_dir))?;
     run(&mut client, &mut session, &plan, &mut camera, |_| {})
         .map_err(|e| CliError { code: FAILURE, message: e.to_string() })?;
-    let t_acq = t0.elapsed();
+    Ok((session_dir, summary.triggers))
+}
 
+fn run_one(opts: &FirsDemoOptions, object: FirsDemoObject) -> Result<(FirsAccuracy, String), CliError> {
+    let t0 = Instant::now();
+    let out = &opts.out.join(object.name());
+    std::fs::create_dir_all(out).map_err(io(out))?;
+    let spec = object.spec();
+    let views: Vec<f64> = if opts.quick { vec![0.0] } else { vec![0.0, 90.0, 180.0, 270.0] };
+    let sweep = sweep_codes(&spec, &views);
+    let text = firs_rig_text(&spec, sweep, views.len() as u32, &TARGETS, VOLUME);
+    let (session_dir, triggers) = acquire(opts, out, &spec, &text, sweep.2, views.len())?;
+    let t_acq = t0.elapsed();
     let fit = fit_surface(&session_dir, &|_, _| {})
         .map_err(|e| CliError { code: FAILURE, message: e.to_string() })?;
     let fit_dir = out.join("fit");
@@ -417,7 +611,7 @@ fn run_one(opts: &FirsDemoOptions, object: FirsDemoObject) -> Result<(FirsAccura
         spec.tank.n_liquid,
         views.len(),
         sweep.2,
-        summary.triggers,
+        triggers,
         opts.seed,
         t_acq.as_secs_f64(),
         t_all.as_secs_f64()

@@ -26,9 +26,14 @@ use lightrig_imaging::io::{read_with, Encoding, Image, ReadOptions};
 use lightrig_pipelines::firs::calib::{
     fit_pixel_rays, target_world_map, Aabb, PixelRays, Sheet18, SheetSample, TargetView,
 };
-use lightrig_pipelines::firs::mesh::{write_ply, Mesh};
+use lightrig_pipelines::firs::mesh::{
+    edge_defects, enclosed_volume, marching_cubes, write_ply, Grid, Mesh, Solid,
+};
 use lightrig_pipelines::firs::surface::{
     depth_to_points, grid_mesh, merge_turntable, DepthMap, SurfaceDetector, SurfaceParams,
+};
+use lightrig_pipelines::firs::volume::{
+    median_reference, resample, segment_slices, write_raw_volume, Laser, SliceMap, VolumeParams, ISO,
 };
 use lightrig_pipelines::vec3::{add, dot, normalize, scale, sub, V3};
 use lightrig_protocol::event::TriggerEvent;
@@ -69,6 +74,9 @@ pub struct FirsFitSpec {
     /// Keep the first cut-off along the sweep (transparent objects) rather than the strongest.
     #[serde(default)]
     pub first_surface: bool,
+    /// Volume mode: the world voxel size, mm (default: the slices' pixel size).
+    #[serde(default)]
+    pub voxel_mm: Option<f64>,
 }
 
 /// Chessboard target: `cols × rows` inner corners; corner `(i, j)` lies at
@@ -139,6 +147,7 @@ struct StepInfo {
     id: u32,
     pass: String,
     z_mm: Option<f64>,
+    tilt_deg: f64,
     target: Option<u64>,
 }
 
@@ -485,6 +494,78 @@ pub fn fit_surface_banded(
     band_bytes: usize,
     progress: &dyn Fn(u64, u64),
 ) -> Result<FirsSurface, FitError> {
+    let Calibration {
+        session,
+        triggers,
+        steps,
+        spec,
+        galvo,
+        laser_bit,
+        table,
+        volume,
+        rays,
+        ray_pixels,
+        ray_rms,
+        sheets,
+        sheet_samples,
+        sheet_rms,
+        t_mid,
+        w,
+        h,
+        mut done,
+        sweeps,
+    } = calibrate(dir, band_bytes, progress)?;
+    // 3. Surface per orientation.
+    let centre = scale(add(volume.min, volume.max), 0.5);
+    let laser = laser_image_dir(&rays, &sheets, t_mid, centre, spec.laser_dir).ok_or_else(|| {
+        fail(format!(
+            "{}: no ray passes near the volume's centre {centre:?}; check [plan.fit].volume",
+            dir.display()
+        ))
+    })?;
+    let mut scans = Vec::new();
+    for s in steps.iter().filter(|s| s.pass == "scan") {
+        let frames = step_frames(&session, dir, s.id, &triggers)?;
+        let Some((_, t0)) = frames.first() else { continue };
+        let steps_at = t0.snapshot.axes.get(usize::from(table.axis)).copied().unwrap_or(0);
+        let angle_deg = table.units(i64::from(steps_at)).unwrap_or(f64::from(steps_at));
+        let what = format!("{}: step {}", dir.display(), s.id);
+        let (depth, size) =
+            detect_sweep(&frames, laser_bit, galvo, params(&spec, Some(laser)), &what, band_bytes)?;
+        if size != (w, h) {
+            return Err(fail(format!("{what}: frame size differs from the board frames'")));
+        }
+        let points =
+            depth_to_points(&depth, &rays, &sheets, &volume).map_err(|e| fail(format!("{what}: {e}")))?;
+        scans.push(OrientationScan { angle_deg, points });
+        done += 1;
+        progress(done, sweeps);
+    }
+    if scans.is_empty() {
+        return Err(fail(format!("{}: the session has no scan steps with frames", dir.display())));
+    }
+    let flat: Vec<(f64, Vec<V3>)> = scans
+        .iter()
+        .map(|s| (s.angle_deg.to_radians(), s.points.iter().flatten().copied().collect()))
+        .collect();
+    let refs: Vec<(f64, &[V3])> = flat.iter().map(|(a, p)| (*a, p.as_slice())).collect();
+    let merged = merge_turntable(&refs, spec.turntable.point_mm, spec.turntable.dir);
+    Ok(FirsSurface {
+        width: w,
+        height: h,
+        rays,
+        ray_pixels,
+        ray_rms,
+        sheets,
+        sheet_samples,
+        sheet_rms,
+        laser_image_dir: laser,
+        scans,
+        merged,
+    })
+}
+
+fn calibrate(dir: &Path, band_bytes: usize, progress: &dyn Fn(u64, u64)) -> Result<Calibration, FitError> {
     let (session, _) = Session::read(dir).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
     let manifest = session.manifest().clone();
     let rig = RigFile::parse(&manifest.rig, &dir.join("manifest.json")).map_err(|e| fail(e.to_string()))?;
@@ -510,7 +591,8 @@ pub fn fit_surface_banded(
     let table = rig
         .stepper_named("turntable")
         .or_else(|| rig.steppers.first())
-        .ok_or_else(|| fail("the rig file has no turntable stepper"))?;
+        .ok_or_else(|| fail("the rig file has no turntable stepper"))?
+        .clone();
     let triggers = trigger_events(dir).map_err(|e| fail(e.to_string()))?;
     let steps: Vec<StepInfo> = manifest
         .plan
@@ -522,6 +604,7 @@ pub fn fit_surface_banded(
                 id: s.id,
                 pass: m["pass"].as_str().or_else(|| m["kind"].as_str()).unwrap_or("").to_string(),
                 z_mm: m["pose"]["z_mm"].as_f64(),
+                tilt_deg: m["pose"]["tilt_deg"].as_f64().unwrap_or(0.0),
                 target: m["target"].as_u64(),
             }
         })
@@ -548,6 +631,7 @@ pub fn fit_surface_banded(
         let z = b.z_mm.ok_or_else(|| {
             fail(format!("{}: step {}: the target's pose has no z_mm", dir.display(), b.id))
         })?;
+        let tilt = b.tilt_deg;
         let frames = step_frames(&session, dir, b.id, &triggers)?;
         let (path, _) = frames.first().ok_or_else(|| {
             fail(format!(
@@ -578,14 +662,14 @@ pub fn fit_surface_banded(
             cols: tg.cols,
             rows: tg.rows,
             pixels: corners.iter().map(|&(x, y)| [x, y]).collect(),
+            // The plate through (0, 0, z), turned by the pose's tilt about y: its x' axis runs
+            // along (cos, 0, sin).
             world: (0..tg.rows)
                 .flat_map(|j| {
+                    let a = tilt.to_radians();
                     (0..tg.cols).map(move |i| {
-                        [
-                            tg.origin_mm[0] + i as f64 * tg.square_mm,
-                            tg.origin_mm[1] + j as f64 * tg.square_mm,
-                            z,
-                        ]
+                        let xp = tg.origin_mm[0] + i as f64 * tg.square_mm;
+                        [xp * a.cos(), tg.origin_mm[1] + j as f64 * tg.square_mm, z + xp * a.sin()]
                     })
                 })
                 .collect(),
@@ -653,55 +737,53 @@ pub fn fit_surface_banded(
     }
     let sheet_rms = sheets.residual_rms(&kept);
 
-    // 3. Surface per orientation.
-    let centre = scale(add(volume.min, volume.max), 0.5);
     let t_mid = samples.iter().map(|s| s.t).sum::<f64>() / samples.len().max(1) as f64;
-    let laser = laser_image_dir(&rays, &sheets, t_mid, centre, spec.laser_dir).ok_or_else(|| {
-        fail(format!(
-            "{}: no ray passes near the volume's centre {centre:?}; check [plan.fit].volume",
-            dir.display()
-        ))
-    })?;
-    let mut scans = Vec::new();
-    for s in steps.iter().filter(|s| s.pass == "scan") {
-        let frames = step_frames(&session, dir, s.id, &triggers)?;
-        let Some((_, t0)) = frames.first() else { continue };
-        let steps_at = t0.snapshot.axes.get(usize::from(table.axis)).copied().unwrap_or(0);
-        let angle_deg = table.units(i64::from(steps_at)).unwrap_or(f64::from(steps_at));
-        let what = format!("{}: step {}", dir.display(), s.id);
-        let (depth, size) =
-            detect_sweep(&frames, laser_bit, galvo, params(&spec, Some(laser)), &what, band_bytes)?;
-        if size != (w, h) {
-            return Err(fail(format!("{what}: frame size differs from the board frames'")));
-        }
-        let points =
-            depth_to_points(&depth, &rays, &sheets, &volume).map_err(|e| fail(format!("{what}: {e}")))?;
-        scans.push(OrientationScan { angle_deg, points });
-        done += 1;
-        progress(done, sweeps);
-    }
-    if scans.is_empty() {
-        return Err(fail(format!("{}: the session has no scan steps with frames", dir.display())));
-    }
-    let flat: Vec<(f64, Vec<V3>)> = scans
-        .iter()
-        .map(|s| (s.angle_deg.to_radians(), s.points.iter().flatten().copied().collect()))
-        .collect();
-    let refs: Vec<(f64, &[V3])> = flat.iter().map(|(a, p)| (*a, p.as_slice())).collect();
-    let merged = merge_turntable(&refs, spec.turntable.point_mm, spec.turntable.dir);
-    Ok(FirsSurface {
-        width: w,
-        height: h,
+    Ok(Calibration {
+        session,
+        triggers,
+        steps,
+        spec,
+        galvo,
+        laser_bit,
+        table,
+        volume,
         rays,
         ray_pixels,
         ray_rms,
         sheets,
         sheet_samples: kept.len(),
         sheet_rms,
-        laser_image_dir: laser,
-        scans,
-        merged,
+        t_mid,
+        w,
+        h,
+        done,
+        sweeps,
     })
+}
+
+/// What the calibration steps give both modes.
+struct Calibration {
+    session: Session,
+    triggers: HashMap<(u32, u32), TriggerEvent>,
+    steps: Vec<StepInfo>,
+    spec: FirsFitSpec,
+    galvo: usize,
+    laser_bit: u8,
+    table: crate::rigfile::Stepper,
+    volume: Aabb,
+    rays: PixelRays,
+    ray_pixels: usize,
+    ray_rms: f64,
+    sheets: Sheet18,
+    sheet_samples: usize,
+    sheet_rms: f64,
+    /// Mean sheet parameter of the samples.
+    t_mid: f64,
+    w: usize,
+    h: usize,
+    /// Sweeps processed so far, of `sweeps`.
+    done: u64,
+    sweeps: u64,
 }
 
 /// Writes `orientation_NN.ply` (a mesh per orientation, edges up to 1 mm), `merged.ply` (all
@@ -739,4 +821,223 @@ pub fn write_outputs(s: &FirsSurface, out: &Path) -> Result<Vec<PathBuf>, FitErr
     std::fs::write(&p, text + "\n").map_err(|e| io(&p, e))?;
     files.push(p);
     Ok(files)
+}
+
+/// Volume mode's result.
+#[derive(Debug, Clone)]
+pub struct FirsVolume {
+    /// Pixels with a ray.
+    pub ray_pixels: usize,
+    /// The sheet family's samples and RMS residual, mm.
+    pub sheet_samples: usize,
+    /// See `sheet_samples`.
+    pub sheet_rms: f64,
+    /// Where the slices' samples sit in the world (fitted to the rays and sheets).
+    pub map: SliceMap,
+    /// RMS distance of the rays' and sheets' points from that affine map, mm.
+    pub map_rms: f64,
+    /// The world grid.
+    pub grid: Grid,
+    /// Occupancy per voxel (x fastest), 0 liquid, 1 object.
+    pub values: Vec<f32>,
+    /// The surface at occupancy 0.5.
+    pub mesh: Mesh,
+    /// The volume it encloses, mm³.
+    pub enclosed_mm3: f64,
+}
+
+/// Fits a volume-mode session (index-matched object, sheet and camera at about 90°): the
+/// calibration as for the surface, then the first scan step's sweep segmented slice by slice
+/// against the median of the sweep (the reference: the object must cover each pixel in fewer
+/// than half the sheets), resampled to world voxels through the affine slice map fitted to
+/// the calibrated rays and sheets, and meshed by marching cubes.
+pub fn fit_volume(dir: &Path, progress: &dyn Fn(u64, u64)) -> Result<FirsVolume, FitError> {
+    let c = calibrate(dir, BAND_BYTES, progress)?;
+    let (w, h) = (c.w, c.h);
+    let s = c.steps.iter().find(|s| s.pass == "scan").ok_or_else(|| {
+        fail(format!("{}: the session has no scan step; acquire with [plan] views = 1", dir.display()))
+    })?;
+    let what = format!("{}: step {}", dir.display(), s.id);
+    let frames = step_frames(&c.session, dir, s.id, &c.triggers)?;
+    let lit: Vec<&(PathBuf, TriggerEvent)> =
+        frames.iter().filter(|(_, t)| t.snapshot.lasers & c.laser_bit != 0).collect();
+    let codes: Vec<f64> = lit
+        .iter()
+        .map(|(_, t)| t.snapshot.galvos.get(c.galvo).map_or(f64::NAN, |g| f64::from(g.x)))
+        .collect();
+    let n = codes.len();
+    if n < 5 || codes.iter().any(|c| !c.is_finite()) {
+        return Err(fail(format!(
+            "{what}: {n} frames with the sheet on and its galvo code; the volume needs a sweep"
+        )));
+    }
+    let step = (codes[n - 1] - codes[0]) / (n - 1) as f64;
+    if codes.iter().enumerate().any(|(k, &c)| (c - codes[0] - step * k as f64).abs() > 0.01 * step.abs()) {
+        return Err(fail(format!(
+            "{what}: the sheets are not evenly spaced (codes {} to {} in {n}); make max_code − min_code a multiple of sheet_positions − 1",
+            codes[0],
+            codes[n - 1]
+        )));
+    }
+    // The stack (volume mode's segmentation needs all of it).
+    let mut slices = Vec::with_capacity(n);
+    for (path, _) in &lit {
+        let img = read_frame(path)?;
+        if (img.width as usize, img.height as usize) != (w, h) {
+            return Err(fail(format!("{}: image size differs from the board frames'", path.display())));
+        }
+        slices.push(channel_rows(&img, 0, h));
+    }
+    let refs: Vec<&[f32]> = slices.iter().map(Vec::as_slice).collect();
+    let reference = median_reference(&refs, w, h).map_err(|e| fail(format!("{what}: {e}")))?;
+    let centre = scale(add(c.volume.min, c.volume.max), 0.5);
+    let laser_img =
+        laser_image_dir(&c.rays, &c.sheets, c.t_mid, centre, c.spec.laser_dir).ok_or_else(|| {
+            fail(format!(
+                "{what}: no ray passes near the volume's centre {centre:?}; check [plan.fit].volume"
+            ))
+        })?;
+    if laser_img[0].abs() < 0.9 {
+        return Err(fail(format!(
+            "{what}: the laser runs along image direction {laser_img:?}; volume mode needs it along the image rows (turn the camera)"
+        )));
+    }
+    let laser = if laser_img[0] > 0.0 { Laser::PlusU } else { Laser::MinusU };
+    let params = VolumeParams { laser, ..VolumeParams::default() };
+    let stack = segment_slices(&refs, &reference, w, h, &params).map_err(|e| fail(format!("{what}: {e}")))?;
+    drop(slices);
+
+    // The slice map: least squares of the rays against the sheets, p = o + u·a + v·b + s·c.
+    let mut ata = [[0.0f64; 4]; 4];
+    let mut atb = [[0.0f64; 3]; 4];
+    let mut pts = Vec::new();
+    for v in (0..h).step_by(4) {
+        for u in (0..w).step_by(4) {
+            let Some(r) = c.rays.get(u, v) else { continue };
+            for k in [0, n / 4, n / 2, 3 * n / 4, n - 1] {
+                let Some((_, p)) = c.sheets.intersect(r, codes[k], &c.volume) else { continue };
+                let m = [1.0, u as f64, v as f64, k as f64];
+                for i in 0..4 {
+                    for j in 0..4 {
+                        ata[i][j] += m[i] * m[j];
+                    }
+                    for d in 0..3 {
+                        atb[i][d] += m[i] * p[d];
+                    }
+                }
+                pts.push((m, p));
+            }
+        }
+    }
+    let solve = |d: usize| solve4(ata, [atb[0][d], atb[1][d], atb[2][d], atb[3][d]]);
+    let (sx, sy, sz) = match (solve(0), solve(1), solve(2)) {
+        (Some(x), Some(y), Some(z)) => (x, y, z),
+        _ => return Err(fail(format!("{what}: the rays and sheets do not determine the slice map"))),
+    };
+    let col = |i: usize| [sx[i], sy[i], sz[i]];
+    let map = SliceMap { origin: col(0), u_step: col(1), v_step: col(2), slice_step: col(3) };
+    let map_rms = (pts
+        .iter()
+        .map(|(m, p)| {
+            let q = add(
+                add(map.origin, scale(map.u_step, m[1])),
+                add(scale(map.v_step, m[2]), scale(map.slice_step, m[3])),
+            );
+            lightrig_pipelines::vec3::norm(sub(q, *p)).powi(2)
+        })
+        .sum::<f64>()
+        / pts.len().max(1) as f64)
+        .sqrt();
+    let voxel = c.spec.voxel_mm.unwrap_or_else(|| lightrig_pipelines::vec3::norm(map.u_step));
+    if !voxel.is_finite() || voxel <= 0.0 || map_rms > 0.25 * voxel {
+        return Err(fail(format!(
+            "{what}: the slices are not an affine map of the world ({:.3} mm RMS off it, voxel {voxel:.3} mm): volume mode needs a telecentric camera at about 90° to parallel sheets",
+            map_rms
+        )));
+    }
+    // The grid: the stack's world box within the calibrated volume.
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for (u, v, k) in [(0, 0, 0), (w - 1, 0, 0), (0, h - 1, 0), (w - 1, h - 1, 0)]
+        .into_iter()
+        .flat_map(|(u, v, _)| [(u, v, 0), (u, v, n - 1)])
+    {
+        let q = add(
+            add(map.origin, scale(map.u_step, u as f64)),
+            add(scale(map.v_step, v as f64), scale(map.slice_step, k as f64)),
+        );
+        for d in 0..3 {
+            lo[d] = lo[d].min(q[d]).max(c.volume.min[d]);
+            hi[d] = hi[d].max(q[d]).min(c.volume.max[d]);
+        }
+    }
+    let dims = [0, 1, 2].map(|d| (((hi[d] - lo[d]) / voxel).floor() as usize + 1).max(2));
+    let grid = Grid { dims, voxel: [voxel; 3], origin: lo };
+    let values = resample(&stack, &map, &grid).map_err(|e| fail(format!("{what}: {e}")))?;
+    let mesh =
+        marching_cubes(&values, &grid, ISO, Solid::Above).map_err(|e| fail(format!("{what}: {e:?}")))?;
+    progress(c.sweeps, c.sweeps);
+    Ok(FirsVolume {
+        ray_pixels: c.ray_pixels,
+        sheet_samples: c.sheet_samples,
+        sheet_rms: c.sheet_rms,
+        map,
+        map_rms,
+        grid,
+        enclosed_mm3: enclosed_volume(&mesh),
+        values,
+        mesh,
+    })
+}
+
+/// Gaussian elimination with partial pivoting on a 4×4 system; `None` if singular.
+fn solve4(mut a: [[f64; 4]; 4], mut b: [f64; 4]) -> Option<[f64; 4]> {
+    for c in 0..4 {
+        let p = (c..4).max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))?;
+        if a[p][c].abs() < 1e-12 {
+            return None;
+        }
+        a.swap(c, p);
+        b.swap(c, p);
+        let (pivot, pb) = (a[c], b[c]);
+        for (row, br) in a.iter_mut().zip(b.iter_mut()).skip(c + 1) {
+            let f = row[c] / pivot[c];
+            for (v, pv) in row.iter_mut().zip(pivot.iter()).skip(c) {
+                *v -= f * pv;
+            }
+            *br -= f * pb;
+        }
+    }
+    let mut x = [0.0; 4];
+    for c in (0..4).rev() {
+        let s: f64 = (c + 1..4).map(|k| a[c][k] * x[k]).sum();
+        x[c] = (b[c] - s) / a[c][c];
+    }
+    Some(x)
+}
+
+/// Writes `volume.ply` (the closed surface), `volume.raw` + `volume.json` (the occupancy
+/// volume, see [`write_raw_volume`]) and `summary.json` into `out`.
+pub fn write_volume_outputs(v: &FirsVolume, out: &Path) -> Result<Vec<PathBuf>, FitError> {
+    let io = |p: &Path, e: std::io::Error| fail(format!("{}: {e}", p.display()));
+    std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
+    let ply = out.join("volume.ply");
+    let f = std::fs::File::create(&ply).map_err(|e| io(&ply, e))?;
+    write_ply(&v.mesh, &mut std::io::BufWriter::new(f)).map_err(|e| io(&ply, e))?;
+    let stem = out.join("volume");
+    write_raw_volume(&stem, &v.values, &v.grid).map_err(|e| io(&stem, e))?;
+    let d = edge_defects(&v.mesh);
+    let summary = serde_json::json!({
+        "ray_pixels": v.ray_pixels,
+        "sheet_samples": v.sheet_samples,
+        "sheet_rms_mm": v.sheet_rms,
+        "slice_map": { "origin": v.map.origin, "u_step": v.map.u_step, "v_step": v.map.v_step, "slice_step": v.map.slice_step, "rms_mm": v.map_rms },
+        "grid": { "dims": v.grid.dims, "voxel_mm": v.grid.voxel, "origin_mm": v.grid.origin },
+        "triangles": v.mesh.triangles.len(),
+        "enclosed_mm3": v.enclosed_mm3,
+        "closed": d.boundary == 0 && d.non_manifold == 0 && d.misoriented == 0,
+    });
+    let p = out.join("summary.json");
+    let text = serde_json::to_string_pretty(&summary).map_err(|e| fail(e.to_string()))?;
+    std::fs::write(&p, text + "\n").map_err(|e| io(&p, e))?;
+    Ok(vec![ply, out.join("volume.raw"), out.join("volume.json"), p])
 }

@@ -39,9 +39,9 @@ enum Cmd {
         check: bool,
     },
     /// Fit a session: `lightrig fit lls SESSION --out DIR [--calibration cam.toml]`, or
-    /// `lightrig fit firs-surface SESSION --out DIR`.
+    /// `lightrig fit firs-surface|firs-volume SESSION --out DIR`.
     Fit {
-        /// Pipeline: `lls` or `firs-surface`.
+        /// Pipeline: `lls`, `firs-surface` or `firs-volume`.
         pipeline: String,
         /// Session directory.
         session: std::path::PathBuf,
@@ -289,8 +289,13 @@ fn main() -> ExitCode {
             if pipeline == "firs-surface" {
                 return fit_firs_surface(&session, &out);
             }
+            if pipeline == "firs-volume" {
+                return fit_firs_volume(&session, &out);
+            }
             if pipeline != "lls" {
-                eprintln!("error: `lightrig fit {pipeline}`: the pipelines are: lls, firs-surface");
+                eprintln!(
+                    "error: `lightrig fit {pipeline}`: the pipelines are: lls, firs-surface, firs-volume"
+                );
                 return ExitCode::from(exit::USAGE);
             }
             let bar = indicatif::ProgressBar::new(0);
@@ -434,19 +439,15 @@ fn firs_demo(quick: bool, out: &std::path::Path, seed: u64, check: bool) -> Exit
     use lightrig_host::firs_demo::FirsDemoObject;
     let opts = lightrig_host::firs_demo::FirsDemoOptions {
         objects: vec![FirsDemoObject::Sphere, FirsDemoObject::Faceted],
+        volume: true,
         quick,
         out: out.join("firs"),
         seed,
         progress: true,
     };
     match lightrig_host::firs_demo::run_firs(&opts) {
-        Ok((all, _)) => {
-            let missed: Vec<String> = all
-                .iter()
-                .flat_map(|(o, acc)| {
-                    acc.targets().into_iter().filter(|t| !t.3).map(move |t| format!("{}: {}", o.name(), t.0))
-                })
-                .collect();
+        Ok(result) => {
+            let missed = result.missed();
             if check && !missed.is_empty() {
                 eprintln!("error: accuracy targets missed: {}", missed.join(", "));
                 return ExitCode::from(exit::FAILURE);
@@ -473,6 +474,32 @@ fn fit_firs_surface(session: &std::path::Path, out: &std::path::Path) -> ExitCod
             s.scans.len()
         );
         lightrig_host::firs_fit::write_outputs(&s, out)
+    }) {
+        Ok(files) => {
+            for f in files {
+                println!("{}", f.display());
+            }
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(exit::FAILURE)
+        }
+    }
+}
+
+/// `lightrig fit firs-volume SESSION --out DIR`.
+fn fit_firs_volume(session: &std::path::Path, out: &std::path::Path) -> ExitCode {
+    let fit = lightrig_host::firs_fit::fit_volume(session, &|_, _| {});
+    match fit.and_then(|v| {
+        println!(
+            "grid {:?} of {:.3} mm; {} triangles; enclosed {:.1} mm³",
+            v.grid.dims,
+            v.grid.voxel[0],
+            v.mesh.triangles.len(),
+            v.enclosed_mm3
+        );
+        lightrig_host::firs_fit::write_volume_outputs(&v, out)
     }) {
         Ok(files) => {
             for f in files {

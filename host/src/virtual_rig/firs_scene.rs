@@ -50,6 +50,10 @@ pub struct FirsCamera {
     pub position: V3,
     /// Turn about `y`, degrees: the optical axis is `(sin ψ, 0, cos ψ)`.
     pub yaw_deg: f64,
+    /// A telecentric lens instead of the pinhole: every pixel's ray runs along the optical
+    /// axis from `position` offset by this many mm per pixel (volume mode).
+    #[serde(default)]
+    pub telecentric_mm: Option<f64>,
 }
 
 /// The flat front wall and the liquid.
@@ -80,6 +84,10 @@ pub struct FirsSheet {
     pub urad_per_code: f64,
     /// Sheet thickness: Gaussian σ across the sheet, mm.
     pub sigma_mm: f64,
+    /// A telecentric scanner instead of the fan (volume mode): the sheets stay at the angle of
+    /// the zero code and move along their normal by this many mm per code.
+    #[serde(default)]
+    pub parallel_mm_per_code: Option<f64>,
     /// Fluorescence per mm of path through the sheet's centre, radiance units.
     pub glow: f64,
     /// The stray term's size relative to `glow`.
@@ -138,6 +146,17 @@ pub enum FirsObject {
         /// Refractive index.
         n: f64,
     },
+    /// A sphere index-matched to the liquid (volume mode): invisible to refraction, carrying
+    /// no dye, absorbing the sheet by `absorb` per mm, so the liquid behind it along the laser
+    /// is dimmer.
+    Matched {
+        /// Centre at turntable angle 0, mm.
+        centre: V3,
+        /// Radius, mm.
+        radius: f64,
+        /// Absorption coefficient, 1/mm.
+        absorb: f64,
+    },
 }
 
 impl FirsObject {
@@ -145,7 +164,7 @@ impl FirsObject {
     /// largest extent (twice the circumradius, or its height).
     pub fn size_mm(&self) -> f64 {
         match *self {
-            FirsObject::Sphere { radius, .. } => 2.0 * radius,
+            FirsObject::Sphere { radius, .. } | FirsObject::Matched { radius, .. } => 2.0 * radius,
             FirsObject::Faceted { facets, radius, height, .. } => {
                 (2.0 * radius / (std::f64::consts::PI / facets.max(3) as f64).cos()).max(2.0 * height)
             }
@@ -183,6 +202,26 @@ pub struct FirsSceneSpec {
 }
 
 impl FirsSceneSpec {
+    /// The volume-mode scene (Hullin et al.'s second mode): the camera, telecentric with
+    /// 0.3 mm pixels, looks straight through the front wall (normal incidence: no bending)
+    /// along the sheets' normal; a telecentric scanner moves the sheets (σ 0.3 mm, parallel to
+    /// the wall) 0.3 mm per 20 codes; a 20 mm sphere index-matched to the liquid (n 1.45)
+    /// without dye, absorbing 2 %/mm of the sheet.
+    pub fn volume(width: u32, height: u32) -> Self {
+        let mut s = Self::new(width, height);
+        s.camera.yaw_deg = 0.0;
+        s.camera.telecentric_mm = Some(0.3);
+        s.camera.position = [0.0, 0.0, -150.0];
+        s.tank.n_liquid = 1.45;
+        s.sheet.angle0_deg = 0.0;
+        s.sheet.mirror = [-700.0, 0.0, 0.0];
+        s.sheet.parallel_mm_per_code = Some(0.3 / 20.0);
+        s.sheet.sigma_mm = 0.3;
+        s.target = FirsTarget { cols: 7, rows: 5, square_mm: 3.0, origin_mm: [-9.0, -6.0], lamp: 1.0 };
+        s.object = FirsObject::Matched { centre: [0.8, 0.3, 0.0], radius: 10.0, absorb: 0.02 };
+        s
+    }
+
     /// The standard scene with the transparent faceted solid instead of the sphere: 8 faces
     /// 13 mm from the axis, ±5 mm high, bevels at 40°, caps at ±11 mm, glass of n 1.5 (the
     /// liquid's 1.40 does not match it: the camera sees the liquid behind it displaced).
@@ -206,7 +245,14 @@ impl FirsSceneSpec {
     /// thick from a mirror 700 mm to the left, about 27° across the front wall.
     pub fn new(width: u32, height: u32) -> Self {
         let mut s = FirsSceneSpec {
-            camera: FirsCamera { width, height, focal_px: 960.0, position: [0.0, 0.0, 0.0], yaw_deg: 25.0 },
+            camera: FirsCamera {
+                width,
+                height,
+                focal_px: 960.0,
+                position: [0.0, 0.0, 0.0],
+                yaw_deg: 25.0,
+                telecentric_mm: None,
+            },
             tank: FirsTank {
                 min: [-50.0, -40.0, -40.0],
                 max: [50.0, 40.0, 50.0],
@@ -220,6 +266,7 @@ impl FirsSceneSpec {
                 zero_code: 32768,
                 urad_per_code: 13.3158,
                 sigma_mm: 0.14,
+                parallel_mm_per_code: None,
                 glow: 1.0,
                 stray: 0.01,
                 laser: 0,
@@ -259,12 +306,11 @@ impl FirsSceneSpec {
         normalize(add(f, add(scale(r, u), scale(d, v))))
     }
 
-    /// The ray in the liquid for an air direction from the camera: the point on the wall's
+    /// The ray in the liquid for a ray in air from `c` along `dir`: the point on the wall's
     /// inner face and the unit direction; `None` if it misses the wall or reflects totally.
-    fn liquid_ray_dir(&self, dir: V3) -> Option<(V3, V3)> {
+    fn trace(&self, c: V3, dir: V3) -> Option<(V3, V3)> {
         let t = &self.tank;
         let (z_in, z_out) = (t.min[2], t.min[2] - t.wall_mm);
-        let c = self.camera.position;
         if dir[2] <= 0.0 {
             return None;
         }
@@ -276,9 +322,39 @@ impl FirsSceneSpec {
         Some((p2, d2))
     }
 
+    fn liquid_ray_dir(&self, dir: V3) -> Option<(V3, V3)> {
+        self.trace(self.camera.position, dir)
+    }
+
     /// The ray in the liquid of image point `(x, y)`.
     pub fn liquid_ray(&self, x: f64, y: f64) -> Option<(V3, V3)> {
-        self.liquid_ray_dir(self.air_dir(x, y))
+        let c = &self.camera;
+        match c.telecentric_mm {
+            Some(pitch) => {
+                let psi = c.yaw_deg.to_radians();
+                let (r, d) = ([psi.cos(), 0.0, -psi.sin()], [0.0, 1.0, 0.0]);
+                let u = (x - (f64::from(c.width) - 1.0) / 2.0) * pitch;
+                let v = (y - (f64::from(c.height) - 1.0) / 2.0) * pitch;
+                self.trace(add(c.position, add(scale(r, u), scale(d, v))), self.forward())
+            }
+            None => self.liquid_ray_dir(self.air_dir(x, y)),
+        }
+    }
+
+    /// Sheet `code`'s plane: unit normal (towards `+z`) and a point on it.
+    pub fn sheet_plane(&self, code: u16) -> (V3, V3) {
+        let sh = &self.sheet;
+        match sh.parallel_mm_per_code {
+            Some(k) => {
+                let th = sh.angle0_deg.to_radians();
+                let n = [-th.sin(), 0.0, th.cos()];
+                (n, add(sh.mirror, scale(n, (f64::from(code) - f64::from(sh.zero_code)) * k)))
+            }
+            None => {
+                let th = self.sheet_angle(code);
+                ([-th.sin(), 0.0, th.cos()], sh.mirror)
+            }
+        }
     }
 
     /// Sheet angle of galvo code `code`, radians.
@@ -287,9 +363,13 @@ impl FirsSceneSpec {
         s.angle0_deg.to_radians() + (f64::from(code) - f64::from(s.zero_code)) * s.urad_per_code * 1e-6
     }
 
-    /// The galvo code whose sheet crosses `x = 0` at depth `z` (rounded down).
+    /// The galvo code whose sheet crosses `x = 0` at depth `z` (fractional).
     pub fn code_for_depth(&self, z: f64) -> f64 {
         let s = &self.sheet;
+        if let Some(k) = s.parallel_mm_per_code {
+            let th = s.angle0_deg.to_radians();
+            return f64::from(s.zero_code) + (z - s.mirror[2] + s.mirror[0] * th.tan()) * th.cos() / k;
+        }
         let theta = ((z - s.mirror[2]) / (0.0 - s.mirror[0])).atan();
         f64::from(s.zero_code) + (theta - s.angle0_deg.to_radians()) / (s.urad_per_code * 1e-6)
     }
@@ -297,7 +377,9 @@ impl FirsSceneSpec {
     /// The object's centre at turntable angle `deg`.
     pub fn centre_at(&self, deg: f64) -> V3 {
         let c = match self.object {
-            FirsObject::Sphere { centre, .. } | FirsObject::Faceted { centre, .. } => centre,
+            FirsObject::Sphere { centre, .. }
+            | FirsObject::Faceted { centre, .. }
+            | FirsObject::Matched { centre, .. } => centre,
         };
         rotate(c, self.turntable_point, self.turntable_dir, deg.to_radians())
     }
@@ -343,7 +425,9 @@ impl FirsSceneSpec {
         let (o, d) = self.liquid_ray(x, y)?;
         let (_, exit) = box_interval(o, d, self.tank.min, self.tank.max)?;
         let e0 = match self.object {
-            FirsObject::Sphere { radius, .. } => sphere_interval(o, d, self.centre_at(deg), radius)?.0,
+            FirsObject::Sphere { radius, .. } | FirsObject::Matched { radius, .. } => {
+                sphere_interval(o, d, self.centre_at(deg), radius)?.0
+            }
             FirsObject::Faceted { .. } => convex_interval(o, d, &self.planes_at(deg))?.0,
         };
         (e0 > 0.0 && e0 < exit).then(|| add(o, scale(d, e0)))
@@ -352,7 +436,7 @@ impl FirsSceneSpec {
     /// The outward normal of the object's surface at (or near) `p`, at turntable angle `deg`.
     pub fn normal_at(&self, p: V3, deg: f64) -> V3 {
         match self.object {
-            FirsObject::Sphere { .. } => normalize(sub(p, self.centre_at(deg))),
+            FirsObject::Sphere { .. } | FirsObject::Matched { .. } => normalize(sub(p, self.centre_at(deg))),
             FirsObject::Faceted { .. } => self
                 .planes_at(deg)
                 .into_iter()
@@ -366,7 +450,9 @@ impl FirsSceneSpec {
     /// the solid (exact off a face's interior), else the largest plane distance.
     pub fn distance(&self, p: V3, deg: f64) -> f64 {
         match self.object {
-            FirsObject::Sphere { radius, .. } => (norm(sub(p, self.centre_at(deg))) - radius).abs(),
+            FirsObject::Sphere { radius, .. } | FirsObject::Matched { radius, .. } => {
+                (norm(sub(p, self.centre_at(deg))) - radius).abs()
+            }
             FirsObject::Faceted { .. } => {
                 let planes = self.planes_at(deg);
                 let side = |q: V3| planes.iter().map(|(n, a)| dot(*n, sub(q, *a))).fold(f64::MIN, f64::max);
@@ -407,14 +493,20 @@ impl FirsSceneSpec {
         ([x0, x0 + w], [y0, y0 + h])
     }
 
-    fn plate_hit(&self, o: V3, d: V3, z: f64) -> Option<f64> {
-        if d[2] <= 0.0 {
+    /// Where the ray meets the plate through `(0, 0, z)` turned by `tilt` (radians) about `y`:
+    /// the ray parameter and the plate coordinates `(x', y)` (`x'` along `(cos, 0, sin)`).
+    fn plate_hit(&self, o: V3, d: V3, z: f64, tilt: f64) -> Option<(f64, f64, f64)> {
+        let (axis, nrm) = ([tilt.cos(), 0.0, tilt.sin()], [-tilt.sin(), 0.0, tilt.cos()]);
+        let den = dot(nrm, d);
+        if den <= 0.0 {
             return None;
         }
-        let s = (z - o[2]) / d[2];
+        let c = [0.0, 0.0, z];
+        let s = dot(nrm, sub(c, o)) / den;
         let p = add(o, scale(d, s));
+        let (xp, y) = (dot(axis, sub(p, c)), p[1]);
         let (xr, yr) = self.plate();
-        (s > 0.0 && p[0] >= xr[0] && p[0] <= xr[1] && p[1] >= yr[0] && p[1] <= yr[1]).then_some(s)
+        (s > 0.0 && xp >= xr[0] && xp <= xr[1] && y >= yr[0] && y <= yr[1]).then_some((s, xp, y))
     }
 
     /// Fluorescence seen along the liquid ray `(o, d)` with sheet code `code`, when the
@@ -425,6 +517,7 @@ impl FirsSceneSpec {
         let mut end = exit;
         let mut shadow: Option<(f64, f64)> = None;
         let mut behind = 0.0;
+        let mut matched = None;
         match what {
             Occluder::Sphere(c, r) => {
                 if let Some((e0, _)) = sphere_interval(o, d, c, r) {
@@ -453,9 +546,14 @@ impl FirsSceneSpec {
                     }
                 }
             }
+            Occluder::Matched(c, r, mu) => {
+                if let Some((e0, e1)) = sphere_interval(o, d, c, r) {
+                    matched = Some((e0, e1, c, r, mu));
+                }
+            }
             Occluder::None => {}
-            Occluder::Plate(z) => {
-                if let Some(s) = self.plate_hit(o, d, z) {
+            Occluder::Plate(z, tilt) => {
+                if let Some((s, _, _)) = self.plate_hit(o, d, z, tilt) {
                     end = end.min(s);
                 }
             }
@@ -476,13 +574,25 @@ impl FirsSceneSpec {
                 .collect();
         }
         let th = self.sheet_angle(code);
-        let n = [-th.sin(), 0.0, th.cos()];
+        let (n, q) = self.sheet_plane(code);
         let nd = dot(n, d);
         if nd.abs() < 1e-9 {
             return 0.0;
         }
-        let h = |s: f64| dot(n, sub(add(o, scale(d, s)), sh.mirror)) / sh.sigma_mm;
-        let lit: f64 = segs.iter().map(|&(a, b)| (phi(h(b)) - phi(h(a))).abs()).sum();
+        let h = |s: f64| dot(n, sub(add(o, scale(d, s)), q)) / sh.sigma_mm;
+        let mut lit: f64 = segs.iter().map(|&(a, b)| (phi(h(b)) - phi(h(a))).abs()).sum();
+        if let Some((e0, e1, c, r, mu)) = matched {
+            // The undyed sphere glows not; the liquid behind it along the laser (+x within
+            // the sheet) is lit through the sphere's absorption, taken where the ray crosses
+            // the sheet's centre.
+            lit -=
+                (phi(h(e1.min(end))) - phi(h(e0.max(0.0)))).abs() * f64::from(u8::from(e1 > 0.0 && e0 < end));
+            let p = add(o, scale(d, -dot(n, sub(o, q)) / nd));
+            let l = [th.cos(), 0.0, th.sin()];
+            let chord = sphere_interval(p, scale(l, -1.0), c, r)
+                .map_or(0.0, |(a, b)| (b.max(0.0) - a.max(0.0)).max(0.0));
+            lit *= (-mu * chord).exp();
+        }
         // The back wall's scattered fluorescence: smooth in the image and over the sweep.
         let stray = sh.stray * (1.0 + 0.5 * (0.05 * o[0] + 3.0 * th).sin() * (0.04 * o[1]).cos());
         let stray = if matches!(what, Occluder::None) { 0.0 } else { stray };
@@ -498,8 +608,10 @@ enum Occluder<'a> {
     Sphere(V3, f64),
     /// Transparent convex solid: faces, refractive index.
     Glass(&'a [(V3, V3)], f64),
-    /// The target plate at depth `z`.
-    Plate(f64),
+    /// The target plate at depth `z`, tilted about `y`.
+    Plate(f64, f64),
+    /// Index-matched absorbing sphere: centre, radius, absorption per mm.
+    Matched(V3, f64, f64),
 }
 
 /// The parameter interval of the ray inside the convex solid `{p : n·(p − q) ≤ 0}` and the
@@ -587,7 +699,8 @@ fn cone_shadow(o: V3, d: V3, m: V3, c: V3, r: f64) -> Option<(f64, f64)> {
         let (a, b) = ((-qb - disc.sqrt()) / (2.0 * qa), (-qb + disc.sqrt()) / (2.0 * qa));
         (a.min(b), a.max(b))
     };
-    // Inside the cone (both nappes) is `s ∈ [s1, s2]` when qa < 0 is false... handle both.
+    // The quadric's roots bound the double cone; which stretch lies in the forward nappe
+    // depends on the sign of `qa`, so test a point of each candidate.
     let inside = |s: f64| {
         let w = add(w0, scale(d, s));
         let wu = dot(w, u);
@@ -643,6 +756,9 @@ pub struct FirsScene {
     pub spec: FirsSceneSpec,
     /// Per pixel: the ray in the liquid.
     rays: Vec<Option<(V3, V3)>>,
+    /// The faceted solid's faces at the last turntable angle (by its bits): a frame's pixels
+    /// share them.
+    planes: std::sync::Mutex<Option<(u64, std::sync::Arc<Planes>)>>,
 }
 
 impl FirsScene {
@@ -650,10 +766,23 @@ impl FirsScene {
     pub fn new(spec: FirsSceneSpec) -> Self {
         let (w, h) = (spec.camera.width, spec.camera.height);
         let rays = (0..w * h).map(|i| spec.liquid_ray(f64::from(i % w), f64::from(i / w))).collect();
-        FirsScene { spec, rays }
+        FirsScene { spec, rays, planes: std::sync::Mutex::new(None) }
     }
 
-    fn board(&self, x: u32, y: u32, z: f64) -> f64 {
+    fn planes_for(&self, deg: f64) -> std::sync::Arc<Planes> {
+        let key = deg.to_bits();
+        let mut cache = self.planes.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        match cache.as_ref() {
+            Some((k, p)) if *k == key => p.clone(),
+            _ => {
+                let p = std::sync::Arc::new(self.spec.planes_at(deg));
+                *cache = Some((key, p.clone()));
+                p
+            }
+        }
+    }
+
+    fn board(&self, x: u32, y: u32, z: f64, tilt: f64) -> f64 {
         // 8×8 samples, each row's offset by an eighth of the column pitch (and each column's
         // by an eighth of the row pitch): 64 distinct x and 64 distinct y positions, so an
         // edge along a pixel row or column is not quantised to the grid's quarter pixels.
@@ -666,12 +795,9 @@ impl FirsScene {
                     f64::from(x) + (fi + (fj + 0.5) / n) / n - 0.5,
                     f64::from(y) + (fj + (fi + 0.5) / n) / n - 0.5,
                 );
-                let hit = self.spec.liquid_ray(sx, sy).and_then(|(o, d)| {
-                    let s = self.spec.plate_hit(o, d, z)?;
-                    Some(add(o, scale(d, s)))
-                });
+                let hit = self.spec.liquid_ray(sx, sy).and_then(|(o, d)| self.spec.plate_hit(o, d, z, tilt));
                 // Behind the plate: the dark tank.
-                if hit.is_some_and(|p| self.spec.target_white(p[0], p[1])) {
+                if hit.is_some_and(|(_, xp, yp)| self.spec.target_white(xp, yp)) {
                     white += 1;
                 }
             }
@@ -689,12 +815,14 @@ impl Scene for FirsScene {
     fn radiance(&self, x: u32, y: u32, state: &RigState) -> [f64; 3] {
         let s = &self.spec;
         let laser = state.lasers & (1u8 << s.sheet.laser) != 0;
-        let target_z = state.meta.get("pose").and_then(|p| p.get("z_mm")).and_then(|z| z.as_f64());
+        let pose = state.meta.get("pose");
+        let target_z = pose.and_then(|p| p.get("z_mm")).and_then(|z| z.as_f64());
+        let tilt = pose.and_then(|p| p.get("tilt_deg")).and_then(|t| t.as_f64()).unwrap_or(0.0).to_radians();
         let Some((o, d)) = self.rays[(y * s.camera.width + x) as usize] else { return [0.0; 3] };
         let code = state.galvos.get(usize::from(s.sheet.galvo)).map(|g| g[0]).unwrap_or(s.sheet.zero_code);
         let v = match (state.pass.as_deref(), target_z) {
-            (Some("target-board"), Some(z)) => self.board(x, y, z),
-            (Some("target-sweep"), Some(z)) if laser => self.spec.glow(o, d, code, Occluder::Plate(z)),
+            (Some("target-board"), Some(z)) => self.board(x, y, z, tilt),
+            (Some("target-sweep"), Some(z)) if laser => self.spec.glow(o, d, code, Occluder::Plate(z, tilt)),
             (Some("scan"), _) if laser => {
                 let deg = state.axes.get(usize::from(s.turntable_axis)).copied().unwrap_or(0.0);
                 match s.object {
@@ -702,10 +830,11 @@ impl Scene for FirsScene {
                         self.spec.glow(o, d, code, Occluder::Sphere(s.centre_at(deg), radius))
                     }
                     FirsObject::Faceted { n, .. } => {
-                        // The faces at this angle, cached per angle would be faster; 26 planes
-                        // are cheap next to the glow integral.
-                        let planes = s.planes_at(deg);
+                        let planes = self.planes_for(deg);
                         self.spec.glow(o, d, code, Occluder::Glass(&planes, n))
+                    }
+                    FirsObject::Matched { radius, absorb, .. } => {
+                        self.spec.glow(o, d, code, Occluder::Matched(s.centre_at(deg), radius, absorb))
                     }
                 }
             }
