@@ -111,6 +111,8 @@ pub struct Client<T: Transport> {
     link: Link<HostMsg, DeviceMsg, WINDOW>,
     info: DeviceInfo,
     next_id: u16,
+    /// The request whose answer [`Self::request`] waits for.
+    awaited: Option<u16>,
     /// Answers not yet collected, by request id.
     answers: Vec<(u16, Result<Reply, Error>)>,
     /// Requests whose answers nobody waits for (heartbeats).
@@ -141,7 +143,11 @@ impl<T: Transport> Client<T> {
             transport,
             link,
             info: unknown_info(),
-            next_id: 0,
+            // Request ids start from the nonce, not at 1: after a reconnection the device sends
+            // again the answers the last client had not acknowledged (the link is at-least-once
+            // across epochs), and those must not match this client's first requests.
+            next_id: (nonce ^ (nonce >> 16)) as u16,
+            awaited: None,
             answers: Vec::new(),
             ignored: HashSet::new(),
             events: VecDeque::new(),
@@ -218,10 +224,12 @@ impl<T: Transport> Client<T> {
     fn request_timeout(&mut self, command: Command, timeout_us: u64) -> Result<Reply, ClientError> {
         let what = command_name(&command);
         let id = self.send(command, timeout_us)?;
+        self.awaited = Some(id);
         let deadline = self.transport.now_us().saturating_add(timeout_us);
         loop {
             if let Some(i) = self.answers.iter().position(|(a, _)| *a == id) {
                 let (_, result) = self.answers.remove(i);
+                self.awaited = None;
                 return result.map_err(|error| ClientError::Refused {
                     device: self.transport.describe(),
                     command: what,
@@ -229,6 +237,7 @@ impl<T: Transport> Client<T> {
                 });
             }
             if self.transport.now_us() >= deadline {
+                self.awaited = None;
                 return Err(ClientError::Timeout {
                     device: self.transport.describe(),
                     what,
@@ -320,7 +329,9 @@ impl<T: Transport> Client<T> {
                         }
                     }
                 }
-                if !self.ignored.remove(&id) {
+                // Anything else answers a request nobody waits for any more: one that timed
+                // out, or one of an earlier client's, sent again after a reconnection.
+                if !self.ignored.remove(&id) && self.awaited == Some(id) {
                     self.answers.push((id, result));
                 }
             }

@@ -88,3 +88,22 @@ fn streams_a_sequence_larger_than_the_buffer_and_gets_every_trigger() {
         assert_eq!(host.map(|h| h.round() as u64), Some(*tick), "host time of the trigger");
     }
 }
+
+#[test]
+fn answers_resent_after_a_reconnection_never_answer_the_new_clients_requests() {
+    // Client A's last answer arrives, but the cable is pulled before A acknowledges it: the
+    // device still holds that answer and, as the link promises, sends it again on the new
+    // epoch. The new client must not take it for the answer to one of its own requests.
+    let mut a = client();
+    assert!(matches!(a.request(Command::GetStatus).unwrap(), Reply::Status(_)));
+    let mut t = a.into_transport();
+    let now = lightrig_host::transport::Transport::now_us(&t);
+    t.unplug_at(now);
+    t.replug();
+    let mut b = Client::connect(t, 0x5eee).unwrap();
+    // B's requests, numbered as A's were up to A's GetStatus, must each get their own answer.
+    for _ in 0..4 {
+        assert!(matches!(b.request(Command::GetClock).unwrap(), Reply::Clock { .. }));
+        assert!(matches!(b.request(Command::GetStatus).unwrap(), Reply::Status(_)));
+    }
+}
