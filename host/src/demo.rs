@@ -39,6 +39,9 @@ pub struct DemoOptions {
     pub seed: u64,
     /// Show progress bars.
     pub progress: bool,
+    /// Pace the virtual rig in real time (as long as the real rig would take) instead of as
+    /// fast as the rendering allows.
+    pub real_time: bool,
 }
 
 /// The fit against the truth: median errors over the sample's pixels.
@@ -376,7 +379,11 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
     );
 
     // Acquire, exactly as `lightrig acquire` does, on the virtual rig.
-    let transport: Box<dyn Transport> = Box::new(crate::virtual_rig::connect(&rig, info));
+    let mut virtual_rig = crate::virtual_rig::connect(&rig, info);
+    if opts.real_time {
+        virtual_rig.pace_in_real_time();
+    }
+    let transport: Box<dyn Transport> = Box::new(virtual_rig);
     let mut client = bring_up_on(&rig, transport)?;
     let manifest = Manifest::new(text.clone(), client.info(), plan_summary(&plan));
     let mut session = Session::create(&session_dir, manifest)

@@ -69,6 +69,8 @@ pub struct FirsDemoOptions {
     pub seed: u64,
     /// Show progress.
     pub progress: bool,
+    /// Pace the virtual rig in real time instead of as fast as the rendering allows.
+    pub real_time: bool,
 }
 
 /// The fit against the truth.
@@ -562,7 +564,11 @@ fn acquire(
             out.display()
         );
     }
-    let transport: Box<dyn Transport> = Box::new(crate::virtual_rig::connect(&rig, info));
+    let mut virtual_rig = crate::virtual_rig::connect(&rig, info);
+    if opts.real_time {
+        virtual_rig.pace_in_real_time();
+    }
+    let transport: Box<dyn Transport> = Box::new(virtual_rig);
     let mut client = bring_up_on(&rig, transport)?;
     let manifest = Manifest::new(text.clone(), client.info(), plan_summary(&plan));
     let mut session = Session::create(&session_dir, manifest)

@@ -8,7 +8,8 @@
 //! - [`plan`]: acquisition planners, one per rig.
 //! - [`rigfile`]: the TOML rig description, validated with file:line:field errors.
 //! - [`selfcheck`]: the protocol self-check over a lossy simulated wire.
-//! - [`virtual_rig`]: the virtual rig: simulated board from a rig file, virtual camera, scenes.
+//! - [`virtual_rig`]: the virtual rig: simulated board from a rig file, virtual camera, scenes;
+//!   [`cli_sim`]: `lightrig sim --pty`, the virtual controller for other processes.
 //! - [`firs_fit`], [`firs_demo`]: fluorescent immersion range scanning: `lightrig fit
 //!   firs-surface` and `lightrig demo firs`.
 
@@ -16,6 +17,7 @@ pub mod acquire;
 pub mod cli_acquire;
 pub mod cli_calibrate;
 pub mod cli_hdr;
+pub mod cli_sim;
 pub mod client;
 pub mod clock;
 pub mod demo;

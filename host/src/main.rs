@@ -5,6 +5,7 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 use lightrig_host::cli_calibrate;
 use lightrig_host::cli_hdr;
+use lightrig_host::cli_sim;
 use lightrig_host::client::Client;
 use lightrig_host::selfcheck;
 use lightrig_host::transport::{candidates, Connect, Transport};
@@ -37,6 +38,10 @@ enum Cmd {
         /// Exit with failure if a fit accuracy target is missed.
         #[arg(long)]
         check: bool,
+        /// Run the virtual rig in real time, as long as the real rig would take (by default
+        /// simulated time jumps ahead whenever the device waits).
+        #[arg(long)]
+        real_time: bool,
     },
     /// Fit a session: `lightrig fit lls SESSION --out DIR [--calibration cam.toml]`, or
     /// `lightrig fit firs-surface|firs-volume SESSION --out DIR`.
@@ -107,6 +112,8 @@ enum Cmd {
     /// Camera calibration from chessboard images; with --pose-only, a board's pose on the
     /// reference plane. Writes a calibration file (docs/calibration-format.md).
     Calibrate(cli_calibrate::Args),
+    /// Serve the virtual rig's controller to other processes: `lightrig sim --pty`.
+    Sim(cli_sim::Args),
     /// Connect to a device and print what it says about itself and how its clock maps.
     Info {
         /// `virtual`, `serial:PATH[@BAUD]`, `usb` or `usb:SERIAL`.
@@ -232,6 +239,7 @@ fn stats_line(name: &str, s: &LinkStats) -> String {
 fn main() -> ExitCode {
     match Cli::parse().command {
         Cmd::Calibrate(args) => cli_calibrate::run(&args),
+        Cmd::Sim(args) => cli_sim::run(&args),
         Cmd::Hdr(cmd) => {
             let result = match cmd {
                 HdrCmd::Calibrate { exposures: list, times, method, out } => exposures(
@@ -261,15 +269,21 @@ fn main() -> ExitCode {
                 }
             }
         }
-        Cmd::Demo { method, quick, out, seed, check } => {
+        Cmd::Demo { method, quick, out, seed, check, real_time } => {
             if method == "firs" || method == "fluorescent-immersion" {
-                return firs_demo(quick, &out, seed, check);
+                return firs_demo(quick, &out, seed, check, real_time);
             }
             if method != "lls" && method != "linear-light-source" {
                 eprintln!("error: `lightrig demo {method}`: the methods with a demo are: lls, firs");
                 return ExitCode::from(exit::USAGE);
             }
-            let opts = lightrig_host::demo::DemoOptions { quick, out: out.join("lls"), seed, progress: true };
+            let opts = lightrig_host::demo::DemoOptions {
+                quick,
+                out: out.join("lls"),
+                seed,
+                progress: true,
+                real_time,
+            };
             match lightrig_host::demo::run_lls(&opts) {
                 Ok((acc, _)) => {
                     let missed: Vec<_> = acc.targets().into_iter().filter(|t| !t.3).map(|t| t.0).collect();
@@ -435,7 +449,7 @@ fn main() -> ExitCode {
 }
 
 /// `lightrig demo firs`.
-fn firs_demo(quick: bool, out: &std::path::Path, seed: u64, check: bool) -> ExitCode {
+fn firs_demo(quick: bool, out: &std::path::Path, seed: u64, check: bool, real_time: bool) -> ExitCode {
     use lightrig_host::firs_demo::FirsDemoObject;
     let opts = lightrig_host::firs_demo::FirsDemoOptions {
         objects: vec![FirsDemoObject::Sphere, FirsDemoObject::Faceted],
@@ -444,6 +458,7 @@ fn firs_demo(quick: bool, out: &std::path::Path, seed: u64, check: bool) -> Exit
         out: out.join("firs"),
         seed,
         progress: true,
+        real_time,
     };
     match lightrig_host::firs_demo::run_firs(&opts) {
         Ok(result) => {

@@ -13,6 +13,8 @@ use lightrig_firmware::{Clock, Controller};
 use lightrig_protocol::session::DeviceInfo;
 use lightrig_protocol::MAX_FRAME;
 
+use crate::virtual_rig::pacing::RealTime;
+
 /// Bytes to and from a device.
 pub trait Transport {
     /// Sends `bytes`.
@@ -167,6 +169,8 @@ pub struct VirtualTransport {
     unplugged: bool,
     /// Pull the cable when the clock reaches this tick.
     unplug_at: Option<u64>,
+    /// Simulated time held to the wall clock ([`VirtualTransport::pace_in_real_time`]).
+    real_time: Option<RealTime>,
 }
 
 /// Byte-level damage on the virtual wire, per mille of bytes, each direction.
@@ -211,7 +215,7 @@ fn impair(bytes: &[u8], imp: &Impairment, rng: &mut u64) -> Vec<u8> {
 }
 
 /// A boot id for a virtual device: different at every start, as on a real one.
-fn fresh_boot_id() -> u32 {
+pub(crate) fn fresh_boot_id() -> u32 {
     use std::hash::{BuildHasher, Hasher};
     let mut h = std::collections::hash_map::RandomState::new().build_hasher();
     h.write_u32(std::process::id());
@@ -235,7 +239,14 @@ impl VirtualTransport {
             rng: 0,
             unplugged: false,
             unplug_at: None,
+            real_time: None,
         }
+    }
+
+    /// From now on, simulated time moves no faster than the wall clock (as a real rig's
+    /// would); by default it jumps to whatever is due next. See [`crate::virtual_rig::pacing`].
+    pub fn pace_in_real_time(&mut self) {
+        self.real_time = Some(RealTime::starting_at(self.clock.now()));
     }
 
     /// Damages bytes on the wire from now on.
@@ -311,6 +322,9 @@ impl Transport for VirtualTransport {
             }
             // Jump to whatever comes first: the device's next work or the host's deadline.
             let next = self.device.next_deadline().map_or(deadline, |d| d.max(now + 1).min(deadline));
+            if let Some(rt) = &self.real_time {
+                rt.wait_until(next);
+            }
             self.clock.set(next);
         }
     }

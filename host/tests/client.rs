@@ -107,3 +107,36 @@ fn answers_resent_after_a_reconnection_never_answer_the_new_clients_requests() {
         assert!(matches!(b.request(Command::GetStatus).unwrap(), Reply::Status(_)));
     }
 }
+
+#[test]
+fn paced_in_real_time_a_sequence_takes_as_long_as_on_a_real_rig_and_keeps_its_ticks() {
+    let mut t = VirtualTransport::new(virtual_device_info(), SimBoard::default());
+    // Device tick 0 is now on the wall clock.
+    let wall = std::time::Instant::now();
+    t.pace_in_real_time();
+    let mut c = Client::connect(t, 0x5eed).unwrap();
+    let cam = CameraConfig {
+        camera: 0,
+        pulse_ticks: 20,
+        polarity: Polarity::ActiveHigh,
+        exposure_input: Input::Unused,
+        min_interval_ticks: 0,
+    };
+    assert_eq!(c.request(Command::Configure(ConfigItem::Camera(cam))).unwrap(), Reply::Done);
+    let Reply::Clock { tick: now } = c.request(Command::GetClock).unwrap() else { panic!("no clock") };
+    let start = now + 50_000;
+    let items = (0..100).map(|_| Item { delta: 2_000, action: Action::Trigger { camera: 0, exposure: 0 } });
+    let mut ticks = Vec::new();
+    let outcome = c
+        .run_sequence(1, items, StartAt::Tick(start), |e| {
+            if let Event::Trigger(t) = &e.event {
+                ticks.push(t.tick);
+            }
+        })
+        .unwrap();
+    assert_eq!(outcome.tick, start + 200_000);
+    // Paced, the device cannot reach a tick before the wall clock has (a lower bound only: a
+    // loaded machine makes it later, never earlier). Unpaced, this takes a few milliseconds.
+    assert!(wall.elapsed() >= std::time::Duration::from_micros(outcome.tick), "{:?}", wall.elapsed());
+    assert_eq!(ticks, (1..=100).map(|k| start + 2_000 * k).collect::<Vec<_>>());
+}

@@ -23,6 +23,7 @@ fn quick_demo(object: FirsDemoObject, seed: u64) -> (FirsAccuracy, std::path::Pa
         out: out.clone(),
         seed,
         progress: false,
+        real_time: false,
     };
     let result = run_firs(&opts).unwrap();
     assert!(result.missed().is_empty(), "{:?}", result.missed());
@@ -103,6 +104,7 @@ fn firs_volume_mode_within_a_voxel_and_a_percent() {
         out: out.clone(),
         seed: 3,
         progress: false,
+        real_time: false,
     };
     let result = run_firs(&opts).unwrap();
     assert!(result.missed().is_empty(), "{:?}", result.missed());

@@ -11,10 +11,16 @@
 //!   write it, so the pipelines cannot tell the difference.
 //! - [`lls_scene`]: the linear-light-source scene and its ground truth.
 //! - [`firs_scene`]: the fluorescent-immersion tank scene and its ground truth.
+//! - [`pacing`]: simulated time held to the wall clock, on request.
+//! - [`pty`]: the controller behind a pseudo-terminal (`lightrig sim --pty`), for clients in
+//!   other processes.
 
 pub mod camera;
 pub mod firs_scene;
 pub mod lls_scene;
+pub mod pacing;
+#[cfg(unix)]
+pub mod pty;
 pub mod sensor;
 
 use lightrig_firmware::sim::{SimBoard, SimExposure};
