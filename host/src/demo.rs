@@ -383,6 +383,8 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
     if opts.real_time {
         virtual_rig.pace_in_real_time();
     }
+    // The camera sees the rig's state over each whole exposure, not only at the trigger.
+    let timeline = virtual_rig.timeline();
     let transport: Box<dyn Transport> = Box::new(virtual_rig);
     let mut client = bring_up_on(&rig, transport)?;
     let manifest = Manifest::new(text.clone(), client.info(), plan_summary(&plan));
@@ -390,6 +392,7 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
         .map_err(|e| CliError { code: FAILURE, message: e.to_string() })?;
     let mut camera =
         VirtualCamera::new(&rig, 0, scene, sensor, info.tick_hz, &camera_dir).map_err(io(&camera_dir))?;
+    camera.follow(timeline);
     let acq = bar(opts.progress, summary.triggers as u64, "acquire");
     let acq2 = acq.clone();
     camera.on_frame(move |n| acq2.set_position(n));

@@ -568,6 +568,8 @@ fn acquire(
     if opts.real_time {
         virtual_rig.pace_in_real_time();
     }
+    // The camera sees the rig's state over each whole exposure, not only at the trigger.
+    let timeline = virtual_rig.timeline();
     let transport: Box<dyn Transport> = Box::new(virtual_rig);
     let mut client = bring_up_on(&rig, transport)?;
     let manifest = Manifest::new(text.clone(), client.info(), plan_summary(&plan));
@@ -576,6 +578,7 @@ fn acquire(
     let mut camera =
         VirtualCamera::new(&rig, 0, FirsScene::new(spec.clone()), sensor, info.tick_hz, &camera_dir)
             .map_err(io(&camera_dir))?;
+    camera.follow(timeline);
     run(&mut client, &mut session, &plan, &mut camera, |_| {})
         .map_err(|e| CliError { code: FAILURE, message: e.to_string() })?;
     Ok((session_dir, summary.triggers))

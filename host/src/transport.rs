@@ -14,6 +14,7 @@ use lightrig_protocol::session::DeviceInfo;
 use lightrig_protocol::MAX_FRAME;
 
 use crate::virtual_rig::pacing::RealTime;
+use crate::virtual_rig::timeline::Timeline;
 
 /// Bytes to and from a device.
 pub trait Transport {
@@ -171,6 +172,8 @@ pub struct VirtualTransport {
     unplug_at: Option<u64>,
     /// Simulated time held to the wall clock ([`VirtualTransport::pace_in_real_time`]).
     real_time: Option<RealTime>,
+    /// The board's changes handed on to the virtual camera ([`VirtualTransport::timeline`]).
+    timeline: Option<Timeline>,
 }
 
 /// Byte-level damage on the virtual wire, per mille of bytes, each direction.
@@ -240,7 +243,21 @@ impl VirtualTransport {
             unplugged: false,
             unplug_at: None,
             real_time: None,
+            timeline: None,
         }
+    }
+
+    /// The simulated board's output changes from now on, with their ticks, for the virtual
+    /// camera to rebuild the rig's state at any tick of an exposure. The board hands its
+    /// record over to it (and records steps too) from now on.
+    pub fn timeline(&mut self) -> Timeline {
+        if let Some(t) = &self.timeline {
+            return t.clone();
+        }
+        let t = Timeline::default();
+        t.attach(self.device.rig_mut().board_mut());
+        self.timeline = Some(t.clone());
+        t
     }
 
     /// From now on, simulated time moves no faster than the wall clock (as a real rig's
@@ -291,6 +308,9 @@ impl VirtualTransport {
     fn collect(&mut self) {
         let mut out = [0u8; MAX_FRAME];
         self.device.poll();
+        if let Some(t) = &self.timeline {
+            t.take(self.device.rig_mut().board_mut(), self.clock.now());
+        }
         while let Some(n) = self.device.poll_transmit(&mut out) {
             let bytes = impair(&out[..n], &self.impairment, &mut self.rng);
             self.pending.extend_from_slice(&bytes);

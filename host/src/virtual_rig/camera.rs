@@ -3,6 +3,7 @@
 //! watched directory, which a [`DirectoryInput`] then picks up exactly as it would a real
 //! camera's files.
 
+use std::collections::VecDeque;
 use std::io;
 use std::path::{Path, PathBuf};
 
@@ -11,6 +12,7 @@ use lightrig_protocol::event::TriggerEvent;
 use rayon::prelude::*;
 
 use super::sensor::{mix, Depth, Sensor};
+use super::timeline::{Motion, Timeline};
 use crate::acquire::{Captured, DirectoryInput, FrameInput};
 use crate::plan::Step;
 use crate::rigfile::RigFile;
@@ -60,7 +62,15 @@ pub struct VirtualCamera<S: Scene> {
     meta: serde_json::Value,
     input: DirectoryInput,
     on_frame: Option<Box<dyn FnMut(u64)>>,
+    /// The board's changes: with it, frames integrate over their exposure.
+    timeline: Option<(Timeline, usize)>,
+    /// Triggers whose exposure has not ended yet, with the state at their tick.
+    pending: VecDeque<(TriggerEvent, RigState)>,
 }
+
+/// Most distinct states rendered for one exposure; beyond, the exposure is sampled at this
+/// many evenly spaced instants (stratified, as a renderer's motion blur).
+pub const MAX_EXPOSURE_STATES: usize = 16;
 
 const PATTERN: &str = "img_{frame:06}";
 
@@ -93,12 +103,90 @@ impl<S: Scene> VirtualCamera<S> {
             meta: serde_json::Value::Null,
             input,
             on_frame: None,
+            timeline: None,
+            pending: VecDeque::new(),
         })
     }
 
     /// Calls `f` with the count of frames rendered after each one (for a progress bar).
     pub fn on_frame(&mut self, f: impl FnMut(u64) + 'static) {
         self.on_frame = Some(Box::new(f));
+    }
+
+    /// Follows the board's state at every tick ([`VirtualTransport::timeline`]
+    /// (crate::transport::VirtualTransport::timeline)): each frame then integrates the scene
+    /// over its whole exposure, and is rendered once the exposure has ended. Without it, a
+    /// frame shows the state at its trigger's tick.
+    pub fn follow(&mut self, timeline: Timeline) {
+        let reader = timeline.reader();
+        self.timeline = Some((timeline, reader));
+    }
+
+    /// The rig's states over trigger `t`'s exposure, each with the fraction of the exposure
+    /// it lasted, from the state at the trigger (`at_trigger`) and the timeline's changes.
+    pub fn exposure_states(&self, t: &TriggerEvent, at_trigger: &RigState) -> Vec<(f64, RigState)> {
+        let Some((tl, _)) = &self.timeline else { return vec![(1.0, at_trigger.clone())] };
+        let (t0, t1) = (t.tick, t.tick + u64::from(t.width.max(1)));
+        let changes = tl.between(t0, t1);
+        if changes.is_empty() {
+            return vec![(1.0, at_trigger.clone())];
+        }
+        // Replay: integer steps per axis from the snapshot, converted to units per state.
+        let mut steps: Vec<i64> = t.snapshot.axes.iter().map(|&s| i64::from(s)).collect();
+        let mut state = at_trigger.clone();
+        let apply = |state: &mut RigState, steps: &mut Vec<i64>, m: &Motion| match *m {
+            Motion::Galvo { pair, to } => {
+                if let Some(g) = state.galvos.get_mut(usize::from(pair)) {
+                    *g = to;
+                }
+            }
+            Motion::LaserToggled { channel } => {
+                state.lasers ^= 1u8.checked_shl(u32::from(channel)).unwrap_or(0)
+            }
+            Motion::Step { axis, physical } => {
+                let i = usize::from(axis);
+                let unit = self.axis_units.get(i).and_then(|s| s.as_ref());
+                let logical = if unit.is_some_and(|s| s.invert_dir) { -physical } else { physical };
+                if let Some(s) = steps.get_mut(i) {
+                    *s += i64::from(logical);
+                    if let Some(a) = state.axes.get_mut(i) {
+                        *a = unit.and_then(|u| u.units(*s)).unwrap_or(*s as f64);
+                    }
+                }
+            }
+        };
+        let len = (t1 - t0) as f64;
+        // Distinct instants at which the state changes.
+        let mut instants: Vec<u64> = changes.iter().map(|&(c, _)| c).collect();
+        instants.dedup();
+        if instants.len() < MAX_EXPOSURE_STATES {
+            let mut out = Vec::with_capacity(instants.len() + 1);
+            let (mut from, mut next) = (t0, 0);
+            for &at in &instants {
+                out.push(((at - from) as f64 / len, state.clone()));
+                while next < changes.len() && changes[next].0 == at {
+                    apply(&mut state, &mut steps, &changes[next].1);
+                    next += 1;
+                }
+                from = at;
+            }
+            out.push(((t1 - from) as f64 / len, state));
+            out.retain(|(w, _)| *w > 0.0);
+            return out;
+        }
+        // Too many to render each: the state at the middle of each of N equal slices.
+        let n = MAX_EXPOSURE_STATES as u64;
+        let mut out = Vec::with_capacity(MAX_EXPOSURE_STATES);
+        let mut next = 0;
+        for k in 0..n {
+            let at = t0 + ((t1 - t0) * (2 * k + 1)) / (2 * n);
+            while next < changes.len() && changes[next].0 <= at {
+                apply(&mut state, &mut steps, &changes[next].1);
+                next += 1;
+            }
+            out.push((1.0 / n as f64, state.clone()));
+        }
+        out
     }
 
     /// The scene.
@@ -135,20 +223,57 @@ impl<S: Scene> VirtualCamera<S> {
 
     /// Renders one frame of `state` with noise draw `frame_key`.
     pub fn render(&self, state: &RigState, frame_key: u64) -> Image {
+        self.render_exposure(&[(1.0, state.clone())], frame_key)
+    }
+
+    /// Renders one frame whose exposure saw each of `states` for its fraction of the time:
+    /// the radiance is their weighted sum, then the sensor exposes it once.
+    pub fn render_exposure(&self, states: &[(f64, RigState)], frame_key: u64) -> Image {
         let (w, h) = self.scene.size();
         let mut img = Image::new(w, h, 3);
         let (sensor, scene) = (self.sensor, &self.scene);
+        let exposure_s = states.first().map_or(0.0, |(_, s)| s.exposure_s);
         img.data.par_chunks_mut(w as usize * 3).enumerate().for_each(|(y, row)| {
             for x in 0..w {
-                let l = scene.radiance(x, y as u32, state);
+                let mut l = [0.0; 3];
+                for (f, state) in states {
+                    let r = scene.radiance(x, y as u32, state);
+                    for c in 0..3 {
+                        l[c] += f * r[c];
+                    }
+                }
                 for c in 0..3 {
                     let i = (y * w as usize + x as usize) * 3 + c;
                     let key = mix(frame_key).wrapping_add(i as u64);
-                    row[x as usize * 3 + c] = sensor.expose(l[c], state.exposure_s, key);
+                    row[x as usize * 3 + c] = sensor.expose(l[c], exposure_s, key);
                 }
             }
         });
         img.with_encoding(Encoding::Linear)
+    }
+
+    /// Renders and writes the pending frames whose exposure has ended (all of them without a
+    /// timeline).
+    fn render_ready(&mut self) -> io::Result<()> {
+        while let Some((t, _)) = self.pending.front() {
+            let end = t.tick + u64::from(t.width.max(1));
+            if self.timeline.as_ref().is_some_and(|(tl, _)| tl.horizon() < end) {
+                break;
+            }
+            let Some((t, state)) = self.pending.pop_front() else { break };
+            let states = self.exposure_states(&t, &state);
+            let n = self.next_file;
+            let img = self.render_exposure(&states, n);
+            self.write(&img, n)?;
+            if let Some((tl, reader)) = &self.timeline {
+                tl.forget_before(*reader, t.tick);
+            }
+            self.next_file += 1;
+            if let Some(f) = self.on_frame.as_mut() {
+                f(self.next_file);
+            }
+        }
+        Ok(())
     }
 
     fn write(&self, img: &Image, n: u64) -> io::Result<()> {
@@ -182,17 +307,12 @@ impl<S: Scene> FrameInput for VirtualCamera<S> {
             return Ok(());
         }
         let state = self.state(t);
-        let n = self.next_file;
-        let img = self.render(&state, n);
-        self.write(&img, n)?;
-        self.next_file += 1;
-        if let Some(f) = self.on_frame.as_mut() {
-            f(self.next_file);
-        }
-        Ok(())
+        self.pending.push_back((t.clone(), state));
+        self.render_ready()
     }
 
     fn poll(&mut self, now_us: f64) -> io::Result<Vec<Captured>> {
+        self.render_ready()?;
         self.input.poll(now_us)
     }
 }

@@ -12,6 +12,8 @@
 //! - [`lls_scene`]: the linear-light-source scene and its ground truth.
 //! - [`firs_scene`]: the fluorescent-immersion tank scene and its ground truth.
 //! - [`pacing`]: simulated time held to the wall clock, on request.
+//! - [`timeline`]: the simulated board's state at every tick, so the camera integrates over
+//!   its whole exposure.
 //! - [`pty`]: the controller behind a pseudo-terminal (`lightrig sim --pty`), for clients in
 //!   other processes.
 
@@ -22,6 +24,7 @@ pub mod pacing;
 #[cfg(unix)]
 pub mod pty;
 pub mod sensor;
+pub mod timeline;
 
 use lightrig_firmware::sim::{SimBoard, SimExposure};
 use lightrig_protocol::config::{HomingMode, Input, Polarity};
