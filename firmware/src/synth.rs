@@ -9,11 +9,12 @@
 //! `n` samples `φₙ = φ₀ + ⌊n·f·2^32 / D⌋ mod 2^32` exactly: the frequency is right to the
 //! millihertz however long it runs: no drift.
 //!
-//! **Sine.** A quarter wave `sin(π/2 · i/1024)`, `i = 0..=1024`, in Q30 (4 KiB of flash),
-//! computed at compile time by a `const fn`. The top two phase bits pick the quadrant (bit 30
-//! reads the table backwards, exactly mirrored; bit 31 negates), the next ten the segment, and
-//! the low twenty interpolate linearly with one 32×32→64 multiply. The error is at most
-//! `(π/2048)²/8 ≈ 2.9·10⁻⁷` of full scale (-130 dB), far under the 16-bit output's
+//! **Sine.** A quarter wave `sin(π/2 · i/1024)`, `i = 0..=1024`, in Q30, computed at compile
+//! time by a `const fn` and mirrored into a half wave (2049 entries, 8 KiB of flash). Bit 31 of
+//! the phase negates, the next eleven bits pick the segment, and the low twenty interpolate
+//! linearly with one 32×32→64 multiply; reading the mirrored half forwards is bit-identical to
+//! reading the quarter backwards (see `sine`), so the wave is exactly symmetric. The error is
+//! at most `(π/2048)²/8 ≈ 2.9·10⁻⁷` of full scale (-130 dB), far under the 16-bit output's
 //! quantisation.
 //!
 //! **Amplitude.** A voice's amplitude `A` is kept in output LSBs × 2^14 (`u16::MAX` →
