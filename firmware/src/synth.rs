@@ -9,11 +9,12 @@
 //! `n` samples `φₙ = φ₀ + ⌊n·f·2^32 / D⌋ mod 2^32` exactly: the frequency is right to the
 //! millihertz however long it runs: no drift.
 //!
-//! **Sine.** A quarter wave `sin(π/2 · i/1024)`, `i = 0..=1024`, in Q30 (4 KiB of flash),
-//! computed at compile time by a `const fn`. The top two phase bits pick the quadrant (bit 30
-//! reads the table backwards, exactly mirrored; bit 31 negates), the next ten the segment, and
-//! the low twenty interpolate linearly with one 32×32→64 multiply. The error is at most
-//! `(π/2048)²/8 ≈ 2.9·10⁻⁷` of full scale (-130 dB), far under the 16-bit output's
+//! **Sine.** A quarter wave `sin(π/2 · i/1024)`, `i = 0..=1024`, in Q30, computed at compile
+//! time by a `const fn` and mirrored into a half wave (2049 entries, 8 KiB of flash). Bit 31 of
+//! the phase negates, the next eleven bits pick the segment, and the low twenty interpolate
+//! linearly with one 32×32→64 multiply; reading the mirrored half forwards is bit-identical to
+//! reading the quarter backwards (see `sine`), so the wave is exactly symmetric. The error is
+//! at most `(π/2048)²/8 ≈ 2.9·10⁻⁷` of full scale (-130 dB), far under the 16-bit output's
 //! quantisation.
 //!
 //! **Amplitude.** A voice's amplitude `A` is kept in output LSBs × 2^14 (`u16::MAX` →
@@ -73,9 +74,11 @@ const SEGMENT_BITS: u32 = SEGMENTS.trailing_zeros();
 /// Phase bits below the segment index, used to interpolate.
 const FRAC_BITS: u32 = 30 - SEGMENT_BITS;
 const FRAC_MASK: u32 = (1 << FRAC_BITS) - 1;
-/// `sin(π/2 · i/SEGMENTS)` in Q30 for `i = 0..=SEGMENTS`, and a guard entry after the crest
-/// (`i = SEGMENTS + 1`, only ever weighted by 0) so that interpolation never needs a branch.
-static QUARTER: [i32; SEGMENTS + 2] = quarter_table();
+/// The quarter wave mirrored into a half wave: `HALF[j] = sin(π/2 · j/SEGMENTS)` for
+/// `j = 0..=2·SEGMENTS`, the second quarter an exact copy of the first read backwards (8 KiB).
+/// Reading it forwards gives exactly the mirrored quarter-wave interpolation (see [`sine`])
+/// without computing the mirror per sample.
+static HALF: [i32; 2 * SEGMENTS + 1] = half_table();
 
 /// Amplitude fraction bits below one output LSB.
 const AMP_FRAC_BITS: u32 = 14;
@@ -99,36 +102,35 @@ const fn sin_const(x: f64) -> f64 {
     sum
 }
 
-const fn quarter_table() -> [i32; SEGMENTS + 2] {
-    let mut table = [0; SEGMENTS + 2];
+const fn half_table() -> [i32; 2 * SEGMENTS + 1] {
+    let mut table = [0; 2 * SEGMENTS + 1];
     let mut i = 0;
     while i <= SEGMENTS {
         let x = core::f64::consts::FRAC_PI_2 * i as f64 / SEGMENTS as f64;
         // Values are in [0, 1]: adding ½ and truncating rounds to nearest.
         table[i] = (sin_const(x) * (1u32 << 30) as f64 + 0.5) as i32;
+        // sin(π − x) = sin x, exactly.
+        table[2 * SEGMENTS - i] = table[i];
         i += 1;
     }
-    // Past the crest: sin(π/2 + h) = sin(π/2 − h).
-    table[SEGMENTS + 1] = table[SEGMENTS - 1];
     table
 }
 
 /// `sin(2π · phase / 2^32)` in Q30.
+///
+/// Bits 20..=30 pick the half-wave segment `j`, the low twenty interpolate, bit 31 negates.
+/// In the second quarter this equals reading the quarter wave backwards at the mirrored
+/// position: for `x = j'·2^20 + f` past the crest with `d = Q[1024−j'] − Q[1023−j']`, the
+/// mirror gives `Q[1023−j'] + ⌊d·(2^20 − f)/2^20⌋ = Q[1024−j'] − ⌈d·f/2^20⌉`, which is the
+/// forward `HALF[j] + ⌊−d·f/2^20⌋`. So the wave is exactly symmetric about the crest.
 #[inline(always)]
 fn sine(phase: u32) -> i32 {
-    // Quadrants 1 and 3 read the quarter wave backwards, at 2^30 − x for the position x:
-    // with m all ones, (x ^ m) + 2^30 + 1 = 2^30 − x (mod 2^32). So the mirror is exact and
-    // pos ∈ [0, 2^30].
-    let m = 0u32.wrapping_sub((phase >> 30) & 1);
-    let pos = ((phase & 0x3FFF_FFFF) ^ m).wrapping_add(m & 0x4000_0001);
-    // pos = 2^30 (the crest) gives SEGMENTS, with frac 0: the end point alone. `min` changes
-    // nothing; it shows the bound to the compiler.
-    let i = ((pos >> FRAC_BITS) as usize).min(SEGMENTS);
-    let frac = i64::from(pos & FRAC_MASK);
-    let a = QUARTER[i];
-    let b = QUARTER[i + 1];
+    // j ≤ 2·SEGMENTS − 1 by the mask, so both reads are in bounds without a check.
+    let j = ((phase >> FRAC_BITS) as usize) & (2 * SEGMENTS - 1);
+    let a = HALF[j];
+    let b = HALF[j + 1];
     // |b − a| < 2^21, so the product fits easily; the sum stays within [0, 2^30].
-    let v = a + ((i64::from(b - a) * frac) >> FRAC_BITS) as i32;
+    let v = a + ((i64::from(b - a) * i64::from(phase & FRAC_MASK)) >> FRAC_BITS) as i32;
     // Bit 31: the negative half wave.
     let negate = 0i32.wrapping_sub((phase >> 31) as i32);
     (v ^ negate) - negate
@@ -474,6 +476,41 @@ mod tests {
     fn closed_form(phase: u16, freq_mhz: u32, rate: u32, n: u64) -> u32 {
         let turns = ((u128::from(n) * u128::from(freq_mhz)) << 32) / (1000 * u128::from(rate));
         ((u128::from(phase) << 16) + turns) as u32
+    }
+
+    /// The quarter-wave form `sine` replaced: the mirror computed per sample.
+    fn sine_by_quarter_wave(phase: u32) -> i32 {
+        let q = |i: usize| if i <= SEGMENTS { HALF[i] } else { HALF[2 * SEGMENTS - i] };
+        let m = 0u32.wrapping_sub((phase >> 30) & 1);
+        let pos = ((phase & 0x3FFF_FFFF) ^ m).wrapping_add(m & 0x4000_0001);
+        let i = (pos >> FRAC_BITS) as usize;
+        let (a, b) = (q(i), q(i + 1));
+        let v = a + ((i64::from(b - a) * i64::from(pos & FRAC_MASK)) >> FRAC_BITS) as i32;
+        if phase >> 31 == 1 {
+            -v
+        } else {
+            v
+        }
+    }
+
+    #[test]
+    fn half_wave_equals_mirrored_quarter_wave() {
+        // Every segment of every quadrant, at its ends and inside; then random phases.
+        for k in 0..4096u32 {
+            for f in [0, 1, 2, 0x7_FFFF, 0x8_0000, 0xF_FFFE, 0xF_FFFF, 0x1_2345, 0xE_DCBA] {
+                let p = k << FRAC_BITS | f;
+                assert_eq!(sine(p), sine_by_quarter_wave(p), "phase {p:#x}");
+            }
+        }
+        let mut x = 0x2545_F491u32;
+        for _ in 0..1 << 22 {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            assert_eq!(sine(x), sine_by_quarter_wave(x), "phase {x:#x}");
+        }
+        assert_eq!(HALF[SEGMENTS], 1 << 30);
+        assert_eq!((HALF[0], HALF[2 * SEGMENTS]), (0, 0));
     }
 
     #[test]

@@ -166,6 +166,51 @@ struct Events {
     dropped: u32,
 }
 
+/// Kinds of work in [`Rig::run_at`]'s order, one bit each (a bit per motor): what is due at
+/// the earliest due tick, so that a wake-up skips the sections with nothing to do.
+mod work {
+    use lightrig_protocol::{MAX_FILTER_WHEELS, MAX_GALVOS, MAX_STEPPERS};
+    /// Stepper axis `i` is bit `i`.
+    pub const AXES: u32 = (1 << MAX_STEPPERS) - 1;
+    /// Filter wheel `i` is bit `WHEEL0 + i`.
+    pub const WHEEL0: u32 = MAX_STEPPERS as u32;
+    pub const WHEELS: u32 = ((1 << MAX_FILTER_WHEELS) - 1) << WHEEL0;
+    pub const LINES: u32 = 1 << (WHEEL0 + MAX_FILTER_WHEELS as u32);
+    pub const PULSES: u32 = LINES << 1;
+    pub const LASERS: u32 = LINES << 2;
+    pub const BLANK: u32 = LINES << 3;
+    pub const HEARTBEAT: u32 = LINES << 4;
+    pub const WAIT: u32 = LINES << 5;
+    pub const SEQUENCE: u32 = LINES << 6;
+    pub const COILS: u32 = LINES << 7;
+    const _: () = assert!(MAX_GALVOS <= 32 && COILS != 0);
+}
+
+/// The earliest due tick and what is due then ([`work`] bits; none when 0).
+#[derive(Clone, Copy)]
+struct Due {
+    at: u64,
+    what: u32,
+}
+
+impl Due {
+    const NOTHING: Self = Self { at: 0, what: 0 };
+
+    #[inline(always)]
+    fn add(&mut self, t: Option<u64>, what: u32) {
+        let Some(t) = t else { return };
+        if self.what == 0 || t < self.at {
+            *self = Self { at: t, what };
+        } else if t == self.at {
+            self.what |= what;
+        }
+    }
+
+    fn tick(self) -> Option<u64> {
+        (self.what != 0).then_some(self.at)
+    }
+}
+
 /// The rig controller's behaviour over a [`Board`].
 pub struct Rig<B: Board> {
     board: B,
@@ -188,6 +233,12 @@ pub struct Rig<B: Board> {
     events: Events,
     /// The `now` of the poll in progress: how late due work runs.
     polled_at: u64,
+    /// [`Rig::next_due`] as of the end of the last `poll`, valid while `due_fresh`. A board's
+    /// run loop asks for it between polls and `poll` asks again on entry: scanning every
+    /// peripheral each time was most of the cost of a step or an item. Every public method
+    /// that changes the rig's state clears `due_fresh`; the board's inputs are not part of it.
+    due: Due,
+    due_fresh: bool,
 }
 
 /// The bit of channel `ch` in a laser mask (none for a channel beyond the mask).
@@ -267,6 +318,8 @@ impl<B: Board> Rig<B> {
             seq: Sequencer::new(),
             events: Events { queue: Deque::new(), dropped: 0 },
             polled_at: 0,
+            due: Due::NOTHING,
+            due_fresh: false,
         }
     }
 
@@ -339,17 +392,20 @@ impl<B: Board> Rig<B> {
     /// The host spoke at `now` (any command counts as a heartbeat). `watch` starts the
     /// heartbeat watchdog (the session is open).
     pub fn host_seen(&mut self, now: u64, watch: bool) {
+        self.due_fresh = false;
         self.heartbeat.last = now;
         self.heartbeat.watching |= watch;
     }
 
     /// Emergency stop: safe state at once, motors without deceleration.
     pub fn emergency_stop(&mut self, now: u64) {
+        self.due_fresh = false;
         self.enter_safe_state(FaultCause::EmergencyStop, now);
     }
 
     /// Clears a latched fault. Lasers stay disarmed.
     pub fn clear_fault(&mut self, now: u64) -> Result<(), Error> {
+        self.due_fresh = false;
         if self.fault.take().is_some() {
             self.heartbeat.last = now;
             self.emit_state(now);
@@ -442,6 +498,7 @@ impl<B: Board> Rig<B> {
     /// Applies a configuration item (validated by the caller against the device's
     /// capabilities). Refused while a sequence runs or an axis moves.
     pub fn configure(&mut self, item: &ConfigItem, now: u64) -> Result<(), Error> {
+        self.due_fresh = false;
         if let Some(sequence) = self.running() {
             return Err(Error::InvalidState(DeviceState::Running { sequence }));
         }
@@ -523,6 +580,7 @@ impl<B: Board> Rig<B> {
 
     /// Allows the lasers in `mask` to be turned on.
     pub fn arm(&mut self, mask: u8, now: u64) -> Result<(), Error> {
+        self.due_fresh = false;
         self.check_not_faulted()?;
         for ch in 0..8u8 {
             if mask & bit(ch) != 0 {
@@ -542,6 +600,7 @@ impl<B: Board> Rig<B> {
 
     /// Turns every laser off and disallows them. Always allowed.
     pub fn disarm(&mut self, now: u64) {
+        self.due_fresh = false;
         self.armed = 0;
         for ch in 0..MAX_LASERS {
             self.laser_off(ch as u8, now);
@@ -551,6 +610,7 @@ impl<B: Board> Rig<B> {
 
     /// Executes one action now (jog, park, test shot).
     pub fn immediate(&mut self, action: &Action, now: u64) -> Result<(), Error> {
+        self.due_fresh = false;
         self.check_not_faulted()?;
         if let Some(sequence) = self.running() {
             return Err(Error::InvalidState(DeviceState::Running { sequence }));
@@ -573,6 +633,7 @@ impl<B: Board> Rig<B> {
 
     /// Starts homing an axis.
     pub fn home(&mut self, axis: AxisRef, now: u64) -> Result<(), Error> {
+        self.due_fresh = false;
         self.check_not_faulted()?;
         if let Some(sequence) = self.running() {
             return Err(Error::InvalidState(DeviceState::Running { sequence }));
@@ -636,6 +697,7 @@ impl<B: Board> Rig<B> {
 
     /// Loads a chunk of a sequence; answers the buffer after it.
     pub fn load(&mut self, chunk: &Chunk) -> Result<BufferStatus, Error> {
+        self.due_fresh = false;
         self.check_not_faulted()?;
         self.seq.check_chunk(chunk)?;
         for item in &chunk.items {
@@ -652,6 +714,7 @@ impl<B: Board> Rig<B> {
 
     /// Starts the loaded sequence `sequence`.
     pub fn start(&mut self, sequence: u32, at: StartAt, now: u64) -> Result<(), Error> {
+        self.due_fresh = false;
         self.check_not_faulted()?;
         if self.seq.phase != Phase::Loaded || self.seq.id != sequence {
             if let Some(running) = self.running() {
@@ -673,6 +736,7 @@ impl<B: Board> Rig<B> {
 
     /// Stops the running (or loaded) sequence: lasers off, axes decelerate, galvos park.
     pub fn abort(&mut self, sequence: u32, now: u64) -> Result<(), Error> {
+        self.due_fresh = false;
         if self.seq.phase == Phase::Idle || self.seq.id != sequence {
             return Err(Error::NoSuchSequence { sequence });
         }
@@ -1110,46 +1174,52 @@ impl<B: Board> Rig<B> {
 
     /// The earliest tick at which the rig has work, if any.
     pub fn next_due(&self) -> Option<u64> {
-        let mut due: Option<u64> = None;
-        let mut at = |t: Option<u64>| {
-            if let Some(t) = t {
-                due = Some(due.map_or(t, |d| d.min(t)));
-            }
-        };
-        for a in &self.axes {
-            at(a.motor.next_due());
+        if self.due_fresh {
+            self.due.tick()
+        } else {
+            self.compute_due().tick()
         }
-        for w in &self.wheels {
-            at(w.motor.next_due());
+    }
+
+    fn compute_due(&self) -> Due {
+        let mut due = Due::NOTHING;
+        for (i, a) in self.axes.iter().enumerate() {
+            due.add(a.motor.next_due(), 1 << i);
+        }
+        for (i, w) in self.wheels.iter().enumerate() {
+            due.add(w.motor.next_due(), 1 << (work::WHEEL0 + i as u32));
         }
         for g in &self.galvos {
-            at(g.line.map(|l| l.tick_of(l.done.saturating_add(1))));
+            if let Some(l) = &g.line {
+                due.add(Some(l.tick_of(l.done.saturating_add(1))), work::LINES);
+            }
         }
         for k in &self.cameras {
-            at(k.pulse_end);
+            due.add(k.pulse_end, work::PULSES);
         }
         for l in &self.lasers {
-            at(self.laser_deadline(l));
+            due.add(self.laser_deadline(l), work::LASERS);
         }
         if self.blanking {
-            at(Some(self.blank_until));
+            due.add(Some(self.blank_until), work::BLANK);
         }
         if self.heartbeat.watching && self.fault.is_none() {
-            at(Some(self.heartbeat.last.saturating_add(self.heartbeat.timeout)));
+            due.add(Some(self.heartbeat.last.saturating_add(self.heartbeat.timeout)), work::HEARTBEAT);
         }
-        at(self.seq.next_due());
-        at(self.seq.waiting.map(|w| w.deadline));
+        due.add(self.seq.next_due(), work::SEQUENCE);
+        due.add(self.seq.waiting.map(|w| w.deadline), work::WAIT);
         for k in &self.coils {
-            at(self.coil_due(k));
+            due.add(self.coil_due(k), work::COILS);
         }
         due
     }
 
     fn laser_deadline(&self, l: &Laser) -> Option<u64> {
-        let c = l.config?;
+        // `on` first: most lasers are off, and the check is cheaper than the config's.
         if !l.on {
             return None;
         }
+        let c = l.config.as_ref()?;
         let off = l.on_since.saturating_add(u64::from(c.max_on_ticks));
         if l.ready {
             Some(off)
@@ -1161,28 +1231,40 @@ impl<B: Board> Rig<B> {
     /// Does all work due at or before `now`, in tick order.
     pub fn poll(&mut self, now: u64) {
         self.polled_at = now;
-        while let Some(t) = self.next_due().filter(|&t| t <= now) {
-            self.run_at(t);
+        let mut due = if self.due_fresh { self.due } else { self.compute_due() };
+        while let Some(t) = due.tick().filter(|&t| t <= now) {
+            self.run_at(t, due.what);
+            due = self.compute_due();
         }
-        self.take_captures(now);
+        let captured = self.take_captures(now);
         // An interlock seen open now acts now, after the work that was due before.
-        self.check_interlocks(now);
+        let tripped = self.check_interlocks(now);
+        // Either may change the schedule (a wait that ends, the safe state).
+        self.due = due;
+        self.due_fresh = !captured && !tripped;
     }
 
-    fn check_interlocks(&mut self, now: u64) {
+    /// Returns whether an open interlock tripped the safe state.
+    fn check_interlocks(&mut self, now: u64) -> bool {
+        let mut tripped = false;
         for ch in 0..MAX_LASERS {
             let Some(l) = self.lasers.get(ch) else { continue };
-            let Some(c) = l.config else { continue };
-            if let (true, Input::Wired(p)) = (l.on, c.interlock) {
+            let Some(c) = l.config.as_ref().filter(|_| l.on) else { continue };
+            if let Input::Wired(p) = c.interlock {
                 if self.board.interlock_level(ch as u8) != level(p, true) {
                     self.enter_safe_state(FaultCause::Interlock { channel: ch as u8 }, now);
+                    tripped = true;
                 }
             }
         }
+        tripped
     }
 
-    fn take_captures(&mut self, until: u64) {
+    /// Returns whether the board had any capture to take.
+    fn take_captures(&mut self, until: u64) -> bool {
+        let mut any = false;
         while let Some(cap) = self.board.take_capture(until) {
+            any = true;
             let Some(k) = self.cameras.get_mut(usize::from(cap.camera)) else { continue };
             let Some(c) = k.config else { continue };
             let Input::Wired(p) = c.exposure_input else { continue };
@@ -1197,26 +1279,78 @@ impl<B: Board> Rig<B> {
             self.emit(Event::Exposure { camera: cap.camera, active, tick: cap.tick }, cap.tick);
             self.check_wait(cap.tick);
         }
+        any
     }
 
-    fn run_at(&mut self, t: u64) {
-        self.take_captures(t);
+    /// Does the work due at `t`, the earliest due tick, where `what` ([`work`] bits) says what
+    /// was due when `t` was found. A section not in `what` has nothing to do at `t`: nothing
+    /// before it in this order can make it due (only the sequence's section can become due
+    /// mid-way, through a wait that ends, and `poll` comes back for it at the same tick), so
+    /// skipping it changes nothing but the cost.
+    fn run_at(&mut self, t: u64, what: u32) {
+        let _ = self.take_captures(t);
         // Steps.
-        for i in 0..MAX_STEPPERS {
-            let Some(a) = self.axes.get_mut(i) else { continue };
-            if a.motor.next_due() == Some(t) {
-                let r = a.motor.step(&mut self.board, t);
-                self.after_step(AxisRef::Stepper(i as u8), r, t);
+        if what & work::AXES != 0 {
+            for i in 0..MAX_STEPPERS {
+                let Some(a) = self.axes.get_mut(i).filter(|_| what & (1 << i) != 0) else { continue };
+                if a.motor.next_due() == Some(t) {
+                    let r = a.motor.step(&mut self.board, t);
+                    self.after_step(AxisRef::Stepper(i as u8), r, t);
+                }
             }
         }
-        for i in 0..MAX_FILTER_WHEELS {
-            let Some(w) = self.wheels.get_mut(i) else { continue };
-            if w.motor.next_due() == Some(t) {
-                let r = w.motor.step(&mut self.board, t);
-                self.after_step(AxisRef::FilterWheel(i as u8), r, t);
+        if what & work::WHEELS != 0 {
+            for i in 0..MAX_FILTER_WHEELS {
+                let bit = 1 << (work::WHEEL0 + i as u32);
+                let Some(w) = self.wheels.get_mut(i).filter(|_| what & bit != 0) else { continue };
+                if w.motor.next_due() == Some(t) {
+                    let r = w.motor.step(&mut self.board, t);
+                    self.after_step(AxisRef::FilterWheel(i as u8), r, t);
+                }
             }
         }
-        // Galvo lines.
+        if what & work::LINES != 0 {
+            self.run_lines(t);
+        }
+        if what & work::PULSES != 0 {
+            self.run_pulse_ends(t);
+        }
+        if what & work::LASERS != 0 {
+            self.run_laser_timers(t);
+        }
+        if what & work::BLANK != 0 && self.blanking && t >= self.blank_until {
+            self.blanking = false;
+            self.update_laser_outputs(t);
+        }
+        if what & work::HEARTBEAT != 0
+            && self.heartbeat.watching
+            && self.fault.is_none()
+            && t >= self.heartbeat.last.saturating_add(self.heartbeat.timeout)
+        {
+            self.enter_safe_state(FaultCause::HeartbeatLost, t);
+        }
+        if what & work::WAIT != 0 {
+            if let Some(w) = self.seq.waiting {
+                if t >= w.deadline {
+                    let cause = FaultCause::WaitTimeout { sequence: self.seq.id, item: w.item };
+                    self.enter_safe_state(cause, t);
+                }
+            }
+        }
+        if what & work::SEQUENCE != 0 {
+            self.run_items(t);
+        }
+        if what & work::COILS != 0 {
+            for c in 0..MAX_VOICE_COILS {
+                let due = self.coils.get(c).and_then(|k| self.coil_due(k));
+                if due == Some(t) {
+                    self.coil_block(c as u8, t);
+                }
+            }
+        }
+    }
+
+    fn run_lines(&mut self, t: u64) {
         for i in 0..MAX_GALVOS {
             let Some(line) = self.galvos.get(i).and_then(|g| g.line) else { continue };
             let n = line.done.saturating_add(1);
@@ -1228,7 +1362,9 @@ impl<B: Board> Rig<B> {
             }
             self.galvo_write(i as u8, line.point(n), t);
         }
-        // Trigger pulse ends.
+    }
+
+    fn run_pulse_ends(&mut self, t: u64) {
         for i in 0..MAX_CAMERAS {
             let Some(k) = self.cameras.get_mut(i) else { continue };
             if k.pulse_end == Some(t) {
@@ -1238,13 +1374,12 @@ impl<B: Board> Rig<B> {
                 }
             }
         }
-        // Laser timers.
+    }
+
+    fn run_laser_timers(&mut self, t: u64) {
         for ch in 0..MAX_LASERS {
-            let Some(l) = self.lasers.get(ch).copied() else { continue };
+            let Some(l) = self.lasers.get(ch).filter(|l| l.on).copied() else { continue };
             let Some(c) = l.config else { continue };
-            if !l.on {
-                continue;
-            }
             if t >= l.on_since.saturating_add(u64::from(c.max_on_ticks)) {
                 self.enter_safe_state(FaultCause::LaserOnTime { channel: ch as u8 }, t);
             } else if !l.ready && t >= l.on_since.saturating_add(u64::from(c.warmup_ticks)) {
@@ -1255,24 +1390,9 @@ impl<B: Board> Rig<B> {
                 self.check_wait(t);
             }
         }
-        if self.blanking && t >= self.blank_until {
-            self.blanking = false;
-            self.update_laser_outputs(t);
-        }
-        // Heartbeat.
-        if self.heartbeat.watching
-            && self.fault.is_none()
-            && t >= self.heartbeat.last.saturating_add(self.heartbeat.timeout)
-        {
-            self.enter_safe_state(FaultCause::HeartbeatLost, t);
-        }
-        // Sequence.
-        if let Some(w) = self.seq.waiting {
-            if t >= w.deadline {
-                let cause = FaultCause::WaitTimeout { sequence: self.seq.id, item: w.item };
-                self.enter_safe_state(cause, t);
-            }
-        }
+    }
+
+    fn run_items(&mut self, t: u64) {
         while self.seq.next_due() == Some(t) {
             if self.polled_at.saturating_sub(t) > late_limit(self.tick_hz) {
                 // The run loop woke too late to honour the schedule: stop rather than drift.
@@ -1291,13 +1411,6 @@ impl<B: Board> Rig<B> {
                 self.emit(Event::Buffer(status), t);
             }
             self.check_sequence_end(t);
-        }
-        // Voice-coil blocks.
-        for c in 0..MAX_VOICE_COILS {
-            let due = self.coils.get(c).and_then(|k| self.coil_due(k));
-            if due == Some(t) {
-                self.coil_block(c as u8, t);
-            }
         }
     }
 
@@ -1373,6 +1486,16 @@ impl<B: Board> Rig<B> {
     fn check_switches(&mut self, id: AxisRef, purpose: Purpose, t: u64) -> bool {
         match id {
             AxisRef::Stepper(i) => {
+                // The common case, every step of a plain move: no switch wired ahead, nothing
+                // to read. Decided on the borrowed config, before copying it.
+                let plain = self.axes.get(usize::from(i)).and_then(|a| {
+                    let c = a.config.as_ref()?;
+                    let ahead = if a.motor.direction()? < 0 { c.limit_min } else { c.limit_max };
+                    Some(purpose != Purpose::HomeSeek && matches!(ahead, Input::Unused))
+                });
+                if plain == Some(true) {
+                    return false;
+                }
                 let Ok(c) = self.stepper_config(i) else { return false };
                 let active = |rig: &mut Self, input: Input, sw: Switch| match input {
                     Input::Wired(p) => rig.board.switch_level(id, sw) == level(p, true),
