@@ -6,6 +6,7 @@ mod common;
 use std::path::Path;
 
 use lightrig_firmware::sim::SimBoard;
+use lightrig_host::cli_acquire::bring_up_on;
 use lightrig_host::client::Client;
 use lightrig_host::rigfile::RigFile;
 use lightrig_host::selfcheck::virtual_device_info;
@@ -25,7 +26,8 @@ impl Scene for Probe {
         (1, 1)
     }
     fn radiance(&self, _: u32, _: u32, s: &RigState) -> [f64; 3] {
-        [f64::from(s.lasers & 1), f64::from(s.galvos[0][0]), s.axes[0]]
+        let galvo = s.galvos.first().map_or(0.0, |g| f64::from(g[0]));
+        [f64::from(s.lasers & 1), galvo, s.axes.first().copied().unwrap_or(0.0)]
     }
 }
 
@@ -100,4 +102,84 @@ fn a_gantry_moving_through_an_exposure_is_sampled_at_evenly_spaced_instants() {
         assert!(s.axes[0] >= steps(mid - 1.0) && s.axes[0] <= steps(mid + 1.0), "slice {k}: {}", s.axes[0]);
     }
     assert_eq!(triggers[1].snapshot.axes[0], 800, "the move ended where it was sent");
+}
+
+/// Runs `items` on the virtual rig of the example rig file `file`, brought up as
+/// `lightrig acquire` does, with a camera following the timeline.
+fn run_rig(file: &str, items: Vec<Item>) -> (VirtualCamera<Probe>, Vec<TriggerEvent>) {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/rigs").join(file);
+    let rig = RigFile::load(&path).unwrap();
+    let mut t = lightrig_host::virtual_rig::connect(&rig, virtual_device_info());
+    let timeline = t.timeline();
+    let mut c = bring_up_on(&rig, Box::new(t)).unwrap();
+    let dir = std::env::temp_dir().join(format!("lightrig-exposure-{}-{file}", std::process::id()));
+    let mut cam = VirtualCamera::new(&rig, 0, Probe, Sensor::default(), 1_000_000, &dir).unwrap();
+    cam.follow(timeline);
+    let mut triggers = Vec::new();
+    c.run_sequence(1, items, StartAt::Now, |e| {
+        if let Event::Trigger(t) = &e.event {
+            triggers.push(t.clone());
+        }
+    })
+    .unwrap();
+    c.idle(50_000).unwrap();
+    std::fs::remove_dir_all(&dir).ok();
+    (cam, triggers)
+}
+
+#[test]
+fn a_filter_wheel_turning_mid_exposure_has_no_slot_until_it_settles_on_the_next() {
+    // The bispectral rig's excitation wheel (8 slots, 3200 steps per turn), homed to slot 0:
+    // one slot on is 400 steps, about 0.35 s; the exposure opens 0.1 s before the move starts
+    // and lasts 0.6 s.
+    let items = vec![
+        Item { delta: 0, action: trigger(600_000) },
+        Item { delta: 100_000, action: Action::FilterWheel { wheel: 0, slot: 1 } },
+        Item { delta: 900_000, action: trigger(1_000) },
+    ];
+    let (cam, triggers) = run_rig("bispectral.toml", items);
+    assert_eq!(triggers[0].snapshot.filters[0], Some(0));
+    assert_eq!(triggers[1].snapshot.filters[0], Some(1));
+    let states = cam.exposure_states(&triggers[0], &cam.state(&triggers[0]));
+    let slots: Vec<Option<u8>> = states.iter().map(|(_, s)| s.filters[0]).collect();
+    // Sampled (hundreds of steps): slot 0 before the move, none while turning, slot 1 after.
+    assert_eq!(states.len(), MAX_EXPOSURE_STATES);
+    let n = MAX_EXPOSURE_STATES;
+    let first_moving = slots.iter().position(|s| s.is_none()).unwrap();
+    let settled = slots.iter().position(|s| *s == Some(1)).unwrap();
+    assert_eq!(first_moving, 3, "{slots:?}"); // slice 3's middle (0.131 s) is after the start
+    assert!(slots[..first_moving].iter().all(|s| *s == Some(0)), "{slots:?}");
+    assert!(slots[first_moving..settled].iter().all(|s| s.is_none()), "{slots:?}");
+    assert!(slots[settled..].iter().all(|s| *s == Some(1)), "{slots:?}");
+    assert!(settled < n, "{slots:?}");
+}
+
+#[test]
+fn the_voice_coil_samples_playing_during_an_exposure_reach_the_camera() {
+    use lightrig_firmware::synth::Synth;
+    use lightrig_protocol::sequence::Partial;
+    // The BRDF display's coil 0 at 48 kHz: one partial, then a 10 ms exposure 50 ms later.
+    let partial = Partial { freq_mhz: 1_234_567, amplitude: 20_000, phase: 0 };
+    let mut partials = heapless::Vec::new();
+    partials.push(partial).unwrap();
+    let items = vec![
+        Item { delta: 0, action: Action::VoiceCoil { channel: 0, ramp: 0, partials } },
+        Item { delta: 50_000, action: trigger(10_000) },
+    ];
+    let (cam, triggers) = run_rig("brdf-display.toml", items);
+    let states = cam.exposure_states(&triggers[0], &cam.state(&triggers[0]));
+    let window = &states[0].1.coils[0];
+    // 10 ms at 48 kHz: 480 samples play inside the exposure.
+    assert_eq!(window.len(), 480);
+    assert!(states[0].1.coils[1].iter().all(|&s| s == 0), "coil 1 is silent");
+    // They are a run of the synthesiser's own output for that partial, in order.
+    let mut synth = Synth::new(48_000);
+    synth.set(&[partial], 0).unwrap();
+    let mut reference = vec![0i16; 48_000];
+    synth.fill(&mut reference);
+    let at = (0..reference.len() - window.len()).find(|&k| reference[k..k + window.len()] == window[..]);
+    // ... starting where it should: 50 ms (2 400 samples) after the setting took effect, less
+    // the two 64-sample blocks a sample waits in the DMA double buffer before it plays.
+    let expected = 2_400 - 2 * 64;
+    assert!(at.is_some_and(|k| k.abs_diff(expected) <= 1), "run starts at {at:?}, expected {expected} ± 1");
 }

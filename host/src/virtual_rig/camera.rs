@@ -38,6 +38,9 @@ pub struct RigState {
     pub galvos: Vec<[u16; 2]>,
     /// The step's whole `meta` (e.g. the immersion calibration target's pose); `Null` if none.
     pub meta: serde_json::Value,
+    /// Each voice coil's samples that play during the exposure, by channel (following a
+    /// [`Timeline`] only; empty otherwise). The same in every state of one exposure.
+    pub coils: Vec<Vec<i16>>,
 }
 
 /// Something the virtual camera can look at.
@@ -53,10 +56,13 @@ pub struct VirtualCamera<S: Scene> {
     camera: u8,
     scene: S,
     sensor: Sensor,
-    tick_hz: f64,
+    tick_hz: u32,
     dir: PathBuf,
     next_file: u64,
     axis_units: Vec<Option<crate::rigfile::Stepper>>,
+    wheels: Vec<Option<crate::rigfile::FilterWheel>>,
+    /// Each voice coil's sample rate, by channel.
+    coil_rates: Vec<Option<u32>>,
     pass: Option<String>,
     mount_deg: f64,
     meta: serde_json::Value,
@@ -90,14 +96,32 @@ impl<S: Scene> VirtualCamera<S> {
             .map_err(|e| io::Error::new(io::ErrorKind::InvalidInput, e))?;
         let max_axis = rig.steppers.iter().map(|s| usize::from(s.axis) + 1).max().unwrap_or(0);
         let axis_units = (0..max_axis).map(|a| rig.stepper(a as u8).cloned()).collect();
+        let mut wheels = Vec::new();
+        for w in &rig.filter_wheels {
+            let i = usize::from(w.wheel);
+            if wheels.len() <= i {
+                wheels.resize(i + 1, None);
+            }
+            wheels[i] = Some(w.clone());
+        }
+        let mut coil_rates = Vec::new();
+        for c in &rig.voice_coils {
+            let i = usize::from(c.channel);
+            if coil_rates.len() <= i {
+                coil_rates.resize(i + 1, None);
+            }
+            coil_rates[i] = Some(c.sample_rate_hz);
+        }
         Ok(Self {
             camera,
             scene,
             sensor,
-            tick_hz: f64::from(tick_hz),
+            tick_hz,
             dir: dir.to_path_buf(),
             next_file: 0,
             axis_units,
+            wheels,
+            coil_rates,
             pass: None,
             mount_deg: 0.0,
             meta: serde_json::Value::Null,
@@ -127,14 +151,61 @@ impl<S: Scene> VirtualCamera<S> {
     pub fn exposure_states(&self, t: &TriggerEvent, at_trigger: &RigState) -> Vec<(f64, RigState)> {
         let Some((tl, _)) = &self.timeline else { return vec![(1.0, at_trigger.clone())] };
         let (t0, t1) = (t.tick, t.tick + u64::from(t.width.max(1)));
+        let mut state = at_trigger.clone();
+        state.coils = (0..self.coil_rates.len())
+            .map(|c| match self.coil_rates[c] {
+                Some(rate) => tl.coil_samples(c as u8, rate, self.tick_hz, t0, t1),
+                None => Vec::new(),
+            })
+            .collect();
         let changes = tl.between(t0, t1);
         if changes.is_empty() {
-            return vec![(1.0, at_trigger.clone())];
+            return vec![(1.0, state)];
         }
-        // Replay: integer steps per axis from the snapshot, converted to units per state.
+        // Replay: integer steps per axis from the snapshot, converted to units per state; a
+        // wheel's position from its slot's centre, when the snapshot knows the slot.
         let mut steps: Vec<i64> = t.snapshot.axes.iter().map(|&s| i64::from(s)).collect();
-        let mut state = at_trigger.clone();
-        let apply = |state: &mut RigState, steps: &mut Vec<i64>, m: &Motion| match *m {
+        let mut wheel_at: Vec<Option<i64>> = t
+            .snapshot
+            .filters
+            .iter()
+            .enumerate()
+            .map(|(i, slot)| Some(slot_centre(self.wheels.get(i)?.as_ref()?, (*slot)?)))
+            .collect();
+        let last_wheel_step: Vec<Option<u64>> = (0..wheel_at.len())
+            .map(|w| {
+                changes
+                    .iter()
+                    .rev()
+                    .find(|(_, m)| matches!(m, Motion::WheelStep { wheel, .. } if usize::from(*wheel) == w))
+                    .map(|&(c, _)| c)
+            })
+            .collect();
+        let apply = |state: &mut RigState,
+                     steps: &mut Vec<i64>,
+                     wheel_at: &mut Vec<Option<i64>>,
+                     at: u64,
+                     m: &Motion| match *m {
+            Motion::WheelStep { wheel, physical } => {
+                // Moving, a wheel has no slot (as the device reports); after its last step in
+                // this exposure it has the slot whose centre it sits on, if any.
+                let i = usize::from(wheel);
+                let cfg = self.wheels.get(i).and_then(|w| w.as_ref());
+                let logical = if cfg.is_some_and(|w| w.invert_dir) { -physical } else { physical };
+                let pos = wheel_at.get_mut(i).and_then(|p| {
+                    p.as_mut().map(|p| {
+                        *p += i64::from(logical);
+                        *p
+                    })
+                });
+                let settled = last_wheel_step.get(i).copied().flatten() == Some(at);
+                if let Some(f) = state.filters.get_mut(i) {
+                    *f = match (settled, cfg, pos) {
+                        (true, Some(cfg), Some(p)) => slot_at(cfg, p),
+                        _ => None,
+                    };
+                }
+            }
             Motion::Galvo { pair, to } => {
                 if let Some(g) = state.galvos.get_mut(usize::from(pair)) {
                     *g = to;
@@ -165,7 +236,7 @@ impl<S: Scene> VirtualCamera<S> {
             for &at in &instants {
                 out.push(((at - from) as f64 / len, state.clone()));
                 while next < changes.len() && changes[next].0 == at {
-                    apply(&mut state, &mut steps, &changes[next].1);
+                    apply(&mut state, &mut steps, &mut wheel_at, at, &changes[next].1);
                     next += 1;
                 }
                 from = at;
@@ -181,7 +252,7 @@ impl<S: Scene> VirtualCamera<S> {
         for k in 0..n {
             let at = t0 + ((t1 - t0) * (2 * k + 1)) / (2 * n);
             while next < changes.len() && changes[next].0 <= at {
-                apply(&mut state, &mut steps, &changes[next].1);
+                apply(&mut state, &mut steps, &mut wheel_at, changes[next].0, &changes[next].1);
                 next += 1;
             }
             out.push((1.0 / n as f64, state.clone()));
@@ -215,9 +286,10 @@ impl<S: Scene> VirtualCamera<S> {
             axes,
             lasers: t.snapshot.lasers,
             filters: t.snapshot.filters.iter().copied().collect(),
-            exposure_s: f64::from(t.width) / self.tick_hz,
+            exposure_s: f64::from(t.width) / f64::from(self.tick_hz),
             galvos: t.snapshot.galvos.iter().map(|g| [g.x, g.y]).collect(),
             meta: self.meta.clone(),
+            coils: Vec::new(),
         }
     }
 
@@ -315,4 +387,16 @@ impl<S: Scene> FrameInput for VirtualCamera<S> {
         self.render_ready()?;
         self.input.poll(now_us)
     }
+}
+
+/// A filter wheel's motor position (steps from slot 0's centre) at `slot`'s centre, as the
+/// firmware places it.
+fn slot_centre(w: &crate::rigfile::FilterWheel, slot: u8) -> i64 {
+    i64::from(slot) * i64::from(w.steps_per_rev) / i64::from(w.slots.max(1))
+}
+
+/// The slot whose centre a wheel at `position` sits on, if any.
+fn slot_at(w: &crate::rigfile::FilterWheel, position: i64) -> Option<u8> {
+    let p = position.rem_euclid(i64::from(w.steps_per_rev.max(1)));
+    (0..w.slots).find(|&k| slot_centre(w, k) == p)
 }
