@@ -379,12 +379,7 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
     );
 
     // Acquire, exactly as `lightrig acquire` does, on the virtual rig.
-    let mut virtual_rig = crate::virtual_rig::connect(&rig, info);
-    if opts.real_time {
-        virtual_rig.pace_in_real_time();
-    }
-    // The camera sees the rig's state over each whole exposure, not only at the trigger.
-    let timeline = virtual_rig.timeline();
+    let (virtual_rig, timeline) = crate::virtual_rig::connect_for_camera(&rig, info, opts.real_time);
     let transport: Box<dyn Transport> = Box::new(virtual_rig);
     let mut client = bring_up_on(&rig, transport)?;
     let manifest = Manifest::new(text.clone(), client.info(), plan_summary(&plan));

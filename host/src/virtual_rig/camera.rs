@@ -137,8 +137,9 @@ impl<S: Scene> VirtualCamera<S> {
         self.on_frame = Some(Box::new(f));
     }
 
-    /// Follows the board's state at every tick ([`VirtualTransport::timeline`]
-    /// (crate::transport::VirtualTransport::timeline)): each frame then integrates the scene
+    /// Follows the board's state at every tick
+    /// ([`VirtualTransport::timeline`](crate::transport::VirtualTransport::timeline)): each
+    /// frame then integrates the scene
     /// over its whole exposure, and is rendered once the exposure has ended. Without it, a
     /// frame shows the state at its trigger's tick.
     pub fn follow(&mut self, timeline: Timeline) {

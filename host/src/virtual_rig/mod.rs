@@ -99,3 +99,20 @@ pub fn board_for(rig: &RigFile) -> SimBoard {
 pub fn connect(rig: &RigFile, info: DeviceInfo) -> VirtualTransport {
     VirtualTransport::new(info, board_for(rig))
 }
+
+/// [`connect`] for a virtual acquisition: paced in real time if `real_time`, and with the
+/// board's [`Timeline`](timeline::Timeline) for the camera to
+/// [`follow`](camera::VirtualCamera::follow), so each frame sees the rig over its whole
+/// exposure.
+pub fn connect_for_camera(
+    rig: &RigFile,
+    info: DeviceInfo,
+    real_time: bool,
+) -> (VirtualTransport, timeline::Timeline) {
+    let mut transport = connect(rig, info);
+    if real_time {
+        transport.pace_in_real_time();
+    }
+    let timeline = transport.timeline();
+    (transport, timeline)
+}
