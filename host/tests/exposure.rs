@@ -10,9 +10,10 @@ use lightrig_host::cli_acquire::bring_up_on;
 use lightrig_host::client::Client;
 use lightrig_host::rigfile::RigFile;
 use lightrig_host::selfcheck::virtual_device_info;
-use lightrig_host::transport::VirtualTransport;
+use lightrig_host::transport::{Transport, VirtualTransport};
 use lightrig_host::virtual_rig::camera::{RigState, Scene, VirtualCamera, MAX_EXPOSURE_STATES};
 use lightrig_host::virtual_rig::sensor::Sensor;
+use lightrig_host::virtual_rig::timeline::Timeline;
 use lightrig_protocol::config::Xy;
 use lightrig_protocol::event::TriggerEvent;
 use lightrig_protocol::sequence::{Action, Item, Profile, StartAt};
@@ -36,10 +37,22 @@ impl Scene for Probe {
 fn run(items: Vec<Item>) -> (VirtualCamera<Probe>, Vec<TriggerEvent>) {
     let mut t = VirtualTransport::new(virtual_device_info(), SimBoard::default());
     let timeline = t.timeline();
-    let mut c = common::setup(Client::connect(t, 9).unwrap());
+    let c = common::setup(Client::connect(t, 9).unwrap());
     let rig = RigFile::parse("[rig]\nname = \"probe\"\nmethod = \"disco\"\n", Path::new("rig.toml")).unwrap();
-    let dir = std::env::temp_dir().join(format!("lightrig-exposure-{}-{}", std::process::id(), items.len()));
-    let mut cam = VirtualCamera::new(&rig, 0, Probe, Sensor::default(), 1_000_000, &dir).unwrap();
+    shoot(c, &rig, timeline, &format!("setup-{}", items.len()), items)
+}
+
+/// Runs `items` on a connected rig with a camera following `timeline`; returns the camera and
+/// the trigger events.
+fn shoot<T: Transport>(
+    mut c: Client<T>,
+    rig: &RigFile,
+    timeline: Timeline,
+    name: &str,
+    items: Vec<Item>,
+) -> (VirtualCamera<Probe>, Vec<TriggerEvent>) {
+    let dir = std::env::temp_dir().join(format!("lightrig-exposure-{}-{name}", std::process::id()));
+    let mut cam = VirtualCamera::new(rig, 0, Probe, Sensor::default(), 1_000_000, &dir).unwrap();
     cam.follow(timeline);
     let mut triggers = Vec::new();
     c.run_sequence(1, items, StartAt::Now, |e| {
@@ -109,22 +122,9 @@ fn a_gantry_moving_through_an_exposure_is_sampled_at_evenly_spaced_instants() {
 fn run_rig(file: &str, items: Vec<Item>) -> (VirtualCamera<Probe>, Vec<TriggerEvent>) {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/rigs").join(file);
     let rig = RigFile::load(&path).unwrap();
-    let mut t = lightrig_host::virtual_rig::connect(&rig, virtual_device_info());
-    let timeline = t.timeline();
-    let mut c = bring_up_on(&rig, Box::new(t)).unwrap();
-    let dir = std::env::temp_dir().join(format!("lightrig-exposure-{}-{file}", std::process::id()));
-    let mut cam = VirtualCamera::new(&rig, 0, Probe, Sensor::default(), 1_000_000, &dir).unwrap();
-    cam.follow(timeline);
-    let mut triggers = Vec::new();
-    c.run_sequence(1, items, StartAt::Now, |e| {
-        if let Event::Trigger(t) = &e.event {
-            triggers.push(t.clone());
-        }
-    })
-    .unwrap();
-    c.idle(50_000).unwrap();
-    std::fs::remove_dir_all(&dir).ok();
-    (cam, triggers)
+    let (t, timeline) = lightrig_host::virtual_rig::connect_for_camera(&rig, virtual_device_info(), false);
+    let c = bring_up_on(&rig, Box::new(t)).unwrap();
+    shoot(c, &rig, timeline, file, items)
 }
 
 #[test]
