@@ -321,7 +321,7 @@ pub fn refine_saddles(
                         }
                     }
                 }
-                let Some(c) = solve6(ata, atb) else { return (cx, cy) };
+                let Some(c) = solve(ata, atb) else { return (cx, cy) };
                 let (a, b, cc, d, e) = (c[0], c[1], c[2], c[3], c[4]);
                 let det = 4.0 * a * cc - b * b;
                 // A saddle: the Hessian's determinant is negative.
@@ -370,10 +370,11 @@ fn blur(img: &[f32], w: usize, h: usize, sigma: f64) -> Vec<f32> {
     pass(&pass(img, true), false)
 }
 
-/// Gaussian elimination with partial pivoting; `None` if singular.
-fn solve6(mut a: [[f64; 6]; 6], mut b: [f64; 6]) -> Option<[f64; 6]> {
-    for c in 0..6 {
-        let p = (c..6).max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))?;
+/// Solves the N×N system `a·x = b` by Gaussian elimination with partial pivoting; `None` if
+/// singular.
+fn solve<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; N]> {
+    for c in 0..N {
+        let p = (c..N).max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))?;
         if a[p][c].abs() < 1e-12 {
             return None;
         }
@@ -388,9 +389,9 @@ fn solve6(mut a: [[f64; 6]; 6], mut b: [f64; 6]) -> Option<[f64; 6]> {
             *br -= f * pb;
         }
     }
-    let mut x = [0.0; 6];
-    for c in (0..6).rev() {
-        let s: f64 = (c + 1..6).map(|k| a[c][k] * x[k]).sum();
+    let mut x = [0.0; N];
+    for c in (0..N).rev() {
+        let s: f64 = (c + 1..N).map(|k| a[c][k] * x[k]).sum();
         x[c] = (b[c] - s) / a[c][c];
     }
     Some(x)
@@ -929,8 +930,8 @@ pub fn fit_volume(dir: &Path, progress: &dyn Fn(u64, u64)) -> Result<FirsVolume,
             }
         }
     }
-    let solve = |d: usize| solve4(ata, [atb[0][d], atb[1][d], atb[2][d], atb[3][d]]);
-    let (sx, sy, sz) = match (solve(0), solve(1), solve(2)) {
+    let column = |d: usize| solve(ata, [atb[0][d], atb[1][d], atb[2][d], atb[3][d]]);
+    let (sx, sy, sz) = match (column(0), column(1), column(2)) {
         (Some(x), Some(y), Some(z)) => (x, y, z),
         _ => return Err(fail(format!("{what}: the rays and sheets do not determine the slice map"))),
     };
@@ -987,32 +988,6 @@ pub fn fit_volume(dir: &Path, progress: &dyn Fn(u64, u64)) -> Result<FirsVolume,
         values,
         mesh,
     })
-}
-
-/// Gaussian elimination with partial pivoting on a 4×4 system; `None` if singular.
-fn solve4(mut a: [[f64; 4]; 4], mut b: [f64; 4]) -> Option<[f64; 4]> {
-    for c in 0..4 {
-        let p = (c..4).max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))?;
-        if a[p][c].abs() < 1e-12 {
-            return None;
-        }
-        a.swap(c, p);
-        b.swap(c, p);
-        let (pivot, pb) = (a[c], b[c]);
-        for (row, br) in a.iter_mut().zip(b.iter_mut()).skip(c + 1) {
-            let f = row[c] / pivot[c];
-            for (v, pv) in row.iter_mut().zip(pivot.iter()).skip(c) {
-                *v -= f * pv;
-            }
-            *br -= f * pb;
-        }
-    }
-    let mut x = [0.0; 4];
-    for c in (0..4).rev() {
-        let s: f64 = (c + 1..4).map(|k| a[c][k] * x[k]).sum();
-        x[c] = (b[c] - s) / a[c][c];
-    }
-    Some(x)
 }
 
 /// Writes `volume.ply` (the closed surface), `volume.raw` + `volume.json` (the occupancy
