@@ -50,6 +50,45 @@ pub trait FrameInput {
     fn poll(&mut self, now_us: f64) -> io::Result<Vec<Captured>>;
 }
 
+/// What a step asks of the host before its sequence runs, in words: a person's action
+/// (`meta.operator`: place the board, turn the light's mount) and the settings of instruments
+/// the host drives rather than the device (`meta.host`: the bispectral rig's tunable filters).
+/// Empty if it asks for nothing.
+pub fn step_requests(step: &Step) -> Vec<String> {
+    let mut out = Vec::new();
+    if let Some(op) = step.meta.get("operator").and_then(|o| o.as_str()) {
+        out.push(op.to_string());
+    }
+    if let Some(host) = step.meta.get("host").and_then(|h| h.as_object()) {
+        for (k, v) in host {
+            let k = k.replace('_', " ");
+            out.push(match k.strip_suffix(" nm") {
+                Some(what) => format!("set the {what} to {v} nm"),
+                None => format!("set {k} to {v}"),
+            });
+        }
+    }
+    out
+}
+
+/// Carries out (or has a person carry out) a step's [`step_requests`] before its sequence
+/// runs. A refusal stops the run before the step starts: the session stays resumable.
+pub trait StepPreparation {
+    /// Prepares `step`; returns who did it (the journal's `StepPrepared.by`), or why not.
+    /// Called only for steps that ask for something.
+    fn prepare(&mut self, step: &Step, requests: &[String]) -> Result<String, String>;
+}
+
+/// Preparation that takes every request as done: the virtual rig (its instruments follow the
+/// step's `meta`) and tests.
+pub struct Unattended(pub &'static str);
+
+impl StepPreparation for Unattended {
+    fn prepare(&mut self, _step: &Step, _requests: &[String]) -> Result<String, String> {
+        Ok(self.0.to_string())
+    }
+}
+
 /// A camera whose software writes numbered files into a directory.
 pub struct DirectoryInput {
     camera: u8,
@@ -98,6 +137,8 @@ pub enum AcquireError {
     Session(SessionError),
     /// The frame source failed.
     Frames(io::Error),
+    /// A step's preparation was refused or could not be done; the step did not start.
+    Preparation(String),
 }
 
 impl std::fmt::Display for AcquireError {
@@ -108,6 +149,9 @@ impl std::fmt::Display for AcquireError {
             }
             AcquireError::Session(e) => write!(f, "session: {e}"),
             AcquireError::Frames(e) => write!(f, "frame source: {e}"),
+            AcquireError::Preparation(e) => {
+                write!(f, "{e}\nNothing of that step was acquired; `lightrig resume` continues from it.")
+            }
         }
     }
 }
@@ -167,12 +211,25 @@ pub fn sequence_id(step: StepId, attempt: u32) -> u32 {
     step.wrapping_mul(1_000).wrapping_add(attempt)
 }
 
-/// Runs every step the session has not finished. Returns when the session is done.
+/// Runs every step the session has not finished, taking what steps ask of the host as done
+/// ([`Unattended`]: the virtual rig, tests). Returns when the session is done.
 pub fn run<T: Transport>(
     client: &mut Client<T>,
     session: &mut Session,
     plan: &Plan,
     input: &mut dyn FrameInput,
+    progress: impl FnMut(Progress),
+) -> Result<(), AcquireError> {
+    run_prepared(client, session, plan, input, &mut Unattended("virtual"), progress)
+}
+
+/// [`run`], with `prep` carrying out each step's [`step_requests`] before the step starts.
+pub fn run_prepared<T: Transport>(
+    client: &mut Client<T>,
+    session: &mut Session,
+    plan: &Plan,
+    input: &mut dyn FrameInput,
+    prep: &mut dyn StepPreparation,
     mut progress: impl FnMut(Progress),
 ) -> Result<(), AcquireError> {
     session.device_connected(client.info())?;
@@ -195,7 +252,13 @@ pub fn run<T: Transport>(
         if session.steps_done().contains(&step.id) {
             continue;
         }
-        frames += run_step(client, session, step, input)?;
+        let requests = step_requests(step);
+        let prepared_by = if requests.is_empty() {
+            None
+        } else {
+            Some(prep.prepare(step, &requests).map_err(AcquireError::Preparation)?)
+        };
+        frames += run_step(client, session, step, input, prepared_by.map(|by| (by, requests)))?;
         progress(Progress { steps_done: session.steps_done().len(), steps: total, frames });
     }
     client.request(Command::Disarm).map_err(AcquireError::Device)?;
@@ -222,6 +285,7 @@ fn run_step<T: Transport>(
     session: &mut Session,
     step: &Step,
     input: &mut dyn FrameInput,
+    prepared: Option<(String, Vec<String>)>,
 ) -> Result<u64, AcquireError> {
     let attempt = session.next_attempt(step.id);
     let seq = sequence_id(step.id, attempt);
@@ -230,6 +294,9 @@ fn run_step<T: Transport>(
     let start_us = client.transport().now_us() as f64;
     let _stale = input.poll(start_us).map_err(AcquireError::Frames)?;
     session.start_step(step.id, seq)?;
+    if let Some((by, actions)) = prepared {
+        session.step_prepared(&by, actions)?;
+    }
     input.begin_step(step).map_err(AcquireError::Frames)?;
     let mut triggers = Vec::new();
     let mut arrivals: Vec<Captured> = Vec::new();

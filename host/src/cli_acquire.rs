@@ -8,12 +8,14 @@ use lightrig_protocol::sequence::AxisRef;
 use lightrig_protocol::session::DeviceInfo;
 use lightrig_protocol::Command;
 
-use crate::acquire::{self, plan_summary, Captured, DirectoryInput, FrameInput, Progress};
+use crate::acquire::{self, plan_summary, Captured, DirectoryInput, FrameInput, Progress, StepPreparation};
 use crate::client::Client;
 use crate::plan::{from_rig, Plan};
 use crate::rigfile::{self, FrameSource, RigFile};
 use crate::session::{Manifest, Session};
 use crate::transport::{Connect, Transport};
+use crate::virtual_rig::camera::VirtualCamera;
+use crate::virtual_rig::timeline::Timeline;
 
 /// An error for the command line: message and exit code.
 #[derive(Debug)]
@@ -43,16 +45,22 @@ fn connect_spec(rig: &RigFile, over: Option<&Connect>) -> Connect {
     })
 }
 
+/// Opens the link `spec` names. The virtual device is wired as the rig file says (switch
+/// polarities, interlocks) and comes with its timeline, for a virtual camera to follow.
+fn open(rig: &RigFile, spec: &Connect) -> Result<(Box<dyn Transport>, Option<Timeline>), CliError> {
+    Ok(match spec {
+        Connect::Virtual => {
+            let info = crate::selfcheck::virtual_device_info();
+            let (t, timeline) = crate::virtual_rig::connect_for_camera(rig, info, false);
+            (Box::new(t), Some(timeline))
+        }
+        _ => (spec.open().map_err(|e| err(DEVICE, e.to_string()))?, None),
+    })
+}
+
 /// Connects, uploads the rig's configuration and homes what has a homing procedure.
 pub fn bring_up(rig: &RigFile, spec: &Connect) -> Result<Client<Box<dyn Transport>>, CliError> {
-    let transport: Box<dyn Transport> = match spec {
-        // The virtual device is wired as the rig file says (switch polarities, interlocks).
-        Connect::Virtual => {
-            Box::new(crate::virtual_rig::connect(rig, crate::selfcheck::virtual_device_info()))
-        }
-        _ => spec.open().map_err(|e| err(DEVICE, e.to_string()))?,
-    };
-    bring_up_on(rig, transport)
+    bring_up_on(rig, open(rig, spec)?.0)
 }
 
 /// [`bring_up`] on a transport already open.
@@ -79,8 +87,11 @@ pub fn bring_up_on(
     for &a in &homing {
         client.request(Command::Home(a)).map_err(|e| err(DEVICE, e.to_string()))?;
     }
+    let deadline_us = homing_timeout_us(rig);
+    let give_up = client.transport().now_us().saturating_add(deadline_us);
     while !homing.is_empty() {
-        let e = client.next_event(120_000_000).map_err(|e| err(DEVICE, e.to_string()))?;
+        let left = give_up.saturating_sub(client.transport().now_us());
+        let e = client.next_event(left).map_err(|e| err(DEVICE, e.to_string()))?;
         match e.map(|e| e.event) {
             Some(Event::Homed { axis, .. }) => homing.retain(|a| *a != axis),
             Some(Event::Fault { cause, .. }) => {
@@ -90,31 +101,133 @@ pub fn bring_up_on(
                 ))
             }
             Some(_) => {}
-            None => return Err(err(DEVICE, format!("homing did not finish within 120 s: {homing:?}"))),
+            None => {
+                return Err(err(
+                    DEVICE,
+                    format!(
+                        "homing did not finish within {:.0} s (1.5 × the longest seek at the rig file's \
+                         homing speed, + 10 s): {homing:?}; check the switches and the homing speed",
+                        deadline_us as f64 / 1e6
+                    ),
+                ))
+            }
         }
     }
     Ok(client)
 }
 
-/// The frame inputs of the rig's cameras (one camera for now: the planners use camera 0).
-fn frame_input(rig: &RigFile) -> Result<Box<dyn FrameInput>, CliError> {
+/// How long homing may take, µs: 1.5 × the longest seek (a linear axis' whole travel between
+/// its limits, else 1 m, plus twice its back-off; two turns of a rotary axis or a filter wheel)
+/// at the axis' homing speed, + 10 s. The axes home together.
+pub fn homing_timeout_us(rig: &RigFile) -> u64 {
+    let seek_s = |s: &crate::rigfile::Stepper| -> f64 {
+        if s.homing.mode == HomingMode::None || s.homing.speed <= 0.0 {
+            return 0.0;
+        }
+        let travel = match s.kind {
+            lightrig_protocol::config::AxisKind::Rotary => 720.0,
+            lightrig_protocol::config::AxisKind::Linear => s.limits.map_or(1000.0, |(lo, hi)| hi - lo),
+        };
+        (travel + 2.0 * s.homing.backoff.abs()) / s.homing.speed
+    };
+    // A wheel's max_speed is in rev/s.
+    let wheels = rig.filter_wheels.iter().map(|w| 2.0 / w.max_speed.max(1e-3));
+    let longest = rig.steppers.iter().map(seek_s).chain(wheels).fold(0.0, f64::max);
+    ((1.5 * longest + 10.0) * 1e6).min(u64::MAX as f64 / 2.0) as u64
+}
+
+/// Where a virtual camera writes its files inside a session directory (scratch: the session
+/// stores its own copy of each frame; removed when the session completes).
+pub const VIRTUAL_CAMERA_DIR: &str = "virtual-camera";
+
+/// The frame input of the rig's first camera (the planners use camera 0). A virtual camera
+/// renders [`crate::virtual_rig::scene_for`] the rig into `session/virtual-camera/`,
+/// following the virtual device's `timeline` if it runs on one (else from each trigger's
+/// snapshot: a real controller with no camera attached).
+fn frame_input(
+    rig: &RigFile,
+    session: &Path,
+    timeline: Option<Timeline>,
+    tick_hz: u32,
+) -> Result<Box<dyn FrameInput>, CliError> {
     let cam = rig
         .cameras
         .first()
         .ok_or_else(|| err(INPUT, format!("{}: the rig has no [[camera]]", rig.path.display())))?;
     match &cam.source {
-        FrameSource::Directory { dir, pattern } => Ok(Box::new(
-            DirectoryInput::new(cam.camera, dir, pattern).map_err(|e| err(INPUT, e))?,
-        )),
-        FrameSource::Virtual => Err(err(
-            INPUT,
-            format!(
-                "{}: camera {} uses the virtual camera, which this build cannot render yet; give it a \
-                 `source = {{ kind = \"directory\", path = …, pattern = … }}` where the camera software writes",
-                rig.path.display(),
-                cam.camera
-            ),
-        )),
+        FrameSource::Directory { dir, pattern } => {
+            Ok(Box::new(DirectoryInput::new(cam.camera, dir, pattern).map_err(|e| err(INPUT, e))?))
+        }
+        FrameSource::Virtual => {
+            let dir = session.join(VIRTUAL_CAMERA_DIR);
+            // Files of an earlier run would hide this run's files of the same numbers.
+            if dir.exists() {
+                std::fs::remove_dir_all(&dir).map_err(|e| err(FAILURE, format!("{}: {e}", dir.display())))?;
+            }
+            let (scene, sensor) = crate::virtual_rig::scene_for(rig, 1);
+            let mut camera = VirtualCamera::new(rig, cam.camera, scene, sensor, tick_hz, &dir)
+                .map_err(|e| err(FAILURE, format!("{}: {e}", dir.display())))?;
+            if let Some(t) = timeline {
+                camera.follow(t);
+            }
+            Ok(Box::new(camera))
+        }
+    }
+}
+
+/// Checks a directory source before connecting, so a wrong path fails at once.
+fn check_source(rig: &RigFile) -> Result<(), CliError> {
+    let cam = rig
+        .cameras
+        .first()
+        .ok_or_else(|| err(INPUT, format!("{}: the rig has no [[camera]]", rig.path.display())))?;
+    if let FrameSource::Directory { dir, pattern } = &cam.source {
+        DirectoryInput::new(cam.camera, dir, pattern).map_err(|e| err(INPUT, e))?;
+    }
+    Ok(())
+}
+
+/// How `acquire` and `resume` meet what a step asks of the host ([`acquire::step_requests`]):
+/// on the virtual rig its instruments do it; else a person is asked at the terminal, or with
+/// `--yes` it is taken as done (a scripted run on a rig set up beforehand).
+pub struct OperatorPrompt {
+    /// The device is the virtual rig.
+    pub virtual_rig: bool,
+    /// `--yes`.
+    pub assume_done: bool,
+}
+
+impl StepPreparation for OperatorPrompt {
+    fn prepare(&mut self, step: &crate::plan::Step, requests: &[String]) -> Result<String, String> {
+        use std::io::{BufRead, IsTerminal};
+        let list = requests.join("; ");
+        if self.virtual_rig {
+            eprintln!("\nstep {} ({}): the virtual rig does: {list}", step.id, step.name);
+            return Ok("virtual".into());
+        }
+        eprintln!("\nstep {} ({}) needs:", step.id, step.name);
+        for r in requests {
+            eprintln!("  - {r}");
+        }
+        if self.assume_done {
+            eprintln!("  (--yes: taken as done)");
+            return Ok("assumed".into());
+        }
+        let stdin = std::io::stdin();
+        if !stdin.is_terminal() {
+            return Err(format!(
+                "step {} ({}) needs a person: {list}. Run `lightrig resume` in a terminal to be asked, \
+                 or pass --yes if the rig is already set up that way",
+                step.id, step.name
+            ));
+        }
+        eprint!("press Enter when done (q, Enter: stop here): ");
+        let mut line = String::new();
+        stdin.lock().read_line(&mut line).map_err(|e| format!("reading the answer: {e}"))?;
+        if line.trim().eq_ignore_ascii_case("q") {
+            return Err(format!("stopped by the operator before step {} ({})", step.id, step.name));
+        }
+        Ok("operator".into())
     }
 }
 
@@ -174,17 +287,30 @@ fn run(
     session: &mut Session,
     plan: &Plan,
     input: &mut dyn FrameInput,
+    prep: &mut OperatorPrompt,
 ) -> Result<(), CliError> {
     let start = std::time::Instant::now();
-    let r = acquire::run(client, session, plan, &mut Boxed(input), progress_printer(start));
+    let r = acquire::run_prepared(client, session, plan, &mut Boxed(input), prep, progress_printer(start));
     eprintln!();
-    r.map_err(|e| err(DEVICE, e.to_string()))?;
+    r.map_err(|e| match e {
+        acquire::AcquireError::Preparation(_) => err(FAILURE, e.to_string()),
+        _ => err(DEVICE, e.to_string()),
+    })?;
+    let scratch = session.dir().join(VIRTUAL_CAMERA_DIR);
+    if scratch.exists() {
+        std::fs::remove_dir_all(&scratch).map_err(|e| err(FAILURE, format!("{}: {e}", scratch.display())))?;
+    }
     eprintln!("session complete: {}", session.dir().display());
     Ok(())
 }
 
-/// `lightrig acquire RIG --session DIR`.
-pub fn acquire(rig_path: &Path, dir: &Path, over: Option<&Connect>) -> Result<(), CliError> {
+/// `lightrig acquire RIG --session DIR [--yes]`.
+pub fn acquire(
+    rig_path: &Path,
+    dir: &Path,
+    over: Option<&Connect>,
+    assume_done: bool,
+) -> Result<(), CliError> {
     let rig = RigFile::load(rig_path).map_err(|e| err(INPUT, e.to_string()))?;
     let text =
         std::fs::read_to_string(rig_path).map_err(|e| err(INPUT, format!("{}: {e}", rig_path.display())))?;
@@ -194,19 +320,28 @@ pub fn acquire(rig_path: &Path, dir: &Path, over: Option<&Connect>) -> Result<()
             format!("{} already holds a session; continue it with `lightrig resume {0}`", dir.display()),
         ));
     }
-    let mut input = frame_input(&rig)?;
-    let mut client = bring_up(&rig, &connect_spec(&rig, over))?;
+    check_source(&rig)?;
+    let spec = connect_spec(&rig, over);
+    let (transport, timeline) = open(&rig, &spec)?;
+    let mut client = bring_up_on(&rig, transport)?;
     let plan = from_rig::plan(&rig, client.info()).map_err(|e| err(INPUT, e.to_string()))?;
     print_summary(&plan, client.info());
     let manifest = Manifest::new(text, client.info(), plan_summary(&plan));
     let mut session = Session::create(dir, manifest).map_err(|e| err(INPUT, e.to_string()))?;
-    run(&mut client, &mut session, &plan, input.as_mut())
+    let mut input = frame_input(&rig, dir, timeline, client.info().tick_hz)?;
+    let mut prep = OperatorPrompt { virtual_rig: spec == Connect::Virtual, assume_done };
+    run(&mut client, &mut session, &plan, input.as_mut(), &mut prep)
 }
 
-/// `lightrig resume DIR [--rig RIG]`: the session's own rig file (the copy in its manifest;
-/// `rig` says where the original lives, for its relative paths, and must be unchanged),
-/// planned again and checked against the manifest, then the steps not yet done.
-pub fn resume(dir: &Path, rig_path: Option<&Path>, over: Option<&Connect>) -> Result<(), CliError> {
+/// `lightrig resume DIR [--rig RIG] [--yes]`: the session's own rig file (the copy in its
+/// manifest; `rig` says where the original lives, for its relative paths, and must be
+/// unchanged), planned again and checked against the manifest, then the steps not yet done.
+pub fn resume(
+    dir: &Path,
+    rig_path: Option<&Path>,
+    over: Option<&Connect>,
+    assume_done: bool,
+) -> Result<(), CliError> {
     let (mut session, recovery) = Session::open(dir).map_err(|e| err(INPUT, e.to_string()))?;
     eprintln!("resuming {}: {recovery:?}", dir.display());
     if session.is_done() {
@@ -231,8 +366,10 @@ pub fn resume(dir: &Path, rig_path: Option<&Path>, over: Option<&Connect>) -> Re
         None => PathBuf::from("rig.toml"),
     };
     let rig = RigFile::parse(&text, &base).map_err(|e| err(INPUT, e.to_string()))?;
-    let mut input = frame_input(&rig)?;
-    let mut client = bring_up(&rig, &connect_spec(&rig, over))?;
+    check_source(&rig)?;
+    let spec = connect_spec(&rig, over);
+    let (transport, timeline) = open(&rig, &spec)?;
+    let mut client = bring_up_on(&rig, transport)?;
     let plan = from_rig::plan(&rig, client.info()).map_err(|e| err(INPUT, e.to_string()))?;
     if plan_summary(&plan).steps != session.manifest().plan.steps {
         return Err(err(
@@ -242,5 +379,7 @@ pub fn resume(dir: &Path, rig_path: Option<&Path>, over: Option<&Connect>) -> Re
         ));
     }
     print_summary(&plan, client.info());
-    run(&mut client, &mut session, &plan, input.as_mut())
+    let mut input = frame_input(&rig, dir, timeline, client.info().tick_hz)?;
+    let mut prep = OperatorPrompt { virtual_rig: spec == Connect::Virtual, assume_done };
+    run(&mut client, &mut session, &plan, input.as_mut(), &mut prep)
 }

@@ -94,6 +94,10 @@ enum Cmd {
         /// Override the rig file's `[device] connect`.
         #[arg(long)]
         connect: Option<Connect>,
+        /// Take what steps ask of a person or of host instruments (`meta.operator`,
+        /// `meta.host`) as done, without asking: for scripts on a rig set up beforehand.
+        #[arg(long)]
+        yes: bool,
     },
     /// Continue an interrupted session: re-acquire the steps not finished.
     Resume {
@@ -105,6 +109,10 @@ enum Cmd {
         /// Override the rig file's `[device] connect`.
         #[arg(long)]
         connect: Option<Connect>,
+        /// Take what steps ask of a person or of host instruments (`meta.operator`,
+        /// `meta.host`) as done, without asking: for scripts on a rig set up beforehand.
+        #[arg(long)]
+        yes: bool,
     },
     /// High dynamic range from exposure series.
     #[command(subcommand)]
@@ -333,8 +341,8 @@ fn main() -> ExitCode {
                 }
             }
         }
-        Cmd::Acquire { rig, session, connect } => {
-            match lightrig_host::cli_acquire::acquire(&rig, &session, connect.as_ref()) {
+        Cmd::Acquire { rig, session, connect, yes } => {
+            match lightrig_host::cli_acquire::acquire(&rig, &session, connect.as_ref(), yes) {
                 Ok(()) => ExitCode::SUCCESS,
                 Err(e) => {
                     eprintln!("error: {}", e.message);
@@ -342,8 +350,8 @@ fn main() -> ExitCode {
                 }
             }
         }
-        Cmd::Resume { session, rig, connect } => {
-            match lightrig_host::cli_acquire::resume(&session, rig.as_deref(), connect.as_ref()) {
+        Cmd::Resume { session, rig, connect, yes } => {
+            match lightrig_host::cli_acquire::resume(&session, rig.as_deref(), connect.as_ref(), yes) {
                 Ok(()) => ExitCode::SUCCESS,
                 Err(e) => {
                     eprintln!("error: {}", e.message);

@@ -241,6 +241,7 @@ fn bispectral_takes_an_exposure_series_per_pair_with_the_right_slot() {
         camera: 0,
         exposures: vec![1_000, 4_000, 16_000],
         readout: 2_000,
+        min_interval: 10_000,
         timeout: 3_000_000,
         frame_bytes: 1 << 20,
         tick_hz: 1_000_000,
@@ -254,6 +255,11 @@ fn bispectral_takes_an_exposure_series_per_pair_with_the_right_slot() {
         assert_eq!(t.width, [1_000, 4_000, 16_000][e]);
         assert_eq!(t.snapshot.axes.as_slice(), [[0, 3_000], [1_500, 4_500]][g]);
         assert_eq!(t.snapshot.filters[0], Some(pair.slot));
+        // Exposure + readout (3 000 and 6 000 ticks) is shorter than the camera's minimum
+        // interval: the series waits for the camera.
+        if e < 2 {
+            assert_eq!(triggers[k + 1].tick - t.tick, 10_000, "trigger {k}");
+        }
     }
 }
 

@@ -473,7 +473,7 @@ fn the_examples_in_the_format_doc_parse() {
             _ => {}
         }
     }
-    assert_eq!((manifests, records, lines), (1, 12, 4));
+    assert_eq!((manifests, records, lines), (1, 13, 4));
 }
 
 // ---------------------------------------------------------------------------------------------

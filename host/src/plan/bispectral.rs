@@ -45,6 +45,9 @@ pub struct BispectralParams {
     pub exposures: Vec<u32>,
     /// Gap after each exposure (readout), ticks.
     pub readout: u32,
+    /// Shortest trigger-to-trigger time the camera takes (its `min_interval_us`), ticks: a
+    /// trigger sooner than that is refused by the device (`TriggerTooSoon`).
+    pub min_interval: u32,
     /// Longest a move may take, ticks.
     pub timeout: u32,
     /// Bytes per frame.
@@ -90,7 +93,7 @@ pub fn plan(p: &BispectralParams) -> Result<Plan, PlanError> {
             b.until(WaitFor::MoveDone(AxisRef::FilterWheel(p.wheel)), p.timeout);
             for (e, &exposure) in p.exposures.iter().enumerate() {
                 b.shoot(p.camera, exposure, format!("exposure {e}"));
-                b.wait(exposure.saturating_add(p.readout));
+                b.wait(exposure.saturating_add(p.readout).max(p.min_interval));
             }
             let meta = json!({
                 "geometry": g, "sample": sample, "light": light,

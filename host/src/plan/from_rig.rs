@@ -484,6 +484,7 @@ fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         camera: camera.camera,
         exposures,
         readout,
+        min_interval: us(rig, "camera.min_interval_us", camera.min_interval_us, hz)?,
         timeout: hz.saturating_mul(60),
         frame_bytes: frame_bytes(rig)?,
         tick_hz: hz,

@@ -48,8 +48,9 @@ pub use records::{
 };
 pub use state::{Attempt, Outcome, State};
 
-/// Version of the session format this host writes (and the newest it reads).
-pub const FORMAT_VERSION: u32 = 1;
+/// Version of the session format this host writes (and the newest it reads). 2 added the
+/// `StepPrepared` record.
+pub const FORMAT_VERSION: u32 = 2;
 /// The manifest's file name.
 pub const MANIFEST: &str = "manifest.json";
 /// The journal's file name.
@@ -581,6 +582,24 @@ impl Session {
         Ok(attempt)
     }
 
+    /// Records that the open attempt's preparation (`meta.operator`, `meta.host`) was done,
+    /// and by whom. Durable when it returns.
+    pub fn step_prepared(&mut self, by: &str, actions: Vec<String>) -> Result<()> {
+        let (step, attempt) = self.open_or_refuse("StepPrepared")?;
+        if self.manifest.format < 2 {
+            // A format 1 session (resumed by this host) has no such record.
+            return Ok(());
+        }
+        self.append(&Record::StepPrepared {
+            step,
+            attempt,
+            by: by.into(),
+            actions,
+            host_time: now_rfc3339(),
+        })?;
+        Ok(())
+    }
+
     fn open_or_refuse(&self, what: &str) -> Result<(StepId, u32)> {
         self.state.open.ok_or_else(|| SessionError::Refused { detail: format!("{what}: no step is open") })
     }
@@ -892,15 +911,12 @@ pub fn crc_of_file(path: &Path) -> io::Result<u32> {
     }
 }
 
-/// Every trigger event in a session's journal, by `(sequence, item)`: the rig's state at each
-/// frame (the frame records name their trigger by these two numbers). Stops at the first
-/// damaged line, as opening does.
-pub fn trigger_events(
-    dir: impl AsRef<Path>,
-) -> Result<std::collections::HashMap<(u32, u32), lightrig_protocol::event::TriggerEvent>> {
+/// Every record of a session's journal, in order. Stops at the first damaged line, as
+/// opening does.
+pub fn journal_records(dir: impl AsRef<Path>) -> Result<Vec<Record>> {
     let path = dir.as_ref().join(JOURNAL);
     let file = File::open(&path).map_err(io_at(&path))?;
-    let mut out = std::collections::HashMap::new();
+    let mut out = Vec::new();
     journal::scan(
         &file,
         |line, payload| {
@@ -909,12 +925,26 @@ pub fn trigger_events(
                 line,
                 detail: format!("not a journal record: {e}"),
             })?;
-            if let Record::Event { event: lightrig_protocol::Event::Trigger(t), .. } = rec {
-                out.insert((t.sequence, t.item), t);
-            }
+            out.push(rec);
             Ok(())
         },
         io_at(&path),
     )?;
     Ok(out)
+}
+
+/// Every trigger event in a session's journal, by `(sequence, item)`: the rig's state at each
+/// frame (the frame records name their trigger by these two numbers).
+pub fn trigger_events(
+    dir: impl AsRef<Path>,
+) -> Result<std::collections::HashMap<(u32, u32), lightrig_protocol::event::TriggerEvent>> {
+    Ok(journal_records(dir)?
+        .into_iter()
+        .filter_map(|r| match r {
+            Record::Event { event: lightrig_protocol::Event::Trigger(t), .. } => {
+                Some(((t.sequence, t.item), t))
+            }
+            _ => None,
+        })
+        .collect())
 }

@@ -265,6 +265,21 @@ pub enum Record {
         /// Wall clock.
         host_time: String,
     },
+    /// What the step asked of the host before its sequence ran was done: a person's action
+    /// (`meta.operator`) and the host-driven instruments' settings (`meta.host`).
+    StepPrepared {
+        /// Step.
+        step: StepId,
+        /// Attempt.
+        attempt: u32,
+        /// Who did it: `operator` (confirmed at the prompt), `assumed` (`--yes`: the rig was
+        /// set up beforehand) or `virtual` (the virtual rig's instruments).
+        by: String,
+        /// Each request, in words.
+        actions: Vec<String>,
+        /// Wall clock.
+        host_time: String,
+    },
     /// A device event, as it arrived. `(boot_id, index)` is unique in the journal.
     Event {
         /// Boot id of the device that sent it.
@@ -325,6 +340,7 @@ impl Record {
             Record::Resumed { .. } => "Resumed",
             Record::DeviceConnected { .. } => "DeviceConnected",
             Record::StepStarted { .. } => "StepStarted",
+            Record::StepPrepared { .. } => "StepPrepared",
             Record::Event { .. } => "Event",
             Record::Frame(_) => "Frame",
             Record::FrameMissing(_) => "FrameMissing",

@@ -130,6 +130,9 @@ impl State {
             Record::FrameExtra(x) => {
                 self.check_open(x.step, x.attempt, "FrameExtra")?;
             }
+            Record::StepPrepared { step, attempt, .. } => {
+                self.check_open(*step, *attempt, "StepPrepared")?;
+            }
             Record::StepDone { step, attempt, triggers, frames, missing, extra, .. } => {
                 let a = self.check_open(*step, *attempt, "StepDone")?;
                 let counts = (a.frames.len() as u32, a.missing.len() as u32, a.extra.len() as u32);
@@ -240,6 +243,7 @@ impl State {
                 self.attempt_mut(m.step, m.attempt).missing.insert((m.camera, m.frame), m.clone());
             }
             Record::FrameExtra(x) => self.attempt_mut(x.step, x.attempt).extra.push(x.clone()),
+            Record::StepPrepared { .. } => {}
             Record::StepDone { step, attempt, .. } => {
                 self.attempt_mut(*step, *attempt).outcome = Outcome::Done;
                 self.open = None;

@@ -51,6 +51,16 @@ pub trait Scene: Sync {
     fn radiance(&self, x: u32, y: u32, state: &RigState) -> [f64; 3];
 }
 
+impl<S: Scene + ?Sized> Scene for Box<S> {
+    fn size(&self) -> (u32, u32) {
+        (**self).size()
+    }
+
+    fn radiance(&self, x: u32, y: u32, state: &RigState) -> [f64; 3] {
+        (**self).radiance(x, y, state)
+    }
+}
+
 /// The virtual camera.
 pub struct VirtualCamera<S: Scene> {
     camera: u8,
