@@ -24,7 +24,7 @@ t0=$SECONDS
 cargo build --release --locked
 echo "build: $((SECONDS - t0))s"
 
-elf=target/thumbv7em-none-eabihf/release/lightrig-nucleo-g474re
+elf=${CARGO_TARGET_DIR:-target}/thumbv7em-none-eabihf/release/lightrig-nucleo-g474re
 "$size_tool" -A "$elf" | grep -E '^(section|\.vector_table|\.text|\.rodata|\.data|\.bss|\.uninit)' || true
 # Berkeley format: text (incl. rodata and the vector table), data, bss.
 read -r text data bss _ < <("$size_tool" -B "$elf" | tail -1)

@@ -1,24 +1,46 @@
 //! The NUCLEO-G474RE's peripherals behind the firmware's hardware traits.
 //!
-//! Outputs change when the rig calls (its poll tick, at most the run loop's wake-up latency
-//! after `at`); see docs/boards/nucleo-g474re.md, "Timing", for what that means and what a
-//! timer-latched version would change.
+//! The run loop polls the rig up to `LOOKAHEAD_TICKS` ahead of the clock, so an output call
+//! can come before its tick `at`. The camera trigger arms a timer compare for `at`
+//! (`trigger.rs`); every other output waits for `at` in a busy loop (at most the look-ahead)
+//! and then changes. A call that comes after `at` (the loop woke late) acts at once. See
+//! docs/boards/nucleo-g474re.md, "Timing".
 
 use embassy_stm32::gpio::{Flex, Input, Level, Output, Speed};
 use embassy_stm32::mode::Blocking;
 use embassy_stm32::spi::{self, Spi};
+use embassy_time::Instant;
 use embedded_hal_bus::spi::{ExclusiveDevice, NoDelay};
 use lightrig_firmware::galvo::{GalvoOutput, SpiDacGalvo};
 use lightrig_firmware::hal::{Cameras, Capture, Galvos, HwError, Lasers, Motors, VoiceCoils};
+use lightrig_firmware::timer_schedule::must_wait;
 use lightrig_protocol::config::Xy;
 use lightrig_protocol::event::Switch;
 use lightrig_protocol::sequence::AxisRef;
 
 use crate::inputs;
+use crate::trigger::Trigger;
 use crate::voice::VoiceStream;
 
 /// The galvo DAC's SPI device: SPI1 with the DAC8563's SYNC as chip select.
 pub type GalvoSpi = ExclusiveDevice<Spi<'static, Blocking, spi::mode::Master>, Output<'static>, NoDelay>;
+
+/// How far ahead of the clock the run loop polls the rig: it covers the loop's wake-up (timer
+/// interrupt, executor, the USB reads' futures, the ordinary poll) when no USB frame is being
+/// handled, so a trigger edge is armed before its tick. The price: each due tick's outputs
+/// other than the trigger busy-wait up to this long for their tick.
+pub const LOOKAHEAD_TICKS: u64 = 50;
+
+/// The tick now (embassy-time's counter).
+pub fn now_ticks() -> u64 {
+    Instant::now().as_ticks()
+}
+
+/// Busy-waits until tick `at` (at most `LOOKAHEAD_TICKS`; anything further would be a
+/// scheduling error, and the output goes out now rather than stall the loop).
+pub fn wait_until(at: u64) {
+    while must_wait(at, now_ticks(), LOOKAHEAD_TICKS) {}
+}
 
 /// Step pulse width: covers common drivers' minimum high time (DRV8825 1.9 µs, A4988 1 µs).
 const STEP_PULSE_CYCLES: u32 = 168 * 2;
@@ -78,7 +100,7 @@ pub struct Nucleo {
     pub galvo: SpiDacGalvo<GalvoSpi>,
     pub lasers: [SafeOutput; 2],
     pub interlocks: [Input<'static>; 2],
-    pub trigger: SafeOutput,
+    pub trigger: Trigger,
     /// Camera 0 exposure input (PB10): held so nothing else claims it; read in the EXTI handler.
     pub _exposure: Input<'static>,
     pub stepper: Motor,
@@ -101,14 +123,19 @@ impl Nucleo {
         if inputs::take_overflow() {
             defmt::error!("exposure captures lost: run loop stalled");
         }
+        let late = self.trigger.take_late_edges();
+        if late > 0 {
+            defmt::warn!("{} trigger edge(s) driven after their tick", late);
+        }
     }
 }
 
 impl Galvos for Nucleo {
-    fn set_galvo(&mut self, pair: u8, to: Xy, _at: u64) -> Result<(), HwError> {
+    fn set_galvo(&mut self, pair: u8, to: Xy, at: u64) -> Result<(), HwError> {
         if pair != 0 {
             return Err(HwError);
         }
+        wait_until(at);
         self.galvo.set(to).map_err(|e| {
             defmt::error!("galvo SPI: {}", defmt::Debug2Format(&e));
             HwError
@@ -117,8 +144,9 @@ impl Galvos for Nucleo {
 }
 
 impl Lasers for Nucleo {
-    fn set_laser(&mut self, channel: u8, level: bool, _at: u64) {
+    fn set_laser(&mut self, channel: u8, level: bool, at: u64) {
         if let Some(l) = self.lasers.get_mut(usize::from(channel)) {
+            wait_until(at);
             l.set(level);
         }
     }
@@ -130,20 +158,23 @@ impl Lasers for Nucleo {
 }
 
 impl Motors for Nucleo {
-    fn step(&mut self, motor: AxisRef, _at: u64) {
+    fn step(&mut self, motor: AxisRef, at: u64) {
         if let Some(m) = self.motor(motor) {
+            wait_until(at);
             m.pulse();
         }
     }
 
-    fn set_dir(&mut self, motor: AxisRef, level: bool, _at: u64) {
+    fn set_dir(&mut self, motor: AxisRef, level: bool, at: u64) {
         if let Some(m) = self.motor(motor) {
+            wait_until(at);
             m.dir.set_level(Level::from(level));
         }
     }
 
-    fn set_enable(&mut self, motor: AxisRef, level: bool, _at: u64) {
+    fn set_enable(&mut self, motor: AxisRef, level: bool, at: u64) {
         if let Some(m) = self.motor(motor) {
+            wait_until(at);
             m.enable.set(level);
         }
     }
@@ -154,9 +185,9 @@ impl Motors for Nucleo {
 }
 
 impl Cameras for Nucleo {
-    fn set_trigger(&mut self, camera: u8, level: bool, _at: u64) {
+    fn set_trigger(&mut self, camera: u8, level: bool, at: u64) {
         if camera == 0 {
-            self.trigger.set(level);
+            self.trigger.set(level, at);
         }
     }
 

@@ -8,6 +8,7 @@
 mod board;
 mod inputs;
 mod safety;
+mod trigger;
 mod voice;
 
 use defmt_rtt as _;
@@ -32,12 +33,14 @@ use embedded_hal::spi::SpiDevice;
 use embedded_hal_bus::spi::ExclusiveDevice;
 use lightrig_firmware::controller::EmbassyClock;
 use lightrig_firmware::galvo::{SpiDacGalvo, SpiDacKind};
+use lightrig_firmware::timer_schedule::{lookahead_tick, wake_tick};
 use lightrig_firmware::Controller;
 use lightrig_protocol::session::{BoardId, Capabilities, DeviceInfo, Version};
 use lightrig_protocol::{MAX_FRAME, MAX_PACKET, PROTOCOL_VERSION, SCHEMA_HASH};
 use static_cell::StaticCell;
 
-use crate::board::{Motor, Nucleo, SafeOutput};
+use crate::board::{now_ticks, Motor, Nucleo, SafeOutput, LOOKAHEAD_TICKS};
+use crate::trigger::Trigger;
 
 bind_interrupts!(struct Irqs {
     USB_LP => usb::InterruptHandler<USB>;
@@ -112,7 +115,7 @@ async fn main(spawner: Spawner) {
     };
     init_dac8563(&mut dac_spi);
 
-    let trigger = SafeOutput::new(Flex::new(p.PA8));
+    let trigger = Trigger::new(Flex::new(p.PA10));
     let board = Nucleo {
         galvo: SpiDacGalvo::new(dac_spi, SpiDacKind::Dac8563),
         lasers: [SafeOutput::new(Flex::new(p.PB5)), SafeOutput::new(Flex::new(p.PC7))],
@@ -121,7 +124,7 @@ async fn main(spawner: Spawner) {
         _exposure: Input::new(p.PB10, Pull::None),
         stepper: Motor {
             step: Output::new(p.PA6, Level::Low, Speed::High),
-            dir: Output::new(p.PA10, Level::Low, Speed::High),
+            dir: Output::new(p.PA8, Level::Low, Speed::High),
             enable: SafeOutput::new(Flex::new(p.PA1)),
             limit_min: Some(Input::new(p.PC0, Pull::None)),
             limit_max: Some(Input::new(p.PC1, Pull::None)),
@@ -218,8 +221,9 @@ async fn main(spawner: Spawner) {
     loop {
         watchdog.pet();
         let now = Instant::now();
-        let wake =
-            ctl.next_deadline().map_or(now + MAX_SLEEP, |t| Instant::from_ticks(t).min(now + MAX_SLEEP));
+        // The rig's work is woken for LOOKAHEAD_TICKS early (see the look-ahead poll below).
+        let wake = wake_tick(ctl.link().next_deadline(), ctl.rig().next_due(), LOOKAHEAD_TICKS)
+            .map_or(now + MAX_SLEEP, |t| Instant::from_ticks(t).min(now + MAX_SLEEP));
         let event = select4(
             read_vendor(&mut bulk_out, &mut vendor_buf),
             read_cdc(&mut cdc_rx, &mut cdc_buf),
@@ -239,7 +243,14 @@ async fn main(spawner: Spawner) {
             Either4::Third(()) | Either4::Fourth(()) => {}
         }
         ctl.poll();
-        ctl.rig_mut().board_mut().service(Instant::now().as_ticks());
+        // Look-ahead: the rig's next due tick, if it is at most LOOKAHEAD_TICKS away, is polled
+        // now, at that tick. The trigger arms its compare for it (exact edge); other outputs
+        // wait for it in the board. Then the ordinary poll hands the events to the link.
+        if let Some(t) = lookahead_tick(ctl.rig().next_due(), now_ticks(), LOOKAHEAD_TICKS) {
+            ctl.rig_mut().poll(t);
+            ctl.poll();
+        }
+        ctl.rig_mut().board_mut().service(now_ticks());
         while let Some(n) = ctl.poll_transmit(&mut frame) {
             let sent = if reply_on_cdc {
                 with_timeout(WRITE_TIMEOUT, write_cdc(&mut cdc_tx, &frame[..n])).await

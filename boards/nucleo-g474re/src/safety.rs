@@ -17,7 +17,7 @@ use lightrig_protocol::session::ResetCause;
 pub const SAFE_OUTPUTS: [(usize, usize); 6] = [
     (1, 5),  // PB5  laser 0 enable
     (2, 7),  // PC7  laser 1 enable
-    (0, 8),  // PA8  camera 0 trigger
+    (0, 10), // PA10 camera 0 trigger (TIM2_CH4)
     (0, 1),  // PA1  stepper 0 enable
     (1, 15), // PB15 filter wheel 0 enable
     (0, 6),  // PA6  stepper 0 step
