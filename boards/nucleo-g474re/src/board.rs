@@ -13,7 +13,7 @@ use embassy_time::Instant;
 use embedded_hal_bus::spi::{ExclusiveDevice, NoDelay};
 use lightrig_firmware::galvo::{GalvoOutput, SpiDacGalvo};
 use lightrig_firmware::hal::{Cameras, Capture, Galvos, HwError, Lasers, Motors, VoiceCoils};
-use lightrig_firmware::timer_schedule::must_wait;
+use lightrig_firmware::timer_schedule::{must_wait, Counter};
 use lightrig_protocol::config::Xy;
 use lightrig_protocol::event::Switch;
 use lightrig_protocol::sequence::AxisRef;
@@ -30,6 +30,10 @@ pub type GalvoSpi = ExclusiveDevice<Spi<'static, Blocking, spi::mode::Master>, O
 /// handled, so a trigger edge is armed before its tick. The price: each due tick's outputs
 /// other than the trigger busy-wait up to this long for their tick.
 pub const LOOKAHEAD_TICKS: u64 = 50;
+
+/// TIM2 as embassy-time's driver runs it: one count per tick, ARR = 0xFFFF, so its counter is
+/// the tick's low 16 bits. The trigger's compare and the exposure capture use it directly.
+pub const TIM2_COUNTER: Counter = Counter::new(16);
 
 /// The tick now (embassy-time's counter).
 pub fn now_ticks() -> u64 {
@@ -101,8 +105,9 @@ pub struct Nucleo {
     pub lasers: [SafeOutput; 2],
     pub interlocks: [Input<'static>; 2],
     pub trigger: Trigger,
-    /// Camera 0 exposure input (PB10): held so nothing else claims it; read in the EXTI handler.
-    pub _exposure: Input<'static>,
+    /// Camera 0 exposure input (PB10, TIM2_CH3): held so nothing else claims it; its edges are
+    /// captured by TIM2 and collected in the EXTI handler.
+    pub _exposure: Flex<'static>,
     pub stepper: Motor,
     pub wheel: Motor,
     pub voice: VoiceStream,

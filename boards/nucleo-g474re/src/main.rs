@@ -121,7 +121,7 @@ async fn main(spawner: Spawner) {
         lasers: [SafeOutput::new(Flex::new(p.PB5)), SafeOutput::new(Flex::new(p.PC7))],
         interlocks: [Input::new(p.PC8, Pull::None), Input::new(p.PA9, Pull::None)],
         trigger,
-        _exposure: Input::new(p.PB10, Pull::None),
+        _exposure: inputs::exposure_pin(Flex::new(p.PB10)),
         stepper: Motor {
             step: Output::new(p.PA6, Level::Low, Speed::High),
             dir: Output::new(p.PA8, Level::Low, Speed::High),

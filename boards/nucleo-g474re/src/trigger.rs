@@ -13,12 +13,9 @@
 use embassy_stm32::gpio::{AfType, Flex, OutputType, Speed};
 use embassy_stm32::pac;
 use embassy_stm32::pac::timer::vals::{CcmrOutputCcs, Ocm};
-use lightrig_firmware::timer_schedule::{Counter, EdgePlan};
+use lightrig_firmware::timer_schedule::EdgePlan;
 
-use crate::board::{now_ticks, wait_until};
-
-/// TIM2 as the time driver runs it: a 16-bit counter equal to the tick's low bits.
-pub const TIM2_COUNTER: Counter = Counter::new(16);
+use crate::board::{now_ticks, wait_until, TIM2_COUNTER};
 /// An edge closer than this is not armed: the compare and mode writes must land before the
 /// counter reaches the value (they take well under a tick, with interrupts off).
 const MIN_LEAD: u64 = 2;
