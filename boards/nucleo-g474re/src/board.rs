@@ -7,11 +7,18 @@
 //! docs/boards/nucleo-g474re.md, "Timing".
 
 use embassy_stm32::gpio::{Flex, Input, Level, Output, Speed};
+#[cfg(not(feature = "xy2-100"))]
 use embassy_stm32::mode::Blocking;
+#[cfg(not(feature = "xy2-100"))]
 use embassy_stm32::spi::{self, Spi};
 use embassy_time::Instant;
+#[cfg(not(feature = "xy2-100"))]
 use embedded_hal_bus::spi::{ExclusiveDevice, NoDelay};
-use lightrig_firmware::galvo::{GalvoOutput, SpiDacGalvo};
+use lightrig_firmware::galvo::GalvoOutput;
+#[cfg(not(feature = "xy2-100"))]
+use lightrig_firmware::galvo::SpiDacGalvo;
+#[cfg(feature = "xy2-100")]
+use lightrig_firmware::galvo::Xy2Gpio;
 use lightrig_firmware::hal::{Cameras, Capture, Galvos, HwError, Lasers, Motors, VoiceCoils};
 use lightrig_firmware::timer_schedule::{must_wait, Counter};
 use lightrig_protocol::config::Xy;
@@ -23,7 +30,15 @@ use crate::trigger::Trigger;
 use crate::voice::VoiceStream;
 
 /// The galvo DAC's SPI device: SPI1 with the DAC8563's SYNC as chip select.
+#[cfg(not(feature = "xy2-100"))]
 pub type GalvoSpi = ExclusiveDevice<Spi<'static, Blocking, spi::mode::Master>, Output<'static>, NoDelay>;
+
+/// The galvo pair's output: a DAC8563 on SPI1.
+#[cfg(not(feature = "xy2-100"))]
+pub type Galvo = SpiDacGalvo<GalvoSpi>;
+/// The galvo pair's output: an XY2-100 link on GPIOC (feature `xy2-100`).
+#[cfg(feature = "xy2-100")]
+pub type Galvo = Xy2Gpio<crate::xy2::Xy2Port>;
 
 /// How far ahead of the clock the run loop polls the rig: it covers the loop's wake-up (timer
 /// interrupt, executor, the USB reads' futures, the ordinary poll) when no USB frame is being
@@ -101,7 +116,7 @@ impl Motor {
 
 /// Everything the rig drives on this board.
 pub struct Nucleo {
-    pub galvo: SpiDacGalvo<GalvoSpi>,
+    pub galvo: Galvo,
     pub lasers: [SafeOutput; 2],
     pub interlocks: [Input<'static>; 2],
     pub trigger: Trigger,
@@ -142,7 +157,7 @@ impl Galvos for Nucleo {
         }
         wait_until(at);
         self.galvo.set(to).map_err(|e| {
-            defmt::error!("galvo SPI: {}", defmt::Debug2Format(&e));
+            defmt::error!("galvo output: {}", defmt::Debug2Format(&e));
             HwError
         })
     }

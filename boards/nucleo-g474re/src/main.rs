@@ -10,6 +10,8 @@ mod inputs;
 mod safety;
 mod trigger;
 mod voice;
+#[cfg(feature = "xy2-100")]
+mod xy2;
 
 use defmt_rtt as _;
 use embassy_executor::Spawner;
@@ -20,7 +22,9 @@ use embassy_stm32::mode::Async;
 use embassy_stm32::peripherals::{RNG, USB};
 use embassy_stm32::rcc::{mux, Hsi48Config, Pll, PllMul, PllPreDiv, PllRDiv, PllSource, Sysclk};
 use embassy_stm32::rng::Rng;
+#[cfg(not(feature = "xy2-100"))]
 use embassy_stm32::spi::{self, Spi};
+#[cfg(not(feature = "xy2-100"))]
 use embassy_stm32::time::Hertz;
 use embassy_stm32::usb::Driver;
 use embassy_stm32::wdg::IndependentWatchdog;
@@ -29,9 +33,14 @@ use embassy_time::{with_timeout, Duration, Instant, Timer};
 use embassy_usb::class::cdc_acm::{self, CdcAcmClass};
 use embassy_usb::driver::{Direction, EndpointAddress, EndpointIn, EndpointOut};
 use embassy_usb::{Builder, UsbDevice};
+#[cfg(not(feature = "xy2-100"))]
 use embedded_hal::spi::SpiDevice;
+#[cfg(not(feature = "xy2-100"))]
 use embedded_hal_bus::spi::ExclusiveDevice;
 use lightrig_firmware::controller::EmbassyClock;
+#[cfg(feature = "xy2-100")]
+use lightrig_firmware::galvo::Xy2Gpio;
+#[cfg(not(feature = "xy2-100"))]
 use lightrig_firmware::galvo::{SpiDacGalvo, SpiDacKind};
 use lightrig_firmware::timer_schedule::{lookahead_tick, wake_tick};
 use lightrig_firmware::Controller;
@@ -104,20 +113,27 @@ async fn main(spawner: Spawner) {
         uid.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ u64::from(b)).wrapping_mul(0x100_0000_01b3));
 
     // Galvos: DAC8563 on SPI1, mode 1 (data latched on SCLK falling edges), 10 MHz.
-    let mut spi_config = spi::Config::default();
-    spi_config.mode = spi::MODE_1;
-    spi_config.frequency = Hertz(10_000_000);
-    let spi = Spi::new_blocking_txonly(p.SPI1, p.PA5, p.PA7, spi_config);
-    let sync = Output::new(p.PB6, Level::High, Speed::VeryHigh);
-    let mut dac_spi = match ExclusiveDevice::new_no_delay(spi, sync) {
-        Ok(d) => d,
-        Err(_) => defmt::panic!("SPI1 chip select"),
+    #[cfg(not(feature = "xy2-100"))]
+    let galvo = {
+        let mut spi_config = spi::Config::default();
+        spi_config.mode = spi::MODE_1;
+        spi_config.frequency = Hertz(10_000_000);
+        let spi = Spi::new_blocking_txonly(p.SPI1, p.PA5, p.PA7, spi_config);
+        let sync = Output::new(p.PB6, Level::High, Speed::VeryHigh);
+        let mut dac_spi = match ExclusiveDevice::new_no_delay(spi, sync) {
+            Ok(d) => d,
+            Err(_) => defmt::panic!("SPI1 chip select"),
+        };
+        init_dac8563(&mut dac_spi);
+        SpiDacGalvo::new(dac_spi, SpiDacKind::Dac8563)
     };
-    init_dac8563(&mut dac_spi);
+    // Galvos (feature `xy2-100`): XY2-100 on PC9-PC12, DMA2 channel 1 paced by TIM7.
+    #[cfg(feature = "xy2-100")]
+    let galvo = Xy2Gpio::new(xy2::Xy2Port::new(p.PC10, p.PC11, p.PC12, p.PC9, p.TIM7, p.DMA2_CH1));
 
     let trigger = Trigger::new(Flex::new(p.PA10));
     let board = Nucleo {
-        galvo: SpiDacGalvo::new(dac_spi, SpiDacKind::Dac8563),
+        galvo,
         lasers: [SafeOutput::new(Flex::new(p.PB5)), SafeOutput::new(Flex::new(p.PC7))],
         interlocks: [Input::new(p.PC8, Pull::None), Input::new(p.PA9, Pull::None)],
         trigger,
@@ -265,6 +281,7 @@ async fn main(spawner: Spawner) {
     }
 }
 
+#[cfg(not(feature = "xy2-100"))]
 /// DAC8563 start-up: reset, LDAC pins ignored (each write updates its output at once, as the
 /// frames in `galvo.rs` expect), internal 2.5 V reference on (gain 2: 0-5 V).
 fn init_dac8563(spi: &mut impl SpiDevice) {
