@@ -10,6 +10,9 @@
 //! Output edges reach the board early enough to arm only if the run loop polls the rig ahead
 //! of the clock: [`wake_tick`] and [`lookahead_tick`] are that schedule. An output the board
 //! cannot latch in hardware waits for its tick instead ([`must_wait`]).
+//!
+//! Pulses of a fixed width (step pulses) come from a one-pulse-mode timer started at the
+//! pulse's tick: [`one_pulse`] gives its compare and reload values.
 
 /// A free-running up-counter of `bits` bits (1..=32), one count per tick.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -117,6 +120,43 @@ pub const fn lookahead_tick(rig_due: Option<u64>, now: u64, lead: u64) -> Option
 /// stall the loop).
 pub const fn must_wait(at: u64, now: u64, max_wait: u64) -> bool {
     at > now && at - now <= max_wait
+}
+
+/// Compare and reload values of a timer in one-pulse mode with PWM mode 2 (output inactive
+/// while the counter is below the compare value): started from 0, its output goes active
+/// `ccr` counts later, stays active through `arr`, and the update at the end stops the timer
+/// and brings the output back.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct OnePulse {
+    /// Compare value: the delay from the start to the pulse, in counts.
+    pub ccr: u16,
+    /// Reload value: the pulse's last count.
+    pub arr: u16,
+}
+
+/// A pulse `width` counts wide, `delay` counts after the start (at least 1: the counter starts
+/// at 0, where the output must still be inactive). `None` if it does not fit 16 bits or is
+/// empty.
+pub const fn one_pulse(delay: u32, width: u32) -> Option<OnePulse> {
+    if delay == 0 || width == 0 {
+        return None;
+    }
+    let arr = delay as u64 + width as u64 - 1;
+    if arr > u16::MAX as u64 {
+        return None;
+    }
+    Some(OnePulse { ccr: delay as u16, arr: arr as u16 })
+}
+
+/// Timer counts covering at least `ns` nanoseconds at `timer_hz` (rounded up: a pulse is never
+/// shorter than asked).
+pub const fn counts_for_ns(ns: u32, timer_hz: u32) -> u32 {
+    let counts = (ns as u64 * timer_hz as u64).div_ceil(1_000_000_000);
+    if counts > u32::MAX as u64 {
+        u32::MAX
+    } else {
+        counts as u32
+    }
 }
 
 #[cfg(test)]
@@ -275,5 +315,28 @@ mod tests {
         assert!(!must_wait(1_101, 1_000, 100), "beyond the bound: out now");
         assert!(!must_wait(1_000, 1_000, 100));
         assert!(!must_wait(900, 1_000, 100));
+    }
+
+    #[test]
+    fn one_pulse_values_exact() {
+        // 2 µs at 168 MHz: 336 counts, one count after the start.
+        assert_eq!(counts_for_ns(2_000, 168_000_000), 336);
+        assert_eq!(one_pulse(1, 336), Some(OnePulse { ccr: 1, arr: 336 }));
+        // Active from CNT = ccr through CNT = arr: arr - ccr + 1 counts.
+        let p = one_pulse(5, 100).unwrap();
+        assert_eq!(u32::from(p.arr - p.ccr) + 1, 100);
+        // Rounded up, never shorter: 1.9 µs at 168 MHz is 319.2 counts.
+        assert_eq!(counts_for_ns(1_900, 168_000_000), 320);
+        assert_eq!(counts_for_ns(0, 168_000_000), 0);
+        assert_eq!(counts_for_ns(u32::MAX, u32::MAX), u32::MAX, "saturates");
+    }
+
+    #[test]
+    fn one_pulse_limits() {
+        assert_eq!(one_pulse(0, 10), None, "the output must be inactive at count 0");
+        assert_eq!(one_pulse(1, 0), None);
+        assert_eq!(one_pulse(1, 65_535), Some(OnePulse { ccr: 1, arr: 65_535 }));
+        assert_eq!(one_pulse(2, 65_535), None);
+        assert_eq!(one_pulse(u32::MAX, u32::MAX), None);
     }
 }

@@ -26,6 +26,7 @@ use lightrig_protocol::event::Switch;
 use lightrig_protocol::sequence::AxisRef;
 
 use crate::inputs;
+use crate::step::StepPulse;
 use crate::trigger::Trigger;
 use crate::voice::VoiceStream;
 
@@ -61,9 +62,6 @@ pub fn wait_until(at: u64) {
     while must_wait(at, now_ticks(), LOOKAHEAD_TICKS) {}
 }
 
-/// Step pulse width: covers common drivers' minimum high time (DRV8825 1.9 µs, A4988 1 µs).
-const STEP_PULSE_CYCLES: u32 = 168 * 2;
-
 /// A safety output: high impedance (held inactive by its pull resistor) until the rig first
 /// drives it, which it does only once the peripheral's polarity is configured.
 pub struct SafeOutput {
@@ -88,7 +86,7 @@ impl SafeOutput {
 
 /// One step/dir/enable driver and its switches.
 pub struct Motor {
-    pub step: Output<'static>,
+    pub step: StepPulse,
     pub dir: Output<'static>,
     pub enable: SafeOutput,
     pub limit_min: Option<Input<'static>>,
@@ -98,9 +96,7 @@ pub struct Motor {
 
 impl Motor {
     fn pulse(&mut self) {
-        self.step.set_high();
-        cortex_m::asm::delay(STEP_PULSE_CYCLES);
-        self.step.set_low();
+        self.step.fire();
     }
 
     fn switch(&self, switch: Switch) -> bool {

@@ -8,6 +8,7 @@
 mod board;
 mod inputs;
 mod safety;
+mod step;
 mod trigger;
 mod voice;
 #[cfg(feature = "xy2-100")]
@@ -49,6 +50,7 @@ use lightrig_protocol::{MAX_FRAME, MAX_PACKET, PROTOCOL_VERSION, SCHEMA_HASH};
 use static_cell::StaticCell;
 
 use crate::board::{now_ticks, Motor, Nucleo, SafeOutput, LOOKAHEAD_TICKS};
+use crate::step::{StepPulse, StepTimer};
 use crate::trigger::Trigger;
 
 bind_interrupts!(struct Irqs {
@@ -132,6 +134,8 @@ async fn main(spawner: Spawner) {
     let galvo = Xy2Gpio::new(xy2::Xy2Port::new(p.PC10, p.PC11, p.PC12, p.PC9, p.TIM7, p.DMA2_CH1));
 
     let trigger = Trigger::new(Flex::new(p.PA10));
+    // The step pulses' one-pulse timers (step.rs programs them): taken so nothing else can.
+    let _step_timers = (p.TIM3, p.TIM15);
     let board = Nucleo {
         galvo,
         lasers: [SafeOutput::new(Flex::new(p.PB5)), SafeOutput::new(Flex::new(p.PC7))],
@@ -139,7 +143,7 @@ async fn main(spawner: Spawner) {
         trigger,
         _exposure: inputs::exposure_pin(Flex::new(p.PB10)),
         stepper: Motor {
-            step: Output::new(p.PA6, Level::Low, Speed::High),
+            step: StepPulse::new(Flex::new(p.PA6), StepTimer::Tim3),
             dir: Output::new(p.PA8, Level::Low, Speed::High),
             enable: SafeOutput::new(Flex::new(p.PA1)),
             limit_min: Some(Input::new(p.PC0, Pull::None)),
@@ -147,8 +151,8 @@ async fn main(spawner: Spawner) {
             index: Some(Input::new(p.PB0, Pull::None)),
         },
         wheel: Motor {
-            step: Output::new(p.PB13, Level::Low, Speed::High),
-            dir: Output::new(p.PB14, Level::Low, Speed::High),
+            step: StepPulse::new(Flex::new(p.PB14), StepTimer::Tim15),
+            dir: Output::new(p.PB13, Level::Low, Speed::High),
             enable: SafeOutput::new(Flex::new(p.PB15)),
             limit_min: None,
             limit_max: None,
