@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Builds the NUCLEO-G474RE firmware for thumbv7em-none-eabihf (release, locked) and prints its
-# size report: flash = .text + .rodata + .data (its load image), RAM = .data + .bss (+ stack
-# above). Installs what it needs first, idempotently and without questions.
+# Builds the NUCLEO-G474RE firmware for thumbv7em-none-eabihf (release, locked), in both galvo
+# variants (DAC8563 on SPI, feature `xy2-100`), and prints each size report: flash = .text +
+# .rodata + .data (its load image), RAM = .data + .bss (+ stack above). Installs what it needs
+# first, idempotently and without questions.
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -20,15 +21,19 @@ if [ -z "$size_tool" ]; then
   size_tool=arm-none-eabi-size
 fi
 
-t0=$SECONDS
-cargo build --release --locked
-echo "build: $((SECONDS - t0))s"
-
-elf=target/thumbv7em-none-eabihf/release/lightrig-nucleo-g474re
-"$size_tool" -A "$elf" | grep -E '^(section|\.vector_table|\.text|\.rodata|\.data|\.bss|\.uninit)' || true
-# Berkeley format: text (incl. rodata and the vector table), data, bss.
-read -r text data bss _ < <("$size_tool" -B "$elf" | tail -1)
-flash=$((text + data))
-ram=$((data + bss))
-printf 'size: flash %d bytes (%d KiB of 512 KiB), RAM %d bytes (%d KiB of 128 KiB, stack not included)\n' \
-  "$flash" $(((flash + 1023) / 1024)) "$ram" $(((ram + 1023) / 1024))
+elf=${CARGO_TARGET_DIR:-target}/thumbv7em-none-eabihf/release/lightrig-nucleo-g474re
+# Both galvo outputs: the DAC8563 on SPI1 (default) and the XY2-100 link (feature `xy2-100`).
+for variant in dac8563 xy2-100; do
+  features=()
+  [ "$variant" = xy2-100 ] && features=(--features xy2-100)
+  t0=$SECONDS
+  cargo build --release --locked "${features[@]}"
+  echo "build ($variant): $((SECONDS - t0))s"
+  "$size_tool" -A "$elf" | grep -E '^(section|\.vector_table|\.text|\.rodata|\.data|\.bss|\.uninit)' || true
+  # Berkeley format: text (incl. rodata and the vector table), data, bss.
+  read -r text data bss _ < <("$size_tool" -B "$elf" | tail -1)
+  flash=$((text + data))
+  ram=$((data + bss))
+  printf 'size (%s): flash %d bytes (%d KiB of 512 KiB), RAM %d bytes (%d KiB of 128 KiB, stack not included)\n' \
+    "$variant" "$flash" $(((flash + 1023) / 1024)) "$ram" $(((ram + 1023) / 1024))
+done

@@ -13,6 +13,10 @@
 //!
 //! - **MCU DAC**: the microcontroller's two 12-bit channels, written together.
 //!
+//! XY2-100 over GPIO: [`xy2_100_gpio_frame`] gives a frame's pin states, [`Xy2PortPins`] turns
+//! them into a port's BSRR words for a timer-paced DMA, and [`Xy2Refresh`] says which frame of
+//! the DMA's two-frame ring to rewrite so that no frame mixes two positions.
+//!
 //! X goes to DAC channel A (channel 1), Y to channel B (channel 2).
 
 use embedded_hal::spi::SpiDevice;
@@ -162,6 +166,110 @@ pub trait GpioStream {
     type Error;
     /// Queues one frame period of pin states; it repeats until the next frame is queued.
     fn queue_frame(&mut self, states: &[u8; XY2_100_STATES]) -> Result<(), Self::Error>;
+}
+
+/// The pin numbers (0-15) of the four XY2-100 lines on one GPIO port, for a DMA stream of
+/// set/reset-register (BSRR) words: each word sets the lines that are high and resets the
+/// others, leaving the port's other pins alone.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Xy2PortPins {
+    /// Clock line.
+    pub clock: u8,
+    /// Frame sync line.
+    pub sync: u8,
+    /// X data line.
+    pub x: u8,
+    /// Y data line.
+    pub y: u8,
+}
+
+impl Xy2PortPins {
+    /// The BSRR word for one state of [`xy2_100_gpio_frame`]: bit `n` sets pin `n`, bit
+    /// `16 + n` resets it. Pin numbers are taken modulo 16.
+    pub const fn bsrr(self, state: u8) -> u32 {
+        use xy2_100_pins::*;
+        let lines = [(CLOCK, self.clock), (SYNC, self.sync), (X, self.x), (Y, self.y)];
+        let mut word = 0u32;
+        let mut i = 0;
+        while i < lines.len() {
+            let (mask, pin) = lines[i];
+            let bit = 1u32 << (pin & 15);
+            word |= if state & mask != 0 { bit } else { bit << 16 };
+            i += 1;
+        }
+        word
+    }
+
+    /// The BSRR words of one frame's states.
+    pub const fn bsrr_frame(self, states: &[u8; XY2_100_STATES]) -> [u32; XY2_100_STATES] {
+        let mut out = [0u32; XY2_100_STATES];
+        let mut i = 0;
+        while i < XY2_100_STATES {
+            out[i] = self.bsrr(states[i]);
+            i += 1;
+        }
+        out
+    }
+}
+
+/// Words in an XY2-100 DMA ring: two frames, played in a loop.
+pub const XY2_100_RING: usize = 2 * XY2_100_STATES;
+
+/// Which frame of a two-frame circular DMA ring to rewrite when the position changes, so the
+/// link never carries a frame that mixes two positions (a torn frame can pass the parity check
+/// with a position that was never asked for).
+///
+/// A new frame goes first into the half the DMA is not reading, if the DMA is at least
+/// `margin` states from its end (the copy must finish before the DMA gets there), then, at the
+/// next half boundary, into the other. Until both halves hold it, the board keeps the DMA's
+/// half-transfer and transfer-complete interrupts on and calls [`Xy2Refresh::refresh`] from
+/// them. Positions are given by the DMA's remaining count (NDTR: `XY2_100_RING` down to 1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Xy2Refresh {
+    /// Version of the newest frame.
+    latest: u32,
+    /// Version each half holds.
+    halves: [u32; 2],
+    margin: usize,
+}
+
+impl Xy2Refresh {
+    /// Both halves hold the current frame (version 0).
+    pub const fn new(margin: usize) -> Self {
+        Self { latest: 0, halves: [0, 0], margin }
+    }
+
+    /// The half the DMA reads next and how many states it has left in it, from the DMA's
+    /// remaining count.
+    pub const fn position(remaining: u16) -> (usize, usize) {
+        let remaining = remaining as usize;
+        let remaining = if remaining > XY2_100_RING { XY2_100_RING } else { remaining };
+        let next = (XY2_100_RING - remaining) % XY2_100_RING;
+        (next / XY2_100_STATES, XY2_100_STATES - next % XY2_100_STATES)
+    }
+
+    /// A new frame is the latest: both halves are stale.
+    pub fn new_frame(&mut self) {
+        self.latest = self.latest.wrapping_add(1);
+    }
+
+    /// The half to copy the latest frame into now, if it is stale and the DMA is far enough
+    /// from it; the half is marked as holding it.
+    pub fn refresh(&mut self, remaining: u16) -> Option<usize> {
+        let (reading, left) = Self::position(remaining);
+        let idle = 1 - reading;
+        if self.halves[idle] == self.latest || left < self.margin {
+            return None;
+        }
+        self.halves[idle] = self.latest;
+        Some(idle)
+    }
+
+    /// Whether a half still holds an older frame (the board keeps calling `refresh` at the
+    /// half boundaries).
+    pub fn pending(&self) -> bool {
+        self.halves[0] != self.latest || self.halves[1] != self.latest
+    }
 }
 
 /// A galvo pair on an XY2-100 link driven from a GPIO port.
@@ -317,6 +425,96 @@ mod tests {
         assert_eq!(f[4], CLOCK | SYNC | X | Y);
         assert_eq!(f[6], CLOCK | SYNC | X); // X's position MSB
         assert_eq!(f[38], CLOCK); // parity 0 on both, sync low
+    }
+
+    #[test]
+    fn xy2_100_bsrr_words_exact() {
+        use xy2_100_pins::*;
+        // CLOCK PC10, SYNC PC11, X PC12, Y PC9 (the NUCLEO-G474RE's map).
+        let pins = Xy2PortPins { clock: 10, sync: 11, x: 12, y: 9 };
+        // All low: the four reset bits.
+        assert_eq!(pins.bsrr(0), (1 << 26) | (1 << 27) | (1 << 28) | (1 << 25));
+        // All high: the four set bits.
+        assert_eq!(pins.bsrr(CLOCK | SYNC | X | Y), (1 << 10) | (1 << 11) | (1 << 12) | (1 << 9));
+        // Clock and X high, sync and Y low.
+        assert_eq!(pins.bsrr(CLOCK | X), (1 << 10) | (1 << 12) | (1 << 27) | (1 << 25));
+        assert_eq!(pins.bsrr(CLOCK | X), 0x0A00_1400);
+        // Every word touches exactly the four lines, each either set or reset.
+        let frame = pins.bsrr_frame(&xy2_100_gpio_frame(Xy { x: 0xA5A5, y: 0x0F0F }));
+        for w in frame {
+            assert_eq!((w | (w >> 16)) & 0xFFFF, 0x1E00);
+            assert_eq!(w & (w >> 16), 0, "never set and reset together");
+        }
+        // The first state (control bit 0, clock high, sync high) is the same for every frame.
+        assert_eq!(frame[0], (1 << 10) | (1 << 11) | (1 << 28) | (1 << 25));
+        // Pin numbers wrap at 16 rather than overflow.
+        assert_eq!(Xy2PortPins { clock: 16, sync: 17, x: 18, y: 19 }.bsrr(CLOCK), 0x000E_0001);
+    }
+
+    #[test]
+    fn xy2_100_ring_position() {
+        // NDTR counts down from the ring's length: 80 = word 0 next.
+        assert_eq!(Xy2Refresh::position(80), (0, 40));
+        assert_eq!(Xy2Refresh::position(79), (0, 39));
+        assert_eq!(Xy2Refresh::position(41), (0, 1));
+        assert_eq!(Xy2Refresh::position(40), (1, 40));
+        assert_eq!(Xy2Refresh::position(1), (1, 1));
+        // Out of range (not running): treated as the ring's start.
+        assert_eq!(Xy2Refresh::position(0), (0, 40));
+        assert_eq!(Xy2Refresh::position(200), (0, 40));
+    }
+
+    #[test]
+    fn xy2_100_refresh_writes_the_idle_half_then_the_other() {
+        let mut r = Xy2Refresh::new(8);
+        assert!(!r.pending());
+        assert_eq!(r.refresh(80), None, "nothing new");
+        r.new_frame();
+        assert!(r.pending());
+        // DMA at word 10 of half 0: half 1 is idle and 30 states away.
+        assert_eq!(r.refresh(70), Some(1));
+        assert!(r.pending());
+        assert_eq!(r.refresh(69), None, "half 0 is being read");
+        // Half boundary: the DMA entered half 1, half 0 is idle.
+        assert_eq!(r.refresh(40), Some(0));
+        assert!(!r.pending());
+        assert_eq!(r.refresh(80), None);
+    }
+
+    #[test]
+    fn xy2_100_refresh_waits_when_the_dma_is_near_the_idle_half() {
+        let mut r = Xy2Refresh::new(8);
+        r.new_frame();
+        // 7 states left in half 0: too close to start copying into half 1.
+        assert_eq!(r.refresh(47), None);
+        // 8 left: enough.
+        let mut r2 = r;
+        assert_eq!(r2.refresh(48), Some(1));
+        // The boundary into half 1 (stale): half 0 is written; half 1 waits for the next one.
+        assert_eq!(r.refresh(40), Some(0));
+        assert!(r.pending());
+        // A boundary interrupt served late, 3 states before the end of half 1: wait again.
+        assert_eq!(r.refresh(3), None);
+        assert_eq!(r.refresh(80), Some(1));
+        assert!(!r.pending());
+    }
+
+    #[test]
+    fn xy2_100_refresh_follows_the_newest_frame() {
+        let mut r = Xy2Refresh::new(8);
+        r.new_frame();
+        assert_eq!(r.refresh(80), Some(1));
+        // Another position before the first reached both halves.
+        r.new_frame();
+        assert_eq!(r.refresh(79), Some(1), "half 1 is stale again");
+        assert_eq!(r.refresh(40), Some(0));
+        assert!(!r.pending());
+        // Version counters wrap without harm.
+        let mut r = Xy2Refresh { latest: u32::MAX, halves: [u32::MAX; 2], margin: 8 };
+        r.new_frame();
+        assert_eq!(r.refresh(80), Some(1));
+        assert_eq!(r.refresh(40), Some(0));
+        assert!(!r.pending());
     }
 
     struct Port(Vec<[u8; XY2_100_STATES]>);

@@ -10,6 +10,8 @@
 //! - [`motion`]: trapezoidal step timing, exact in integer ticks.
 //! - [`synth`]: voice-coil sine synthesis in fixed point.
 //! - [`galvo`]: galvo output frame formats (DAC8563, AD5689, XY2-100) and drivers.
+//! - [`timer_schedule`]: compare values, capture extension and the look-ahead schedule for
+//!   hardware-timed edges on a free-running timer counter.
 //! - [`record`]: a no_std board that records its outputs in a ring, read over a debug port.
 //! - [`sim`] (feature `std`): simulated peripherals that record every change with its tick.
 //!
@@ -29,6 +31,7 @@ pub mod rig;
 #[cfg(feature = "std")]
 pub mod sim;
 pub mod synth;
+pub mod timer_schedule;
 
 pub use controller::{Clock, Controller};
 pub use lightrig_protocol::Error;

@@ -1,27 +1,66 @@
 //! The NUCLEO-G474RE's peripherals behind the firmware's hardware traits.
 //!
-//! Outputs change when the rig calls (its poll tick, at most the run loop's wake-up latency
-//! after `at`); see docs/boards/nucleo-g474re.md, "Timing", for what that means and what a
-//! timer-latched version would change.
+//! The run loop polls the rig up to `LOOKAHEAD_TICKS` ahead of the clock, so an output call
+//! can come before its tick `at`. The camera trigger arms a timer compare for `at`
+//! (`trigger.rs`); every other output waits for `at` in a busy loop (at most the look-ahead)
+//! and then changes. A call that comes after `at` (the loop woke late) acts at once. See
+//! docs/boards/nucleo-g474re.md, "Timing".
 
 use embassy_stm32::gpio::{Flex, Input, Level, Output, Speed};
+#[cfg(not(feature = "xy2-100"))]
 use embassy_stm32::mode::Blocking;
+#[cfg(not(feature = "xy2-100"))]
 use embassy_stm32::spi::{self, Spi};
+use embassy_time::Instant;
+#[cfg(not(feature = "xy2-100"))]
 use embedded_hal_bus::spi::{ExclusiveDevice, NoDelay};
-use lightrig_firmware::galvo::{GalvoOutput, SpiDacGalvo};
+use lightrig_firmware::galvo::GalvoOutput;
+#[cfg(not(feature = "xy2-100"))]
+use lightrig_firmware::galvo::SpiDacGalvo;
+#[cfg(feature = "xy2-100")]
+use lightrig_firmware::galvo::Xy2Gpio;
 use lightrig_firmware::hal::{Cameras, Capture, Galvos, HwError, Lasers, Motors, VoiceCoils};
+use lightrig_firmware::timer_schedule::{must_wait, Counter};
 use lightrig_protocol::config::Xy;
 use lightrig_protocol::event::Switch;
 use lightrig_protocol::sequence::AxisRef;
 
 use crate::inputs;
+use crate::step::StepPulse;
+use crate::trigger::Trigger;
 use crate::voice::VoiceStream;
 
 /// The galvo DAC's SPI device: SPI1 with the DAC8563's SYNC as chip select.
+#[cfg(not(feature = "xy2-100"))]
 pub type GalvoSpi = ExclusiveDevice<Spi<'static, Blocking, spi::mode::Master>, Output<'static>, NoDelay>;
 
-/// Step pulse width: covers common drivers' minimum high time (DRV8825 1.9 µs, A4988 1 µs).
-const STEP_PULSE_CYCLES: u32 = 168 * 2;
+/// The galvo pair's output: a DAC8563 on SPI1.
+#[cfg(not(feature = "xy2-100"))]
+pub type Galvo = SpiDacGalvo<GalvoSpi>;
+/// The galvo pair's output: an XY2-100 link on GPIOC (feature `xy2-100`).
+#[cfg(feature = "xy2-100")]
+pub type Galvo = Xy2Gpio<crate::xy2::Xy2Port>;
+
+/// How far ahead of the clock the run loop polls the rig: it covers the loop's wake-up (timer
+/// interrupt, executor, the USB reads' futures, the ordinary poll) when no USB frame is being
+/// handled, so a trigger edge is armed before its tick. The price: each due tick's outputs
+/// other than the trigger busy-wait up to this long for their tick.
+pub const LOOKAHEAD_TICKS: u64 = 50;
+
+/// TIM2 as embassy-time's driver runs it: one count per tick, ARR = 0xFFFF, so its counter is
+/// the tick's low 16 bits. The trigger's compare and the exposure capture use it directly.
+pub const TIM2_COUNTER: Counter = Counter::new(16);
+
+/// The tick now (embassy-time's counter).
+pub fn now_ticks() -> u64 {
+    Instant::now().as_ticks()
+}
+
+/// Busy-waits until tick `at` (at most `LOOKAHEAD_TICKS`; anything further would be a
+/// scheduling error, and the output goes out now rather than stall the loop).
+pub fn wait_until(at: u64) {
+    while must_wait(at, now_ticks(), LOOKAHEAD_TICKS) {}
+}
 
 /// A safety output: high impedance (held inactive by its pull resistor) until the rig first
 /// drives it, which it does only once the peripheral's polarity is configured.
@@ -47,7 +86,7 @@ impl SafeOutput {
 
 /// One step/dir/enable driver and its switches.
 pub struct Motor {
-    pub step: Output<'static>,
+    pub step: StepPulse,
     pub dir: Output<'static>,
     pub enable: SafeOutput,
     pub limit_min: Option<Input<'static>>,
@@ -57,9 +96,7 @@ pub struct Motor {
 
 impl Motor {
     fn pulse(&mut self) {
-        self.step.set_high();
-        cortex_m::asm::delay(STEP_PULSE_CYCLES);
-        self.step.set_low();
+        self.step.fire();
     }
 
     fn switch(&self, switch: Switch) -> bool {
@@ -75,12 +112,13 @@ impl Motor {
 
 /// Everything the rig drives on this board.
 pub struct Nucleo {
-    pub galvo: SpiDacGalvo<GalvoSpi>,
+    pub galvo: Galvo,
     pub lasers: [SafeOutput; 2],
     pub interlocks: [Input<'static>; 2],
-    pub trigger: SafeOutput,
-    /// Camera 0 exposure input (PB10): held so nothing else claims it; read in the EXTI handler.
-    pub _exposure: Input<'static>,
+    pub trigger: Trigger,
+    /// Camera 0 exposure input (PB10, TIM2_CH3): held so nothing else claims it; its edges are
+    /// captured by TIM2 and collected in the EXTI handler.
+    pub _exposure: Flex<'static>,
     pub stepper: Motor,
     pub wheel: Motor,
     pub voice: VoiceStream,
@@ -101,24 +139,30 @@ impl Nucleo {
         if inputs::take_overflow() {
             defmt::error!("exposure captures lost: run loop stalled");
         }
+        let late = self.trigger.take_late_edges();
+        if late > 0 {
+            defmt::warn!("{} trigger edge(s) driven after their tick", late);
+        }
     }
 }
 
 impl Galvos for Nucleo {
-    fn set_galvo(&mut self, pair: u8, to: Xy, _at: u64) -> Result<(), HwError> {
+    fn set_galvo(&mut self, pair: u8, to: Xy, at: u64) -> Result<(), HwError> {
         if pair != 0 {
             return Err(HwError);
         }
+        wait_until(at);
         self.galvo.set(to).map_err(|e| {
-            defmt::error!("galvo SPI: {}", defmt::Debug2Format(&e));
+            defmt::error!("galvo output: {}", defmt::Debug2Format(&e));
             HwError
         })
     }
 }
 
 impl Lasers for Nucleo {
-    fn set_laser(&mut self, channel: u8, level: bool, _at: u64) {
+    fn set_laser(&mut self, channel: u8, level: bool, at: u64) {
         if let Some(l) = self.lasers.get_mut(usize::from(channel)) {
+            wait_until(at);
             l.set(level);
         }
     }
@@ -130,20 +174,23 @@ impl Lasers for Nucleo {
 }
 
 impl Motors for Nucleo {
-    fn step(&mut self, motor: AxisRef, _at: u64) {
+    fn step(&mut self, motor: AxisRef, at: u64) {
         if let Some(m) = self.motor(motor) {
+            wait_until(at);
             m.pulse();
         }
     }
 
-    fn set_dir(&mut self, motor: AxisRef, level: bool, _at: u64) {
+    fn set_dir(&mut self, motor: AxisRef, level: bool, at: u64) {
         if let Some(m) = self.motor(motor) {
+            wait_until(at);
             m.dir.set_level(Level::from(level));
         }
     }
 
-    fn set_enable(&mut self, motor: AxisRef, level: bool, _at: u64) {
+    fn set_enable(&mut self, motor: AxisRef, level: bool, at: u64) {
         if let Some(m) = self.motor(motor) {
+            wait_until(at);
             m.enable.set(level);
         }
     }
@@ -154,9 +201,9 @@ impl Motors for Nucleo {
 }
 
 impl Cameras for Nucleo {
-    fn set_trigger(&mut self, camera: u8, level: bool, _at: u64) {
+    fn set_trigger(&mut self, camera: u8, level: bool, at: u64) {
         if camera == 0 {
-            self.trigger.set(level);
+            self.trigger.set(level, at);
         }
     }
 

@@ -8,7 +8,11 @@
 mod board;
 mod inputs;
 mod safety;
+mod step;
+mod trigger;
 mod voice;
+#[cfg(feature = "xy2-100")]
+mod xy2;
 
 use defmt_rtt as _;
 use embassy_executor::Spawner;
@@ -19,7 +23,9 @@ use embassy_stm32::mode::Async;
 use embassy_stm32::peripherals::{RNG, USB};
 use embassy_stm32::rcc::{mux, Hsi48Config, Pll, PllMul, PllPreDiv, PllRDiv, PllSource, Sysclk};
 use embassy_stm32::rng::Rng;
+#[cfg(not(feature = "xy2-100"))]
 use embassy_stm32::spi::{self, Spi};
+#[cfg(not(feature = "xy2-100"))]
 use embassy_stm32::time::Hertz;
 use embassy_stm32::usb::Driver;
 use embassy_stm32::wdg::IndependentWatchdog;
@@ -28,16 +34,24 @@ use embassy_time::{with_timeout, Duration, Instant, Timer};
 use embassy_usb::class::cdc_acm::{self, CdcAcmClass};
 use embassy_usb::driver::{Direction, EndpointAddress, EndpointIn, EndpointOut};
 use embassy_usb::{Builder, UsbDevice};
+#[cfg(not(feature = "xy2-100"))]
 use embedded_hal::spi::SpiDevice;
+#[cfg(not(feature = "xy2-100"))]
 use embedded_hal_bus::spi::ExclusiveDevice;
 use lightrig_firmware::controller::EmbassyClock;
+#[cfg(feature = "xy2-100")]
+use lightrig_firmware::galvo::Xy2Gpio;
+#[cfg(not(feature = "xy2-100"))]
 use lightrig_firmware::galvo::{SpiDacGalvo, SpiDacKind};
+use lightrig_firmware::timer_schedule::{lookahead_tick, wake_tick};
 use lightrig_firmware::Controller;
 use lightrig_protocol::session::{BoardId, Capabilities, DeviceInfo, Version};
 use lightrig_protocol::{MAX_FRAME, MAX_PACKET, PROTOCOL_VERSION, SCHEMA_HASH};
 use static_cell::StaticCell;
 
-use crate::board::{Motor, Nucleo, SafeOutput};
+use crate::board::{now_ticks, Motor, Nucleo, SafeOutput, LOOKAHEAD_TICKS};
+use crate::step::{StepPulse, StepTimer};
+use crate::trigger::Trigger;
 
 bind_interrupts!(struct Irqs {
     USB_LP => usb::InterruptHandler<USB>;
@@ -101,35 +115,44 @@ async fn main(spawner: Spawner) {
         uid.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ u64::from(b)).wrapping_mul(0x100_0000_01b3));
 
     // Galvos: DAC8563 on SPI1, mode 1 (data latched on SCLK falling edges), 10 MHz.
-    let mut spi_config = spi::Config::default();
-    spi_config.mode = spi::MODE_1;
-    spi_config.frequency = Hertz(10_000_000);
-    let spi = Spi::new_blocking_txonly(p.SPI1, p.PA5, p.PA7, spi_config);
-    let sync = Output::new(p.PB6, Level::High, Speed::VeryHigh);
-    let mut dac_spi = match ExclusiveDevice::new_no_delay(spi, sync) {
-        Ok(d) => d,
-        Err(_) => defmt::panic!("SPI1 chip select"),
+    #[cfg(not(feature = "xy2-100"))]
+    let galvo = {
+        let mut spi_config = spi::Config::default();
+        spi_config.mode = spi::MODE_1;
+        spi_config.frequency = Hertz(10_000_000);
+        let spi = Spi::new_blocking_txonly(p.SPI1, p.PA5, p.PA7, spi_config);
+        let sync = Output::new(p.PB6, Level::High, Speed::VeryHigh);
+        let mut dac_spi = match ExclusiveDevice::new_no_delay(spi, sync) {
+            Ok(d) => d,
+            Err(_) => defmt::panic!("SPI1 chip select"),
+        };
+        init_dac8563(&mut dac_spi);
+        SpiDacGalvo::new(dac_spi, SpiDacKind::Dac8563)
     };
-    init_dac8563(&mut dac_spi);
+    // Galvos (feature `xy2-100`): XY2-100 on PC9-PC12, DMA2 channel 1 paced by TIM7.
+    #[cfg(feature = "xy2-100")]
+    let galvo = Xy2Gpio::new(xy2::Xy2Port::new(p.PC10, p.PC11, p.PC12, p.PC9, p.TIM7, p.DMA2_CH1));
 
-    let trigger = SafeOutput::new(Flex::new(p.PA8));
+    let trigger = Trigger::new(Flex::new(p.PA10));
+    // The step pulses' one-pulse timers (step.rs programs them): taken so nothing else can.
+    let _step_timers = (p.TIM3, p.TIM15);
     let board = Nucleo {
-        galvo: SpiDacGalvo::new(dac_spi, SpiDacKind::Dac8563),
+        galvo,
         lasers: [SafeOutput::new(Flex::new(p.PB5)), SafeOutput::new(Flex::new(p.PC7))],
         interlocks: [Input::new(p.PC8, Pull::None), Input::new(p.PA9, Pull::None)],
         trigger,
-        _exposure: Input::new(p.PB10, Pull::None),
+        _exposure: inputs::exposure_pin(Flex::new(p.PB10)),
         stepper: Motor {
-            step: Output::new(p.PA6, Level::Low, Speed::High),
-            dir: Output::new(p.PA10, Level::Low, Speed::High),
+            step: StepPulse::new(Flex::new(p.PA6), StepTimer::Tim3),
+            dir: Output::new(p.PA8, Level::Low, Speed::High),
             enable: SafeOutput::new(Flex::new(p.PA1)),
             limit_min: Some(Input::new(p.PC0, Pull::None)),
             limit_max: Some(Input::new(p.PC1, Pull::None)),
             index: Some(Input::new(p.PB0, Pull::None)),
         },
         wheel: Motor {
-            step: Output::new(p.PB13, Level::Low, Speed::High),
-            dir: Output::new(p.PB14, Level::Low, Speed::High),
+            step: StepPulse::new(Flex::new(p.PB14), StepTimer::Tim15),
+            dir: Output::new(p.PB13, Level::Low, Speed::High),
             enable: SafeOutput::new(Flex::new(p.PB15)),
             limit_min: None,
             limit_max: None,
@@ -218,8 +241,9 @@ async fn main(spawner: Spawner) {
     loop {
         watchdog.pet();
         let now = Instant::now();
-        let wake =
-            ctl.next_deadline().map_or(now + MAX_SLEEP, |t| Instant::from_ticks(t).min(now + MAX_SLEEP));
+        // The rig's work is woken for LOOKAHEAD_TICKS early (see the look-ahead poll below).
+        let wake = wake_tick(ctl.link().next_deadline(), ctl.rig().next_due(), LOOKAHEAD_TICKS)
+            .map_or(now + MAX_SLEEP, |t| Instant::from_ticks(t).min(now + MAX_SLEEP));
         let event = select4(
             read_vendor(&mut bulk_out, &mut vendor_buf),
             read_cdc(&mut cdc_rx, &mut cdc_buf),
@@ -239,7 +263,14 @@ async fn main(spawner: Spawner) {
             Either4::Third(()) | Either4::Fourth(()) => {}
         }
         ctl.poll();
-        ctl.rig_mut().board_mut().service(Instant::now().as_ticks());
+        // Look-ahead: the rig's next due tick, if it is at most LOOKAHEAD_TICKS away, is polled
+        // now, at that tick. The trigger arms its compare for it (exact edge); other outputs
+        // wait for it in the board. Then the ordinary poll hands the events to the link.
+        if let Some(t) = lookahead_tick(ctl.rig().next_due(), now_ticks(), LOOKAHEAD_TICKS) {
+            ctl.rig_mut().poll(t);
+            ctl.poll();
+        }
+        ctl.rig_mut().board_mut().service(now_ticks());
         while let Some(n) = ctl.poll_transmit(&mut frame) {
             let sent = if reply_on_cdc {
                 with_timeout(WRITE_TIMEOUT, write_cdc(&mut cdc_tx, &frame[..n])).await
@@ -254,6 +285,7 @@ async fn main(spawner: Spawner) {
     }
 }
 
+#[cfg(not(feature = "xy2-100"))]
 /// DAC8563 start-up: reset, LDAC pins ignored (each write updates its output at once, as the
 /// frames in `galvo.rs` expect), internal 2.5 V reference on (gain 2: 0-5 V).
 fn init_dac8563(spi: &mut impl SpiDevice) {

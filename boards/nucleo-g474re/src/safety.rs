@@ -14,13 +14,14 @@ use embassy_stm32::pac::gpio::vals::Moder;
 use lightrig_protocol::session::ResetCause;
 
 /// Port index (A = 0) and pin of every output that must go inactive on a panic.
-pub const SAFE_OUTPUTS: [(usize, usize); 6] = [
+pub const SAFE_OUTPUTS: [(usize, usize); 7] = [
     (1, 5),  // PB5  laser 0 enable
     (2, 7),  // PC7  laser 1 enable
-    (0, 8),  // PA8  camera 0 trigger
+    (0, 10), // PA10 camera 0 trigger (TIM2_CH4)
     (0, 1),  // PA1  stepper 0 enable
     (1, 15), // PB15 filter wheel 0 enable
-    (0, 6),  // PA6  stepper 0 step
+    (0, 6),  // PA6  stepper 0 step (TIM3_CH1)
+    (1, 14), // PB14 filter wheel 0 step (TIM15_CH1)
 ];
 
 fn port(index: usize) -> pac::gpio::Gpio {
