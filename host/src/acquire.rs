@@ -233,15 +233,7 @@ pub fn run_prepared<T: Transport>(
     mut progress: impl FnMut(Progress),
 ) -> Result<(), AcquireError> {
     session.device_connected(client.info())?;
-    // A run cut short (host crash, unplug) may have left its sequence running on the device,
-    // or a fault latched: stop the one, clear the other (lasers stay disarmed until armed
-    // below).
-    if let Reply::Status(s) = client.request(Command::GetStatus).map_err(AcquireError::Device)? {
-        if let DeviceState::Running { sequence } = s.state {
-            client.request(Command::SequenceAbort { sequence }).map_err(AcquireError::Device)?;
-        }
-    }
-    client.request(Command::ClearFault).map_err(AcquireError::Device)?;
+    recover(client).map_err(AcquireError::Device)?;
     let lasers = lasers_used(plan);
     if lasers != 0 {
         client.request(Command::Arm { lasers }).map_err(AcquireError::Device)?;
@@ -264,6 +256,79 @@ pub fn run_prepared<T: Transport>(
     client.request(Command::Disarm).map_err(AcquireError::Device)?;
     session.finish()?;
     Ok(())
+}
+
+/// Readies a device a run was cut short on (host crash, unplug): stops the sequence it may
+/// still be running and clears a latched fault. Lasers stay disarmed until a run arms them.
+pub fn recover<T: Transport>(client: &mut Client<T>) -> Result<(), ClientError> {
+    if let Reply::Status(s) = client.request(Command::GetStatus)? {
+        if let DeviceState::Running { sequence } = s.state {
+            client.request(Command::SequenceAbort { sequence })?;
+        }
+    }
+    client.request(Command::ClearFault)?;
+    Ok(())
+}
+
+/// Whether `e` means the link to the device was lost (cable pulled, port gone, the device
+/// timed the host out), rather than the device refusing or faulting on what it was asked.
+pub fn is_link_loss(e: &ClientError) -> bool {
+    use lightrig_protocol::event::FaultCause;
+    matches!(
+        e,
+        ClientError::Io { .. }
+            | ClientError::Timeout { .. }
+            | ClientError::Fault { cause: FaultCause::HeartbeatLost, .. }
+    )
+}
+
+/// [`run_prepared`] that rides out a lost device: when the link is lost mid-run
+/// ([`is_link_loss`]) the step in progress is abandoned as always, then `reconnect` is called
+/// (attempt 1, 2, … up to `attempts`; the first call gets the old transport, to replug it;
+/// the closure does its own waiting between attempts) until it gives a connected, configured
+/// client, and the run goes on from that step. Every frame is still stored exactly once:
+/// the abandoned attempt is superseded and the step runs again. `notify` hears what happens.
+#[allow(clippy::too_many_arguments)]
+pub fn run_reconnecting<T: Transport>(
+    mut client: Client<T>,
+    reconnect: &mut dyn FnMut(Option<T>, u32) -> Result<Client<T>, ClientError>,
+    attempts: u32,
+    session: &mut Session,
+    plan: &Plan,
+    input: &mut dyn FrameInput,
+    prep: &mut dyn StepPreparation,
+    mut progress: impl FnMut(Progress),
+    mut notify: impl FnMut(&str),
+) -> Result<(), AcquireError> {
+    loop {
+        let lost = match run_prepared(&mut client, session, plan, input, prep, &mut progress) {
+            Err(AcquireError::Device(e)) if is_link_loss(&e) => e,
+            other => return other,
+        };
+        notify(&format!("device lost: {lost}"));
+        let mut old = Some(client.into_transport());
+        let mut last = lost;
+        let mut back = None;
+        for k in 1..=attempts {
+            match reconnect(old.take(), k) {
+                Ok(c) => {
+                    back = Some(c);
+                    break;
+                }
+                Err(e) => {
+                    notify(&format!("reconnection {k}/{attempts} failed: {e}"));
+                    last = e;
+                }
+            }
+        }
+        match back {
+            Some(c) => {
+                notify("device back; going on from the interrupted step");
+                client = c;
+            }
+            None => return Err(AcquireError::Device(last)),
+        }
+    }
 }
 
 fn lasers_used(plan: &Plan) -> u8 {

@@ -70,6 +70,8 @@ pub fn bring_up_on(
 ) -> Result<Client<Box<dyn Transport>>, CliError> {
     let nonce = std::process::id() ^ (std::time::SystemTime::now().elapsed().map_or(7, |d| d.subsec_nanos()));
     let mut client = Client::connect(transport, nonce).map_err(|e| err(DEVICE, e.to_string()))?;
+    // A device an earlier run left mid-sequence or faulted takes no configuration until then.
+    acquire::recover(&mut client).map_err(|e| err(DEVICE, e.to_string()))?;
     if let Some(s) = &rig.safety {
         client.set_heartbeat_us((s.heartbeat_timeout_ms * 1000.0 / 4.0) as u64);
     }
@@ -282,15 +284,45 @@ fn progress_printer(start: std::time::Instant) -> impl FnMut(Progress) {
     }
 }
 
+/// How many times `acquire` and `resume` try to get a lost device back, waiting 1, 2, 4, 8,
+/// then 10 s before each: about 1.5 minutes to plug the cable back in.
+pub const RECONNECT_ATTEMPTS: u32 = 12;
+
+/// The wait before reconnection attempt `k` (1, 2, …), ms.
+pub fn reconnect_backoff_ms(k: u32) -> u64 {
+    1000u64.saturating_mul(1 << k.saturating_sub(1).min(4)).min(10_000)
+}
+
 fn run(
-    client: &mut Client<Box<dyn Transport>>,
+    client: Client<Box<dyn Transport>>,
+    rig: &RigFile,
+    spec: &Connect,
     session: &mut Session,
     plan: &Plan,
     input: &mut dyn FrameInput,
     prep: &mut OperatorPrompt,
 ) -> Result<(), CliError> {
     let start = std::time::Instant::now();
-    let r = acquire::run_prepared(client, session, plan, &mut Boxed(input), prep, progress_printer(start));
+    // A real device that goes away (unplug, port reset) is waited for and brought up again;
+    // the virtual one lives in this process and cannot.
+    let attempts = if *spec == Connect::Virtual { 0 } else { RECONNECT_ATTEMPTS };
+    let mut reconnect = |old: Option<Box<dyn Transport>>, k: u32| {
+        drop(old); // close the old port before opening it again
+        std::thread::sleep(std::time::Duration::from_millis(reconnect_backoff_ms(k)));
+        let (t, _) = open(rig, spec).map_err(|e| client_error(spec, e))?;
+        bring_up_on(rig, t).map_err(|e| client_error(spec, e))
+    };
+    let r = acquire::run_reconnecting(
+        client,
+        &mut reconnect,
+        attempts,
+        session,
+        plan,
+        &mut Boxed(input),
+        prep,
+        progress_printer(start),
+        |m| eprintln!("\n{m}"),
+    );
     eprintln!();
     r.map_err(|e| match e {
         acquire::AcquireError::Preparation(_) => err(FAILURE, e.to_string()),
@@ -304,6 +336,10 @@ fn run(
     Ok(())
 }
 
+/// A bring-up failure during reconnection, as the client error the engine reports.
+fn client_error(spec: &Connect, e: CliError) -> crate::client::ClientError {
+    crate::client::ClientError::Io { device: format!("{spec:?}"), error: std::io::Error::other(e.message) }
+}
 /// `lightrig acquire RIG --session DIR [--yes]`.
 pub fn acquire(
     rig_path: &Path,
@@ -323,14 +359,14 @@ pub fn acquire(
     check_source(&rig)?;
     let spec = connect_spec(&rig, over);
     let (transport, timeline) = open(&rig, &spec)?;
-    let mut client = bring_up_on(&rig, transport)?;
+    let client = bring_up_on(&rig, transport)?;
     let plan = from_rig::plan(&rig, client.info()).map_err(|e| err(INPUT, e.to_string()))?;
     print_summary(&plan, client.info());
     let manifest = Manifest::new(text, client.info(), plan_summary(&plan));
     let mut session = Session::create(dir, manifest).map_err(|e| err(INPUT, e.to_string()))?;
     let mut input = frame_input(&rig, dir, timeline, client.info().tick_hz)?;
     let mut prep = OperatorPrompt { virtual_rig: spec == Connect::Virtual, assume_done };
-    run(&mut client, &mut session, &plan, input.as_mut(), &mut prep)
+    run(client, &rig, &spec, &mut session, &plan, input.as_mut(), &mut prep)
 }
 
 /// `lightrig resume DIR [--rig RIG] [--yes]`: the session's own rig file (the copy in its
@@ -369,7 +405,7 @@ pub fn resume(
     check_source(&rig)?;
     let spec = connect_spec(&rig, over);
     let (transport, timeline) = open(&rig, &spec)?;
-    let mut client = bring_up_on(&rig, transport)?;
+    let client = bring_up_on(&rig, transport)?;
     let plan = from_rig::plan(&rig, client.info()).map_err(|e| err(INPUT, e.to_string()))?;
     if plan_summary(&plan).steps != session.manifest().plan.steps {
         return Err(err(
@@ -381,5 +417,30 @@ pub fn resume(
     print_summary(&plan, client.info());
     let mut input = frame_input(&rig, dir, timeline, client.info().tick_hz)?;
     let mut prep = OperatorPrompt { virtual_rig: spec == Connect::Virtual, assume_done };
-    run(&mut client, &mut session, &plan, input.as_mut(), &mut prep)
+    run(client, &rig, &spec, &mut session, &plan, input.as_mut(), &mut prep)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn example(name: &str) -> RigFile {
+        RigFile::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/rigs").join(name)).unwrap()
+    }
+
+    #[test]
+    fn homing_may_take_one_and_a_half_seeks_plus_ten_seconds() {
+        // Gantry: limits ±200 mm, back-off 2 mm, 20 mm/s: (400 + 4) / 20 = 20.2 s.
+        assert_eq!(homing_timeout_us(&example("lls-gantry.toml")), 40_300_000);
+        // Turntable seeking its index at 2 deg/s: two turns, 360 s.
+        assert_eq!(homing_timeout_us(&example("fluorescent-immersion.toml")), 550_000_000);
+    }
+
+    #[test]
+    fn reconnection_waits_double_up_to_ten_seconds() {
+        let waits: Vec<u64> = (1..=7).map(reconnect_backoff_ms).collect();
+        assert_eq!(waits, [1_000, 2_000, 4_000, 8_000, 10_000, 10_000, 10_000]);
+        let total: u64 = (1..=RECONNECT_ATTEMPTS).map(reconnect_backoff_ms).sum();
+        assert_eq!(total, 95_000);
+    }
 }

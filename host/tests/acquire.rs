@@ -163,6 +163,72 @@ fn an_unplug_mid_step_abandons_it_and_resume_completes_the_session() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+#[test]
+fn a_run_rides_out_an_unplug_by_reconnecting_and_stores_every_frame_once() {
+    use lightrig_host::client::ClientError;
+    use lightrig_host::transport::Transport;
+    let dir = temp_dir("reconnect");
+    let plan = lls_plan();
+    let mut session = new_session(&dir, &plan);
+    let mut client = connect(SimBoard::default());
+    let now = client.transport().now_us();
+    client.transport_mut().unplug_at(now + 400_000);
+    let mut cam = TestCamera::default();
+    // The cable stays out through the first reconnection attempt; the second finds it back.
+    let mut stash: Option<VirtualTransport> = None;
+    let mut tries = Vec::new();
+    let mut reconnect = |old: Option<VirtualTransport>, k: u32| {
+        tries.push((k, old.is_some()));
+        if let Some(t) = old {
+            stash = Some(t);
+        }
+        if k == 1 {
+            return Err(ClientError::Timeout {
+                device: "virtual".into(),
+                what: "Hello".into(),
+                waited_ms: 1,
+            });
+        }
+        let mut t = stash.take().expect("the transport handed over at the first attempt");
+        t.replug();
+        Client::connect(t, 7)
+    };
+    let mut said = Vec::new();
+    acquire::run_reconnecting(
+        client,
+        &mut reconnect,
+        5,
+        &mut session,
+        &plan,
+        &mut cam,
+        &mut acquire::Unattended("virtual"),
+        |_| {},
+        |m| said.push(m.to_string()),
+    )
+    .unwrap();
+    assert_eq!(tries, [(1, true), (2, false)]);
+    assert!(said[0].starts_with("device lost: "), "{said:?}");
+    assert!(said[1].starts_with("reconnection 1/5 failed: "), "{said:?}");
+    assert_eq!(said.len(), 3, "{said:?}");
+    let interrupted: Vec<_> =
+        session.state().steps.iter().filter(|(_, a)| a.len() == 2).map(|(s, _)| *s).collect();
+    assert_eq!(interrupted.len(), 1, "one step was interrupted and acquired again");
+    drop(session);
+    check_complete(&dir, &plan);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn only_a_lost_link_is_worth_reconnecting_for() {
+    use lightrig_host::client::ClientError;
+    use lightrig_protocol::event::FaultCause;
+    let fault = |cause| ClientError::Fault { device: "d".into(), cause, tick: 1 };
+    assert!(acquire::is_link_loss(&fault(FaultCause::HeartbeatLost)));
+    assert!(!acquire::is_link_loss(&fault(FaultCause::TriggerTooSoon { camera: 0 })));
+    let io = ClientError::Io { device: "d".into(), error: std::io::Error::other("unplugged") };
+    assert!(acquire::is_link_loss(&io));
+}
+
 /// Child side of the kill test: runs the acquisition into `LIGHTRIG_ACQ_DIR` and aborts the
 /// process at trigger `LIGHTRIG_ACQ_CRASH` (as a host crash would).
 #[test]
