@@ -128,6 +128,29 @@ impl FrameInput for DirectoryInput {
     }
 }
 
+/// Several cameras' inputs as one: every input hears every step and trigger (each keeps to its
+/// own camera), and the frames of all of them are collected together; pairing goes by camera
+/// and frame number.
+pub struct Cameras(pub Vec<Box<dyn FrameInput>>);
+
+impl FrameInput for Cameras {
+    fn begin_step(&mut self, step: &Step) -> io::Result<()> {
+        self.0.iter_mut().try_for_each(|c| c.begin_step(step))
+    }
+
+    fn on_trigger(&mut self, trigger: &TriggerEvent, host_us: Option<f64>) -> io::Result<()> {
+        self.0.iter_mut().try_for_each(|c| c.on_trigger(trigger, host_us))
+    }
+
+    fn poll(&mut self, now_us: f64) -> io::Result<Vec<Captured>> {
+        let mut out = Vec::new();
+        for c in &mut self.0 {
+            out.extend(c.poll(now_us)?);
+        }
+        Ok(out)
+    }
+}
+
 /// What went wrong in an acquisition; each says what to do next.
 #[derive(Debug)]
 pub enum AcquireError {
@@ -422,4 +445,69 @@ fn run_step<T: Transport>(
     }
     session.finish_step()?;
     Ok(stored)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A camera that makes one frame per trigger on its own camera.
+    struct OneCamera {
+        camera: u8,
+        steps: u32,
+        ready: Vec<Captured>,
+    }
+
+    impl FrameInput for OneCamera {
+        fn begin_step(&mut self, _step: &Step) -> io::Result<()> {
+            self.steps += 1;
+            Ok(())
+        }
+        fn on_trigger(&mut self, t: &TriggerEvent, host_us: Option<f64>) -> io::Result<()> {
+            if t.camera == self.camera {
+                let data = vec![t.camera, t.frame as u8];
+                let host_us = host_us.unwrap_or(0.0);
+                self.ready.push(Captured {
+                    camera: t.camera,
+                    frame: Some(t.frame),
+                    ext: "raw".into(),
+                    data,
+                    host_us,
+                });
+            }
+            Ok(())
+        }
+        fn poll(&mut self, _now_us: f64) -> io::Result<Vec<Captured>> {
+            Ok(std::mem::take(&mut self.ready))
+        }
+    }
+
+    #[test]
+    fn several_cameras_hear_every_trigger_and_give_their_own_frames() {
+        let cam = |camera| Box::new(OneCamera { camera, steps: 0, ready: Vec::new() }) as Box<dyn FrameInput>;
+        let mut both = Cameras(vec![cam(0), cam(1)]);
+        let step = Step {
+            id: 0,
+            name: "s".into(),
+            items: Vec::new(),
+            shots: Vec::new(),
+            min_ticks: 0,
+            meta: serde_json::Value::Null,
+        };
+        both.begin_step(&step).unwrap();
+        for (camera, frame) in [(1, 0), (0, 0), (1, 1)] {
+            let snapshot = lightrig_protocol::event::Snapshot {
+                galvos: Default::default(),
+                axes: Default::default(),
+                filters: Default::default(),
+                lasers: 0,
+            };
+            let t = TriggerEvent { sequence: 1, item: 0, frame, camera, tick: 0, width: 1, snapshot };
+            both.on_trigger(&t, Some(5.0)).unwrap();
+        }
+        let got: Vec<(u8, Option<u32>)> =
+            both.poll(10.0).unwrap().iter().map(|c| (c.camera, c.frame)).collect();
+        assert_eq!(got, [(0, Some(0)), (1, Some(0)), (1, Some(1))]);
+        assert!(both.poll(11.0).unwrap().is_empty());
+    }
 }

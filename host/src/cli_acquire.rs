@@ -142,49 +142,54 @@ pub fn homing_timeout_us(rig: &RigFile) -> u64 {
 /// stores its own copy of each frame; removed when the session completes).
 pub const VIRTUAL_CAMERA_DIR: &str = "virtual-camera";
 
-/// The frame input of the rig's first camera (the planners use camera 0). A virtual camera
-/// renders [`crate::virtual_rig::scene_for`] the rig into `session/virtual-camera/`,
-/// following the virtual device's `timeline` if it runs on one (else from each trigger's
-/// snapshot: a real controller with no camera attached).
+/// The frame inputs of the rig's cameras, as one. A virtual camera renders
+/// [`crate::virtual_rig::scene_for`] the rig into `session/virtual-camera/camN/`, following the
+/// virtual device's `timeline` if it runs on one (else from each trigger's snapshot: a real
+/// controller with no camera attached).
 fn frame_input(
     rig: &RigFile,
     session: &Path,
     timeline: Option<Timeline>,
     tick_hz: u32,
 ) -> Result<Box<dyn FrameInput>, CliError> {
-    let cam = rig
-        .cameras
-        .first()
-        .ok_or_else(|| err(INPUT, format!("{}: the rig has no [[camera]]", rig.path.display())))?;
-    match &cam.source {
-        FrameSource::Directory { dir, pattern } => {
-            Ok(Box::new(DirectoryInput::new(cam.camera, dir, pattern).map_err(|e| err(INPUT, e))?))
-        }
-        FrameSource::Virtual => {
-            let dir = session.join(VIRTUAL_CAMERA_DIR);
-            // Files of an earlier run would hide this run's files of the same numbers.
-            if dir.exists() {
-                std::fs::remove_dir_all(&dir).map_err(|e| err(FAILURE, format!("{}: {e}", dir.display())))?;
-            }
-            let (scene, sensor) = crate::virtual_rig::scene_for(rig, 1);
-            let mut camera = VirtualCamera::new(rig, cam.camera, scene, sensor, tick_hz, &dir)
-                .map_err(|e| err(FAILURE, format!("{}: {e}", dir.display())))?;
-            if let Some(t) = timeline {
-                camera.follow(t);
-            }
-            Ok(Box::new(camera))
-        }
+    if rig.cameras.is_empty() {
+        return Err(err(INPUT, format!("{}: the rig has no [[camera]]", rig.path.display())));
     }
+    let scratch = session.join(VIRTUAL_CAMERA_DIR);
+    // Files of an earlier run would hide this run's files of the same numbers.
+    if scratch.exists() {
+        std::fs::remove_dir_all(&scratch).map_err(|e| err(FAILURE, format!("{}: {e}", scratch.display())))?;
+    }
+    let mut inputs: Vec<Box<dyn FrameInput>> = Vec::new();
+    for cam in &rig.cameras {
+        inputs.push(match &cam.source {
+            FrameSource::Directory { dir, pattern } => {
+                Box::new(DirectoryInput::new(cam.camera, dir, pattern).map_err(|e| err(INPUT, e))?)
+            }
+            FrameSource::Virtual => {
+                let dir = scratch.join(format!("cam{}", cam.camera));
+                let (scene, sensor) = crate::virtual_rig::scene_for(rig, 1 + u64::from(cam.camera));
+                let mut camera = VirtualCamera::new(rig, cam.camera, scene, sensor, tick_hz, &dir)
+                    .map_err(|e| err(FAILURE, format!("{}: {e}", dir.display())))?;
+                if let Some(t) = &timeline {
+                    camera.follow(t.clone());
+                }
+                Box::new(camera)
+            }
+        });
+    }
+    Ok(Box::new(acquire::Cameras(inputs)))
 }
 
-/// Checks a directory source before connecting, so a wrong path fails at once.
-fn check_source(rig: &RigFile) -> Result<(), CliError> {
-    let cam = rig
-        .cameras
-        .first()
-        .ok_or_else(|| err(INPUT, format!("{}: the rig has no [[camera]]", rig.path.display())))?;
-    if let FrameSource::Directory { dir, pattern } = &cam.source {
-        DirectoryInput::new(cam.camera, dir, pattern).map_err(|e| err(INPUT, e))?;
+/// Checks the directory sources before connecting, so a wrong path fails at once.
+fn check_sources(rig: &RigFile) -> Result<(), CliError> {
+    if rig.cameras.is_empty() {
+        return Err(err(INPUT, format!("{}: the rig has no [[camera]]", rig.path.display())));
+    }
+    for cam in &rig.cameras {
+        if let FrameSource::Directory { dir, pattern } = &cam.source {
+            DirectoryInput::new(cam.camera, dir, pattern).map_err(|e| err(INPUT, e))?;
+        }
     }
     Ok(())
 }
@@ -356,7 +361,7 @@ pub fn acquire(
             format!("{} already holds a session; continue it with `lightrig resume {0}`", dir.display()),
         ));
     }
-    check_source(&rig)?;
+    check_sources(&rig)?;
     let spec = connect_spec(&rig, over);
     let (transport, timeline) = open(&rig, &spec)?;
     let client = bring_up_on(&rig, transport)?;
@@ -402,7 +407,7 @@ pub fn resume(
         None => PathBuf::from("rig.toml"),
     };
     let rig = RigFile::parse(&text, &base).map_err(|e| err(INPUT, e.to_string()))?;
-    check_source(&rig)?;
+    check_sources(&rig)?;
     let spec = connect_spec(&rig, over);
     let (transport, timeline) = open(&rig, &spec)?;
     let client = bring_up_on(&rig, transport)?;
