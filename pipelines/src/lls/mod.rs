@@ -18,12 +18,14 @@
 
 mod fit;
 mod model;
+mod table;
 
 pub use model::TraceModel;
+pub use table::{lobe_geometry, LobeGeometry, LobeTables, TableLobe};
 
 pub use fit::{
-    blend_normals, fit_normal, fit_trace, normals_from_points, point_on_sheet, strip_scale, stripe_peak,
-    PassTrace, TraceFit,
+    blend_normals, fit_normal, fit_trace, fit_trace_tabled, normals_from_points, point_on_sheet, strip_scale,
+    stripe_peak, PassTrace, TraceFit,
 };
 
 use lightrig_imaging::calib::{find_chessboard, pixel_ray, pose_from_board, Board, Intrinsics, Pose};

@@ -29,6 +29,7 @@
 use std::f64::consts::PI;
 use std::sync::OnceLock;
 
+use super::table::{lobe_geometry, LobeTables};
 use crate::linear_light::{mirror, turn, Tube};
 use crate::quad::gauss_legendre;
 use crate::vec3::{dot, normalize, V3};
@@ -254,6 +255,32 @@ impl TraceModel {
             self.specular_segment(s, n, alpha, &mut out[s.start..s.end]);
         }
         out
+    }
+
+    /// `S_k(α)` from the shared [`LobeTables`]: a lookup per frame. A segment whose geometry
+    /// or `α` the tables do not cover falls back to [`TraceModel::specular`]'s integration.
+    pub fn specular_tabled(&self, n: V3, alpha: f64, tables: &LobeTables) -> Vec<f64> {
+        let mut out = vec![0.0; self.bands.len()];
+        self.specular_tabled_into(n, alpha, tables, &mut out);
+        out
+    }
+
+    /// [`TraceModel::specular_tabled`] into `out` (`len()` values).
+    pub fn specular_tabled_into(&self, n: V3, alpha: f64, tables: &LobeTables, out: &mut [f64]) {
+        for s in &self.segments {
+            let o = &mut out[s.start..s.end];
+            match lobe_geometry(turn(n, -s.yaw), s.v).and_then(|g| tables.lobe(&g, alpha)) {
+                Some(lobe) => {
+                    for (o, b) in o.iter_mut().zip(&self.bands[s.start..s.end]) {
+                        *o = lobe.band(b.lo, b.hi, b.u0, b.u1);
+                    }
+                }
+                None => {
+                    o.fill(0.0);
+                    self.specular_segment(s, n, alpha, o);
+                }
+            }
+        }
     }
 
     fn specular_segment(&self, s: &Segment, n: V3, alpha: f64, out: &mut [f64]) {
