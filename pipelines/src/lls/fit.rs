@@ -172,9 +172,8 @@ pub fn fit_trace_tabled(
     alpha0: Option<f64>,
     tables: &LobeTables,
 ) -> TraceFit {
-    fit_trace_by(obs, valid, &model.diffuse(n), alpha0, |alpha, s| {
-        model.specular_tabled_into(n, alpha, tables, s)
-    })
+    let mut traces = model.tabled(n, tables);
+    fit_trace_by(obs, valid, &model.diffuse(n), alpha0, |alpha, s| traces.specular_into(alpha, s))
 }
 
 /// The fit for the diffuse trace `d` and the specular traces `specular(α, out)`.

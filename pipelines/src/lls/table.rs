@@ -326,44 +326,94 @@ impl LobeTables {
 
     /// The lobe of geometry `geo` at roughness `alpha`, ready for band lookups; `None`
     /// outside the tables' range (`α` 0.016–0.67, incidence below about 75°, |u_m| ≤ 1.4).
-    pub fn lobe(&self, geo: &LobeGeometry, alpha: f64) -> Option<TableLobe<'_>> {
-        let a = (alpha / ALPHA0).ln() / ALPHA_RATIO.ln();
-        let (ja, la) = stencil(a, 4);
+    /// [`PixelLobes`] keeps what several `α` of one pixel share.
+    pub fn lobe(&self, geo: &LobeGeometry, alpha: f64) -> Option<TableLobe> {
+        PixelLobes::new(self, *geo).lobe(alpha)
+    }
+}
+
+/// `M` and `M'·HT` of one geometry at one `α` node.
+type Combined = ([f64; NT], [f64; NT]);
+
+/// One pixel's geometry against the tables: the geometry's nodes and weights fixed, their
+/// combination at each `α` node kept for the next trial (a fit's trials share most of them).
+pub struct PixelLobes<'a> {
+    tables: &'a LobeTables,
+    geo: LobeGeometry,
+    /// Geometry nodes `(tilt, tilt, elevation)` and weights; empty outside the tables.
+    nodes: Vec<([i32; 3], f64)>,
+    near: [i32; 3],
+    combined: Vec<Option<Box<Combined>>>,
+}
+
+impl<'a> PixelLobes<'a> {
+    /// The geometry's stencil.
+    pub fn new(tables: &'a LobeTables, geo: LobeGeometry) -> Self {
         let (jt, lt) = stencil(geo.tilt[0] / D_TILT_T, ORDER_T);
         let (ju, lu) = stencil(geo.tilt[1] / D_TILT_U, ORDER_U);
         let (jm, lm) = stencil(geo.u / D_UM, 2);
         // The nodes' tilts stay inside MAX_TILT.
         let reach = geo.tilt[0].abs() + 2.0 * D_TILT_T + geo.tilt[1].abs() + 2.0 * D_TILT_U;
-        if ja < 0 || ja + 3 >= N_ALPHA || reach > MAX_TILT || geo.u.abs() > MAX_UM {
-            return None;
-        }
-        let mut m = [0.0; NT];
-        let mut g = [0.0; NT];
-        for (it, wt) in lt.iter().enumerate().take(ORDER_T) {
-            for (iu, wu) in lu.iter().enumerate().take(ORDER_U) {
-                for (im, wm) in lm.iter().enumerate().take(2) {
-                    for (ia, wa) in la.iter().enumerate() {
-                        let w = wt * wu * wm * wa;
-                        if w == 0.0 {
-                            continue;
-                        }
-                        let key = [jt + it as i32, ju + iu as i32, jm + im as i32, ja + ia as i32];
-                        let node = self.node(key);
-                        for i in 0..NT {
-                            m[i] += w * node.m[i];
-                            g[i] += w * node.g[i] * HT;
+        let mut nodes = Vec::new();
+        if reach <= MAX_TILT && geo.u.abs() <= MAX_UM {
+            for (it, wt) in lt.iter().enumerate().take(ORDER_T) {
+                for (iu, wu) in lu.iter().enumerate().take(ORDER_U) {
+                    for (im, wm) in lm.iter().enumerate().take(2) {
+                        let w = wt * wu * wm;
+                        if w != 0.0 {
+                            nodes.push(([jt + it as i32, ju + iu as i32, jm + im as i32], w));
                         }
                     }
                 }
             }
         }
-        // The cut-off masses (a small correction) from the nearest geometry node.
         let near = [
             (geo.tilt[0] / D_TILT_T).round() as i32,
             (geo.tilt[1] / D_TILT_U).round() as i32,
             (geo.u / D_UM).round() as i32,
         ];
-        let cut = std::array::from_fn(|ia| ([near[0], near[1], near[2], ja + ia as i32], la[ia]));
+        PixelLobes { tables, geo, nodes, near, combined: vec![None; N_ALPHA as usize] }
+    }
+
+    /// `M` and `M'·HT` of the geometry at `α` node `ja`.
+    fn at_node(&mut self, ja: i32) -> &Combined {
+        let (tables, nodes) = (self.tables, &self.nodes);
+        self.combined[ja as usize].get_or_insert_with(|| {
+            let mut out = Box::new(([0.0; NT], [0.0; NT]));
+            for &(k, w) in nodes {
+                let node = tables.node([k[0], k[1], k[2], ja]);
+                for i in 0..NT {
+                    out.0[i] += w * node.m[i];
+                    out.1[i] += w * node.g[i] * HT;
+                }
+            }
+            out
+        })
+    }
+
+    /// The lobe at roughness `alpha`; `None` outside the tables' range.
+    pub fn lobe(&mut self, alpha: f64) -> Option<TableLobe> {
+        let a = (alpha / ALPHA0).ln() / ALPHA_RATIO.ln();
+        let (ja, la) = stencil(a, 4);
+        if self.nodes.is_empty() || ja < 0 || ja + 3 >= N_ALPHA {
+            return None;
+        }
+        let mut m = [0.0; NT];
+        let mut g = [0.0; NT];
+        for (ia, wa) in la.iter().enumerate() {
+            let (nm, ng) = self.at_node(ja + ia as i32);
+            for i in 0..NT {
+                m[i] += wa * nm[i];
+                g[i] += wa * ng[i];
+            }
+        }
+        // The cut-off masses (a small correction) from the nearest geometry node.
+        let near = self.near;
+        let cut = std::array::from_fn(|ia| {
+            let key = [near[0], near[1], near[2], ja + ia as i32];
+            (self.tables.node(key), key, la[ia])
+        });
+        let geo = self.geo;
         Some(TableLobe {
             theta: geo.theta,
             u: geo.u,
@@ -372,14 +422,12 @@ impl LobeTables {
             m,
             g,
             cut,
-            tables: self,
         })
     }
 }
 
 /// One pixel's lobe at one `α`: the tables combined for its geometry.
-pub struct TableLobe<'a> {
-    tables: &'a LobeTables,
+pub struct TableLobe {
     theta: f64,
     u: f64,
     /// `t` per radian of `θ`, `s` per radian of `u`.
@@ -388,10 +436,10 @@ pub struct TableLobe<'a> {
     m: [f64; NT],
     /// `M'` times the step (Hermite tangents).
     g: [f64; NT],
-    cut: [([i32; 4], f64); 4],
+    cut: [(Arc<Node>, [i32; 4], f64); 4],
 }
 
-impl TableLobe<'_> {
+impl TableLobe {
     /// `M(t)`, cubic Hermite.
     fn mass(&self, t: f64) -> f64 {
         if t <= -R {
@@ -413,11 +461,11 @@ impl TableLobe<'_> {
         let j = (y as usize).min(NC - 2);
         let fy = y - j as f64;
         let mut out = 0.0;
-        for &(key, w) in &self.cut {
+        for (node, key, w) in &self.cut {
+            let (key, w) = (*key, *w);
             if w == 0.0 {
                 continue;
             }
-            let node = self.tables.node(key);
             let c = node.cut.get_or_init(|| {
                 let (tilt, um, alpha) = params(key);
                 build_cut(tilt, um, alpha)
