@@ -21,8 +21,9 @@ use lightrig_imaging::io::{
 };
 use lightrig_pipelines::linear_light::{hides, response, Quadrature, Tube};
 use lightrig_pipelines::lls::{
-    blend_normals, fit_normal, fit_trace, normals_from_points, point_on_sheet, register, strip_scale,
-    stripe_peak, BoardGeometry, Light, PassTrace, Registration, Setup, Sheet, Strip, TraceFit, TraceModel,
+    blend_normals, fit_normal, fit_trace_tabled, normals_from_points, point_on_sheet, register, strip_scale,
+    stripe_peak, BoardGeometry, Light, LobeTables, PassTrace, Registration, Setup, Sheet, Strip, TraceFit,
+    TraceModel,
 };
 use lightrig_pipelines::vec3::{normalize, sub, V3};
 use lightrig_pipelines::ward::Ward;
@@ -455,6 +456,9 @@ pub fn fit_session(
     };
     let fitted: Vec<bool> =
         (0..w * h).map(|i| points[i].is_some() && normals[i].is_some() && !in_strip(i)).collect();
+    // The specular lobe's tables, shared by every pixel and pass of this session (built as
+    // the pixels need them).
+    let tables = LobeTables::new();
     let want_fit = |i: usize| fitted[i] || points[i].is_some_and(|p| setup.specular_strip.contains(p, 1.0));
     let mut fit: Vec<TraceFit> = (0..w * h)
         .into_par_iter()
@@ -463,7 +467,7 @@ pub fn fit_session(
                 (true, Some(p), Some(n)) => {
                     let v = normalize(sub(reg.rays[i].0, p));
                     let (obs, valid) = trace_of(i, p, v, scale);
-                    fit_trace(&obs, &valid, &TraceModel::new(p, v, &tubes), n, None)
+                    fit_trace_tabled(&obs, &valid, &TraceModel::new(p, v, &tubes), n, None, &tables)
                 }
                 _ => TraceFit::default(),
             };
@@ -492,7 +496,7 @@ pub fn fit_session(
                             .zip(&models)
                             .map(|((obs, valid), model)| PassTrace { obs, valid, model })
                             .collect();
-                        fit_normal(&passes, n, fit[i].alpha)
+                        fit_normal(&passes, n, fit[i].alpha, Some(&tables))
                     }
                     _ => None,
                 };
@@ -515,7 +519,7 @@ pub fn fit_session(
                         let v = normalize(sub(reg.rays[i].0, p));
                         let (obs, valid) = trace_of(i, p, v, scale);
                         let model = TraceModel::new(p, v, &tubes);
-                        Some(fit_trace(&obs, &valid, &model, n, Some(fit[i].alpha)))
+                        Some(fit_trace_tabled(&obs, &valid, &model, n, Some(fit[i].alpha), &tables))
                     }
                     _ => None,
                 };

@@ -1,7 +1,10 @@
 //! LLS fit throughput against the time to read the same stack, both in pixel traces of 400
 //! frames per second on one thread:
 //!
-//! - `lls_fit`: one pixel's trace fitted (its [`TraceModel`] built, then ρd, ρs, α).
+//! - `lls_fit`: one pixel's trace fitted (its [`TraceModel`] built, then ρd, ρs, α), each
+//!   trial integrating the lobe for the pixel (`fit_trace`) or looking it up in the shared
+//!   tables (`fit_trace_tabled`; warm: the nodes this pixel needs already built, as for all
+//!   but the first pixels of an image; cold: built in the iteration, an upper bound).
 //! - `lls_read`: a stack of 400 16-bit RGB PNG frames (what the virtual camera writes) read
 //!   from disk into memory, per pixel of the frame: the rate at which traces arrive.
 //!
@@ -11,7 +14,7 @@
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use lightrig_imaging::io::{read_with, write_png, BitDepth, Encoding, Image, ReadOptions};
 use lightrig_pipelines::linear_light::{response, Quadrature, Tube};
-use lightrig_pipelines::lls::{fit_trace, TraceModel};
+use lightrig_pipelines::lls::{fit_trace, fit_trace_tabled, LobeTables, TraceModel};
 use lightrig_pipelines::vec3::normalize;
 
 const FRAMES: usize = 400;
@@ -29,8 +32,14 @@ fn fit(c: &mut Criterion) {
     // Its parts: the pixel's bands, and one trial of (n, α) (the search makes about 20).
     g.bench_function(format!("model of {FRAMES} frames"), |b| b.iter(|| TraceModel::new(p, v, &tubes)));
     let model = TraceModel::new(p, v, &tubes);
+    g.bench_function("diffuse trace", |b| b.iter(|| model.diffuse(n)));
+    let tables = LobeTables::new();
     for alpha in [0.04, 0.3] {
         g.bench_function(format!("specular trace, alpha {alpha}"), |b| b.iter(|| model.specular(n, alpha)));
+        let _ = model.specular_tabled(n, alpha, &tables);
+        g.bench_function(format!("tabled specular trace, alpha {alpha}"), |b| {
+            b.iter(|| model.specular_tabled(n, alpha, &tables))
+        });
     }
     for alpha in [0.04, 0.3] {
         let mut obs: [Vec<f64>; 3] = Default::default();
@@ -43,6 +52,15 @@ fn fit(c: &mut Criterion) {
         }
         g.bench_function(format!("trace of {FRAMES} frames, alpha {alpha}"), |b| {
             b.iter(|| fit_trace(&obs, &valid, &TraceModel::new(p, v, &tubes), n, None))
+        });
+        let _ = fit_trace_tabled(&obs, &valid, &model, n, None, &tables);
+        g.bench_function(format!("tabled trace of {FRAMES} frames, alpha {alpha}"), |b| {
+            b.iter(|| fit_trace_tabled(&obs, &valid, &TraceModel::new(p, v, &tubes), n, None, &tables))
+        });
+        g.bench_function(format!("tabled trace of {FRAMES} frames, alpha {alpha}, cold tables"), |b| {
+            b.iter(|| {
+                fit_trace_tabled(&obs, &valid, &TraceModel::new(p, v, &tubes), n, None, &LobeTables::new())
+            })
         });
     }
     g.finish();

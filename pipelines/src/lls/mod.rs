@@ -14,16 +14,21 @@
 //!    per trial for a whole pass); `ρd`, `ρs` per channel by linear least squares for a given
 //!    `α`, and `α` by a search on the residual (a grid, then parabolic steps on `log α`). The
 //!    light's scale comes from the diffuse calibration strip ([`strip_scale`]).
+//!    [`fit_trace_tabled`] runs the same search with the specular traces looked up in tables
+//!    shared across pixels ([`LobeTables`], Gardner's reflectance tables), a lookup per frame
+//!    per trial.
 //! 5. Translucency: backlit over light box.
 
 mod fit;
 mod model;
+mod table;
 
-pub use model::TraceModel;
+pub use model::{TabledTraces, TraceModel};
+pub use table::{lobe_geometry, LobeGeometry, LobeTables, PixelLobes, TableLobe};
 
 pub use fit::{
-    blend_normals, fit_normal, fit_trace, normals_from_points, point_on_sheet, strip_scale, stripe_peak,
-    PassTrace, TraceFit,
+    blend_normals, fit_normal, fit_trace, fit_trace_tabled, normals_from_points, point_on_sheet, strip_scale,
+    stripe_peak, PassTrace, TraceFit,
 };
 
 use lightrig_imaging::calib::{find_chessboard, pixel_ray, pose_from_board, Board, Intrinsics, Pose};

@@ -29,6 +29,7 @@
 use std::f64::consts::PI;
 use std::sync::OnceLock;
 
+use super::table::{lobe_geometry, LobeTables, PixelLobes};
 use crate::linear_light::{mirror, turn, Tube};
 use crate::quad::gauss_legendre;
 use crate::vec3::{dot, normalize, V3};
@@ -256,6 +257,24 @@ impl TraceModel {
         out
     }
 
+    /// `S_k(α)` from the shared [`LobeTables`]: a lookup per frame. A segment whose geometry
+    /// or `α` the tables do not cover falls back to [`TraceModel::specular`]'s integration.
+    pub fn specular_tabled(&self, n: V3, alpha: f64, tables: &LobeTables) -> Vec<f64> {
+        let mut out = vec![0.0; self.bands.len()];
+        self.tabled(n, tables).specular_into(alpha, &mut out);
+        out
+    }
+
+    /// The traces for normal `n` from the tables, for several `α` (what they share kept).
+    pub fn tabled<'a>(&'a self, n: V3, tables: &'a LobeTables) -> TabledTraces<'a> {
+        let lobes = self
+            .segments
+            .iter()
+            .map(|s| lobe_geometry(turn(n, -s.yaw), s.v).map(|g| PixelLobes::new(tables, g)))
+            .collect();
+        TabledTraces { model: self, n, lobes }
+    }
+
     fn specular_segment(&self, s: &Segment, n: V3, alpha: f64, out: &mut [f64]) {
         let (nl, vl) = (turn(n, -s.yaw), s.v);
         let co = dot(nl, vl);
@@ -361,6 +380,34 @@ impl TraceModel {
                 }
             }
             *o = total.max(0.0);
+        }
+    }
+}
+
+/// [`TraceModel::tabled`].
+pub struct TabledTraces<'a> {
+    model: &'a TraceModel,
+    n: V3,
+    lobes: Vec<Option<PixelLobes<'a>>>,
+}
+
+impl TabledTraces<'_> {
+    /// `S_k(α)` into `out` (`len()` values).
+    pub fn specular_into(&mut self, alpha: f64, out: &mut [f64]) {
+        let m = self.model;
+        for (s, lobes) in m.segments.iter().zip(&mut self.lobes) {
+            let o = &mut out[s.start..s.end];
+            match lobes.as_mut().and_then(|l| l.lobe(alpha)) {
+                Some(lobe) => {
+                    for (o, b) in o.iter_mut().zip(&m.bands[s.start..s.end]) {
+                        *o = lobe.band(b.lo, b.hi, b.u0, b.u1);
+                    }
+                }
+                None => {
+                    o.fill(0.0);
+                    m.specular_segment(s, self.n, alpha, o);
+                }
+            }
         }
     }
 }
