@@ -151,6 +151,128 @@ impl FrameInput for Cameras {
     }
 }
 
+/// A frame input that works on its own thread, as a real camera does: the virtual camera
+/// rendering a frame (tens of ms in a release build, far more in a debug one) or a source
+/// reading large files then never holds up the link loop, whose heartbeats keep a real
+/// controller from faulting (`HeartbeatLost`) while the frames are made.
+///
+/// Calls reach the inner input in order. `on_trigger` returns at once (its error, if any,
+/// comes back from a later `poll`); `poll` hands over what the thread has produced so far,
+/// waiting at most [`Background::POLL_WAIT`] for the answer to this call; `begin_step` waits
+/// until every earlier call is done, and drops frames the thread produced for no one (an
+/// attempt cut short), as the contract of `begin_step` says.
+pub struct Background {
+    calls: Option<std::sync::mpsc::Sender<Call>>,
+    results: std::sync::mpsc::Receiver<Answer>,
+    worker: Option<std::thread::JoinHandle<()>>,
+}
+
+enum Call {
+    Begin(Step),
+    Trigger(TriggerEvent, Option<f64>),
+    Poll(f64),
+}
+
+enum Answer {
+    Begun(io::Result<()>),
+    Frames(io::Result<Vec<Captured>>),
+}
+
+impl Background {
+    /// How long `poll` waits for the thread's answer before returning what it has.
+    pub const POLL_WAIT: std::time::Duration = std::time::Duration::from_millis(20);
+
+    /// Runs `inner` on a new thread.
+    pub fn new(mut inner: Box<dyn FrameInput + Send>) -> Background {
+        let (calls, inbox) = std::sync::mpsc::channel::<Call>();
+        let (outbox, results) = std::sync::mpsc::channel::<Answer>();
+        let worker = std::thread::spawn(move || {
+            for call in inbox {
+                let answer = match call {
+                    Call::Begin(step) => {
+                        let r = inner.poll(f64::NEG_INFINITY).and_then(|_stale| inner.begin_step(&step));
+                        Answer::Begun(r)
+                    }
+                    Call::Trigger(t, host_us) => match inner.on_trigger(&t, host_us) {
+                        Ok(()) => continue,
+                        Err(e) => Answer::Frames(Err(e)),
+                    },
+                    Call::Poll(now_us) => Answer::Frames(inner.poll(now_us)),
+                };
+                if outbox.send(answer).is_err() {
+                    return;
+                }
+            }
+        });
+        Background { calls: Some(calls), results, worker: Some(worker) }
+    }
+
+    fn send(&self, call: Call) -> io::Result<()> {
+        self.calls
+            .as_ref()
+            .and_then(|c| c.send(call).ok())
+            .ok_or_else(|| io::Error::other("the frame source's thread has stopped (it panicked?)"))
+    }
+
+    /// Takes the answers in, appending frames to `out`; the first error wins. Waits up to
+    /// `wait` for the first one.
+    fn gather(&self, out: &mut Vec<Captured>, wait: std::time::Duration) -> io::Result<()> {
+        let mut first = self.results.recv_timeout(wait).ok();
+        let mut error = None;
+        while let Some(answer) = first.take().or_else(|| self.results.try_recv().ok()) {
+            match answer {
+                Answer::Frames(Ok(v)) => out.extend(v),
+                Answer::Frames(Err(e)) | Answer::Begun(Err(e)) => {
+                    error.get_or_insert(e);
+                }
+                Answer::Begun(Ok(())) => {}
+            }
+        }
+        error.map_or(Ok(()), Err)
+    }
+}
+
+impl FrameInput for Background {
+    fn begin_step(&mut self, step: &Step) -> io::Result<()> {
+        self.send(Call::Begin(step.clone()))?;
+        // Everything sent before is answered before `Begun`: drop those frames, keep errors.
+        let mut error = None;
+        loop {
+            match self.results.recv() {
+                Ok(Answer::Begun(r)) => return error.map_or(r, Err),
+                Ok(Answer::Frames(Err(e))) => {
+                    error.get_or_insert(e);
+                }
+                Ok(Answer::Frames(Ok(_))) => {}
+                Err(_) => {
+                    return Err(io::Error::other("the frame source's thread has stopped (it panicked?)"))
+                }
+            }
+        }
+    }
+
+    fn on_trigger(&mut self, trigger: &TriggerEvent, host_us: Option<f64>) -> io::Result<()> {
+        self.send(Call::Trigger(trigger.clone(), host_us))
+    }
+
+    fn poll(&mut self, now_us: f64) -> io::Result<Vec<Captured>> {
+        self.send(Call::Poll(now_us))?;
+        let mut out = Vec::new();
+        self.gather(&mut out, Self::POLL_WAIT)?;
+        Ok(out)
+    }
+}
+
+impl Drop for Background {
+    fn drop(&mut self) {
+        // Closing the channel ends the thread's loop once it has finished its work.
+        drop(self.calls.take());
+        if let Some(w) = self.worker.take() {
+            let _ = w.join();
+        }
+    }
+}
+
 /// What went wrong in an acquisition; each says what to do next.
 #[derive(Debug)]
 pub enum AcquireError {
@@ -193,23 +315,22 @@ pub fn plan_summary(plan: &Plan) -> PlanSummary {
         steps: plan
             .steps
             .iter()
-            .map(|s| {
-                let mut per: Vec<CameraTriggers> = Vec::new();
-                for shot in &s.shots {
-                    match per.iter_mut().find(|c| c.camera == shot.camera) {
-                        Some(c) => c.count += 1,
-                        None => per.push(CameraTriggers { camera: shot.camera, count: 1 }),
-                    }
-                }
-                PlanStep {
-                    id: s.id,
-                    name: s.name.clone(),
-                    triggers: per,
-                    extra: serde_json::json!({ "meta": s.meta, "shots": s.shots }),
-                }
+            .map(|s| PlanStep {
+                id: s.id,
+                name: s.name.clone(),
+                triggers: s
+                    .triggers
+                    .iter()
+                    .map(|&(camera, count)| CameraTriggers { camera, count })
+                    .collect(),
+                extra: serde_json::json!({ "meta": s.meta }),
             })
             .collect(),
-        extra: serde_json::json!({ "method": plan.method, "tick_hz": plan.tick_hz }),
+        extra: if plan.meta.is_null() {
+            serde_json::json!({ "method": plan.method, "tick_hz": plan.tick_hz })
+        } else {
+            serde_json::json!({ "method": plan.method, "tick_hz": plan.tick_hz, "meta": plan.meta })
+        },
     }
 }
 
@@ -224,7 +345,8 @@ pub struct Progress {
     pub frames: u64,
 }
 
-/// How long to wait for a step's last frames after its sequence ended, µs.
+/// How long to wait for a step's next frame after its sequence ended, µs: the step's frames
+/// are complete when every trigger has one, or when none has come for this long.
 pub const FRAME_WAIT_US: u64 = 2_000_000;
 /// A frame later than this after its trigger is flagged late (still paired), µs.
 pub const LATE_US: f64 = 1_000_000.0;
@@ -355,16 +477,7 @@ pub fn run_reconnecting<T: Transport>(
 }
 
 fn lasers_used(plan: &Plan) -> u8 {
-    use lightrig_protocol::sequence::Action;
-    let mut mask = 0u8;
-    for s in &plan.steps {
-        for i in &s.items {
-            if let Action::Laser { channel, on: true } = i.action {
-                mask |= 1u8.checked_shl(u32::from(channel)).unwrap_or(0);
-            }
-        }
-    }
-    mask
+    plan.steps.iter().fold(0, |mask, s| mask | s.lasers)
 }
 
 /// One attempt of one step; returns the frames stored.
@@ -386,10 +499,12 @@ fn run_step<T: Transport>(
         session.step_prepared(&by, actions)?;
     }
     input.begin_step(step).map_err(AcquireError::Frames)?;
+    // Built now, dropped when the attempt ends: a plan holds no step's items for long.
+    let items = step.items();
     let mut triggers = Vec::new();
     let mut arrivals: Vec<Captured> = Vec::new();
     let mut failure: Option<AcquireError> = None;
-    let result = client.run_sequence(seq, step.items.clone(), StartAt::Now, |e| {
+    let result = client.run_sequence(seq, items, StartAt::Now, |e| {
         if failure.is_some() {
             return;
         }
@@ -414,14 +529,19 @@ fn run_step<T: Transport>(
         session.abandon_step(&e.to_string())?;
         return Err(AcquireError::Device(e));
     }
-    // Collect the frames: until every trigger has one, or the wait runs out.
-    let expected = step.shots.len();
-    let wait_until = client.transport().now_us() + FRAME_WAIT_US;
+    // Collect the frames: until every trigger has one, or none has come for FRAME_WAIT_US (a
+    // camera still delivering a backlog is given the time it needs).
+    let expected = step.shot_count();
+    let mut wait_until = client.transport().now_us() + FRAME_WAIT_US;
     loop {
         let now = client.transport().now_us() as f64;
+        let before = arrivals.len();
         arrivals.extend(
             input.poll(now).map_err(AcquireError::Frames)?.into_iter().filter(|c| c.host_us >= start_us),
         );
+        if arrivals.len() > before {
+            wait_until = client.transport().now_us() + FRAME_WAIT_US;
+        }
         if arrivals.len() >= expected || client.transport().now_us() >= wait_until {
             break;
         }
@@ -486,14 +606,7 @@ mod tests {
     fn several_cameras_hear_every_trigger_and_give_their_own_frames() {
         let cam = |camera| Box::new(OneCamera { camera, steps: 0, ready: Vec::new() }) as Box<dyn FrameInput>;
         let mut both = Cameras(vec![cam(0), cam(1)]);
-        let step = Step {
-            id: 0,
-            name: "s".into(),
-            items: Vec::new(),
-            shots: Vec::new(),
-            min_ticks: 0,
-            meta: serde_json::Value::Null,
-        };
+        let step = Step::new(0, "s", serde_json::Value::Null, |_| {});
         both.begin_step(&step).unwrap();
         for (camera, frame) in [(1, 0), (0, 0), (1, 1)] {
             let snapshot = lightrig_protocol::event::Snapshot {
@@ -509,5 +622,66 @@ mod tests {
             both.poll(10.0).unwrap().iter().map(|c| (c.camera, c.frame)).collect();
         assert_eq!(got, [(0, Some(0)), (1, Some(0)), (1, Some(1))]);
         assert!(both.poll(11.0).unwrap().is_empty());
+    }
+
+    /// [`OneCamera`] whose every trigger waits for the test's go-ahead: a slow renderer.
+    struct Gated(OneCamera, std::sync::mpsc::Receiver<()>);
+
+    impl FrameInput for Gated {
+        fn begin_step(&mut self, step: &Step) -> io::Result<()> {
+            self.0.begin_step(step)
+        }
+        fn on_trigger(&mut self, t: &TriggerEvent, host_us: Option<f64>) -> io::Result<()> {
+            self.1.recv().map_err(|_| io::Error::other("no go-ahead"))?;
+            self.0.on_trigger(t, host_us)
+        }
+        fn poll(&mut self, now_us: f64) -> io::Result<Vec<Captured>> {
+            self.0.poll(now_us)
+        }
+    }
+
+    fn trigger(frame: u32) -> TriggerEvent {
+        let snapshot = lightrig_protocol::event::Snapshot {
+            galvos: Default::default(),
+            axes: Default::default(),
+            filters: Default::default(),
+            lasers: 0,
+        };
+        TriggerEvent { sequence: 1, item: 0, frame, camera: 0, tick: 0, width: 1, snapshot }
+    }
+
+    #[test]
+    fn a_background_input_never_holds_up_the_caller_and_keeps_its_frames_in_order() {
+        let (go, gate) = std::sync::mpsc::channel();
+        let mut bg =
+            Background::new(Box::new(Gated(OneCamera { camera: 0, steps: 0, ready: Vec::new() }, gate)));
+        let step = Step::new(0, "s", serde_json::Value::Null, |_| {});
+        bg.begin_step(&step).unwrap();
+        // Three triggers while the camera is stuck on the first: none of them blocks.
+        for f in 0..3 {
+            bg.on_trigger(&trigger(f), Some(f64::from(f))).unwrap();
+        }
+        assert!(bg.poll(0.0).unwrap().is_empty(), "nothing made yet");
+        for _ in 0..3 {
+            go.send(()).unwrap();
+        }
+        let mut got = Vec::new();
+        while got.len() < 3 {
+            got.extend(bg.poll(0.0).unwrap().into_iter().map(|c| c.frame));
+        }
+        assert_eq!(got, [Some(0), Some(1), Some(2)]);
+        // A frame made for an attempt that was cut short is dropped by the next begin_step.
+        bg.on_trigger(&trigger(3), Some(3.0)).unwrap();
+        go.send(()).unwrap();
+        bg.begin_step(&step).unwrap();
+        assert!(bg.poll(0.0).unwrap().is_empty());
+        // The input's errors come back from poll.
+        drop(go);
+        bg.on_trigger(&trigger(4), None).unwrap();
+        let mut error = None;
+        while error.is_none() {
+            error = bg.poll(0.0).err();
+        }
+        assert!(error.unwrap().to_string().contains("no go-ahead"));
     }
 }

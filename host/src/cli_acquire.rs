@@ -12,7 +12,7 @@ use crate::acquire::{self, plan_summary, Captured, DirectoryInput, FrameInput, P
 use crate::client::Client;
 use crate::plan::{from_rig, Plan};
 use crate::rigfile::{self, FrameSource, RigFile};
-use crate::session::{Manifest, Session};
+use crate::session::{Manifest, PlanStep, Session};
 use crate::transport::{Connect, Transport};
 use crate::virtual_rig::camera::VirtualCamera;
 use crate::virtual_rig::timeline::Timeline;
@@ -171,10 +171,15 @@ fn frame_input(
                 let (scene, sensor) = crate::virtual_rig::scene_for(rig, 1 + u64::from(cam.camera));
                 let mut camera = VirtualCamera::new(rig, cam.camera, scene, sensor, tick_hz, &dir)
                     .map_err(|e| err(FAILURE, format!("{}: {e}", dir.display())))?;
-                if let Some(t) = &timeline {
-                    camera.follow(t.clone());
+                match &timeline {
+                    // The in-process device's time waits for the camera: render in step.
+                    Some(t) => {
+                        camera.follow(t.clone());
+                        Box::new(camera)
+                    }
+                    // A controller in real time must not wait on the rendering.
+                    None => Box::new(acquire::Background::new(Box::new(camera))),
                 }
-                Box::new(camera)
             }
         });
     }
@@ -343,8 +348,9 @@ fn run(
 
 /// A bring-up failure during reconnection, as the client error the engine reports.
 fn client_error(spec: &Connect, e: CliError) -> crate::client::ClientError {
-    crate::client::ClientError::Io { device: format!("{spec:?}"), error: std::io::Error::other(e.message) }
+    crate::client::ClientError::Io { device: spec.to_string(), error: std::io::Error::other(e.message) }
 }
+
 /// `lightrig acquire RIG --session DIR [--yes]`.
 pub fn acquire(
     rig_path: &Path,
@@ -412,7 +418,7 @@ pub fn resume(
     let (transport, timeline) = open(&rig, &spec)?;
     let client = bring_up_on(&rig, transport)?;
     let plan = from_rig::plan(&rig, client.info()).map_err(|e| err(INPUT, e.to_string()))?;
-    if plan_summary(&plan).steps != session.manifest().plan.steps {
+    if !same_steps(&plan_summary(&plan).steps, &session.manifest().plan.steps) {
         return Err(err(
             INPUT,
             "the rig file's plan no longer matches the session's (a different device tick rate or a changed \
@@ -423,6 +429,17 @@ pub fn resume(
     let mut input = frame_input(&rig, dir, timeline, client.info().tick_hz)?;
     let mut prep = OperatorPrompt { virtual_rig: spec == Connect::Virtual, assume_done };
     run(client, &rig, &spec, &mut session, &plan, input.as_mut(), &mut prep)
+}
+
+/// Whether a re-made plan is the one a session started with: the same steps (ids, names,
+/// triggers per camera, `meta`). Sessions written before plans were lazy also kept each shot's
+/// label (`extra.shots`); those are not compared.
+fn same_steps(now: &[PlanStep], then: &[PlanStep]) -> bool {
+    now.len() == then.len()
+        && now.iter().zip(then).all(|(a, b)| {
+            (a.id, &a.name, &a.triggers, a.extra.get("meta"))
+                == (b.id, &b.name, &b.triggers, b.extra.get("meta"))
+        })
 }
 
 #[cfg(test)]

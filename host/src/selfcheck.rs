@@ -63,7 +63,7 @@ pub fn virtual_device_info() -> DeviceInfo {
             filter_wheels: 1,
             voice_coils: 2,
             partials_per_coil: 8,
-            cameras: 1,
+            cameras: lightrig_protocol::MAX_CAMERAS as u8,
             sequence_buffer: 256,
             event_queue: 64,
             link_window: 8,

@@ -418,6 +418,18 @@ impl std::str::FromStr for Connect {
     }
 }
 
+/// The form [`Connect`] parses: `virtual`, `serial:PATH@BAUD`, `usb`, `usb:SERIAL`.
+impl std::fmt::Display for Connect {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Connect::Virtual => f.write_str("virtual"),
+            Connect::Serial { path, baud } => write!(f, "serial:{path}@{baud}"),
+            Connect::Usb { serial: None } => f.write_str("usb"),
+            Connect::Usb { serial: Some(s) } => write!(f, "usb:{s}"),
+        }
+    }
+}
+
 impl Connect {
     /// Opens the transport.
     pub fn open(&self) -> io::Result<Box<dyn Transport>> {
@@ -487,5 +499,16 @@ mod tests {
         let e = "tcp:1.2.3.4".parse::<Connect>().unwrap_err();
         assert!(e.contains("expected `virtual`, `serial:PATH`"), "{e}");
         assert!("serial:/dev/x@fast".parse::<Connect>().unwrap_err().contains("baud `fast`"));
+    }
+
+    #[test]
+    fn connect_specs_print_as_they_parse() {
+        for s in ["virtual", "usb", "usb:LR0042", "serial:/dev/ttyUSB1@921600"] {
+            assert_eq!(s.parse::<Connect>().unwrap().to_string(), s);
+        }
+        assert_eq!(
+            "serial:/dev/ttyACM0".parse::<Connect>().unwrap().to_string(),
+            "serial:/dev/ttyACM0@115200"
+        );
     }
 }

@@ -92,7 +92,7 @@ fn check_complete(dir: &Path, plan: &Plan) {
         let frames = s.frames_of(step.id);
         let by_frame: BTreeMap<u32, _> = frames.iter().map(|f| (f.frame, f)).collect();
         assert_eq!(by_frame.len(), frames.len(), "no frame twice in step {}", step.id);
-        assert_eq!(frames.len(), step.shots.len(), "step {}", step.id);
+        assert_eq!(frames.len(), step.shot_count(), "step {}", step.id);
         for (k, f) in &by_frame {
             let text = std::fs::read_to_string(dir.join(&f.file)).unwrap();
             let x = -800 + 80 * *k as i64;

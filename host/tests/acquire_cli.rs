@@ -203,3 +203,176 @@ fn a_step_that_needs_a_person_stops_without_a_terminal_and_runs_with_yes() {
         .collect();
     assert_eq!(by, ["assumed"]);
 }
+
+/// A second `[[camera]]` for the DISCO example (the same virtual source), before its `[plan]`.
+const SIDE_CAMERA: &str = "[[camera]]
+camera = 1
+name = \"side\"
+pulse_us = 100
+polarity = \"high\"
+exposure_input = \"unused\"
+min_interval_us = 60000
+source = { kind = \"virtual\" }
+
+[plan]";
+
+#[test]
+fn every_camera_of_the_rig_fires_at_every_spot_unless_the_plan_picks_some() {
+    let dir = scratch("two-cameras");
+    let rig = example(
+        &dir,
+        "disco.toml",
+        &[("views", "views = 1"), ("spot_grid", "spot_grid = [2, 2]"), ("[plan]", SIDE_CAMERA)],
+    );
+    let session = dir.join("session");
+    let s = acquire(&rig, &session);
+    // 4 spots × 3 lasers, on each camera.
+    let step = &s.manifest().plan.steps[0];
+    assert_eq!((step.expected(0), step.expected(1)), (12, 12));
+    let triggers = trigger_events(&session).unwrap();
+    let mut by_camera: [Vec<(u64, [u16; 2], u8)>; 2] = [Vec::new(), Vec::new()];
+    for f in s.frame_index() {
+        let t = &triggers[&(f.sequence, f.item)];
+        assert_eq!(t.camera, f.camera);
+        let g = t.snapshot.galvos[0];
+        by_camera[usize::from(f.camera)].push((t.tick, [g.x, g.y], t.snapshot.lasers));
+        // Both cameras render the spot where the trigger pointed the galvos.
+        let img = lightrig_imaging::io::read(session.join(&f.file)).unwrap();
+        let w = img.width as usize;
+        let peak = (0..img.data.len() / 3)
+            .max_by(|&a, &b| {
+                img.data[a * 3..a * 3 + 3]
+                    .iter()
+                    .sum::<f32>()
+                    .total_cmp(&img.data[b * 3..b * 3 + 3].iter().sum())
+            })
+            .unwrap();
+        let want = (f64::from(g.x) * w as f64 / 65536.0, f64::from(g.y) * img.height as f64 / 65536.0);
+        let at = ((peak % w) as f64 + 0.5, (peak / w) as f64 + 0.5);
+        assert!(
+            (at.0 - want.0).abs() <= 1.0 && (at.1 - want.1).abs() <= 1.0,
+            "cam {}: {at:?} vs {want:?}",
+            f.camera
+        );
+    }
+    for list in &mut by_camera {
+        list.sort();
+    }
+    // The same instants, the same spots, the same lasers: one exposure seen by two cameras.
+    assert_eq!(by_camera[0].len(), 12);
+    assert_eq!(by_camera[0], by_camera[1]);
+    // The side camera's 60 ms minimum interval sets the spacing of both.
+    let ticks: Vec<u64> = by_camera[0].iter().map(|t| t.0).collect();
+    let tick_hz = s.manifest().device.tick_hz;
+    assert!(ticks.windows(2).all(|w| w[1] - w[0] >= 60_000 * u64::from(tick_hz) / 1_000_000), "{ticks:?}");
+
+    // `[plan] cameras` picks: only the side camera fires.
+    let dir = scratch("picked-camera");
+    let rig = example(
+        &dir,
+        "disco.toml",
+        &[
+            ("views", "views = 1\ncameras = [\"side\"]"),
+            ("spot_grid", "spot_grid = [2, 2]"),
+            ("[plan]", SIDE_CAMERA),
+        ],
+    );
+    let s = acquire(&rig, &dir.join("session"));
+    let step = &s.manifest().plan.steps[0];
+    assert_eq!((step.expected(0), step.expected(1)), (0, 12));
+    assert!(s.frame_index().iter().all(|f| f.camera == 1));
+}
+
+/// `lightrig sim --pty --link PATH` on `rig`, once its terminal is up.
+#[cfg(unix)]
+fn sim_on(rig: &Path, link: &Path) -> std::process::Child {
+    use std::io::{BufRead, BufReader};
+    let mut sim = Command::new(env!("CARGO_BIN_EXE_lightrig"))
+        .args(["sim", "--pty", "--seconds", "120", "--rig", rig.to_str().unwrap(), "--link"])
+        .arg(link)
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(sim.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    assert!(!line.trim().is_empty(), "the simulator printed its terminal");
+    sim
+}
+
+#[cfg(unix)]
+#[test]
+fn acquire_rides_out_a_controller_that_dies_and_comes_back() {
+    use std::time::{Duration, Instant};
+    let dir = scratch("reconnect");
+    // Two passes of 5 positions, 0.3 s apart: long enough to pull the plug mid-pass.
+    let rig = example(
+        &dir,
+        "lls-gantry.toml",
+        &[
+            ("homing", "homing = { mode = \"none\" }"),
+            ("pass_mm", "pass_mm = [-4, 4]\nsettle_ms = 300"),
+            ("step_mm", "step_mm = 2"),
+            ("exposures_us", "exposures_us = [500]"),
+        ],
+    );
+    let link = dir.join("rig-tty");
+    let mut sim = sim_on(&rig, &link);
+    let session = dir.join("session");
+    let mut acquire = Command::new(env!("CARGO_BIN_EXE_lightrig"))
+        .args(["acquire", rig.to_str().unwrap(), "--session", session.to_str().unwrap(), "--connect"])
+        .arg(format!("serial:{}", link.display()))
+        .stdin(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The controller dies once the first pass has fired a trigger (its power cut: the
+    // terminal goes away), and a new one comes up on the same path 2.5 s later, after the
+    // host's first reconnection attempt (at 1 s) has failed.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let triggered = || {
+        journal_records(&session).is_ok_and(|rs| {
+            rs.iter().any(|r| {
+                matches!(r, Record::Event { event: lightrig_protocol::event::Event::Trigger(_), .. })
+            })
+        })
+    };
+    while !triggered() {
+        if Instant::now() > deadline || acquire.try_wait().unwrap().is_some() {
+            let _ = acquire.kill();
+            let out = acquire.wait_with_output().unwrap();
+            panic!(
+                "no trigger journaled within 60 s, or acquire ended first: {}\n{:?}",
+                String::from_utf8_lossy(&out.stderr),
+                std::fs::read_to_string(session.join("journal.jsonl"))
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    sim.kill().unwrap();
+    sim.wait().unwrap();
+    std::thread::sleep(Duration::from_millis(2_500));
+    let mut sim = sim_on(&rig, &link);
+    let out = acquire.wait_with_output().unwrap();
+    let _ = sim.kill();
+    let _ = sim.wait();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stderr.contains("device lost"), "{stderr}");
+    assert!(stderr.contains("reconnection 1/12 failed"), "{stderr}");
+    assert!(stderr.contains("device back; going on from the interrupted step"), "{stderr}");
+
+    let (s, _) = Session::read(&session).unwrap();
+    assert!(s.is_done());
+    assert_eq!(s.frame_index().len(), 10, "2 passes × 5 positions, each frame once");
+    assert!(s.verify().is_empty(), "{:?}", s.verify());
+    let records = journal_records(&session).unwrap();
+    let started: Vec<(u32, u32)> = records
+        .iter()
+        .filter_map(|r| match r {
+            Record::StepStarted { step, attempt, .. } => Some((*step, *attempt)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(started, [(0, 1), (0, 2), (1, 1)], "the interrupted pass runs again, whole");
+    assert!(records.iter().any(|r| matches!(r, Record::StepAbandoned { step: 0, .. })));
+}

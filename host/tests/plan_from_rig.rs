@@ -19,7 +19,7 @@ fn the_gantry_example_plans_one_bracket_per_half_millimetre() {
     let s = plan.summary();
     assert_eq!((s.steps, s.triggers), (2, 721 * 3 * 2));
     let moves: Vec<i32> = plan.steps[0]
-        .items
+        .items()
         .iter()
         .filter_map(|i| match i.action {
             Action::StepperMove { target, .. } => Some(target),
@@ -30,7 +30,7 @@ fn the_gantry_example_plans_one_bracket_per_half_millimetre() {
     assert_eq!(&moves[..3], [-14_400, -14_400, -14_360]);
     assert_eq!(*moves.last().unwrap(), 14_400);
     let widths: Vec<u32> = plan.steps[0]
-        .items
+        .items()
         .iter()
         .filter_map(|i| match i.action {
             Action::Trigger { exposure, .. } => Some(exposure),
@@ -79,7 +79,7 @@ fn the_immersion_and_display_examples_plan() {
     let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
     assert_eq!(plan.steps.len(), 2, "one step per pattern");
     let coils = plan.steps[0]
-        .items
+        .items()
         .iter()
         .filter(|i| matches!(i.action, Action::VoiceCoil { ref partials, .. } if !partials.is_empty()))
         .count();
@@ -106,4 +106,49 @@ fn the_bispectral_example_plans_every_pair_above_the_diagonal() {
     let rig = RigFile::parse(&text, &path).unwrap();
     let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
     assert_eq!(plan.summary().steps, 6 * 11 * 2);
+}
+
+#[test]
+fn plan_cameras_are_picked_by_name_or_index_and_mistakes_name_the_line() {
+    let path = example("disco.toml");
+    let text = std::fs::read_to_string(&path)
+        .unwrap()
+        .replace("views = 72", "views = 2")
+        .replace("spot_grid = [64, 64]", "spot_grid = [2, 2]")
+        .replace(
+            "[plan]",
+            "[[camera]]\ncamera = 2\nname = \"side\"\npulse_us = 300\nmin_interval_us = 90000\n\n[plan]",
+        );
+    let with = |key: &str| {
+        let t = text.replace("views = 2", &format!("views = 2\n{key}"));
+        RigFile::parse(&t, &path).unwrap()
+    };
+    let triggers_per_camera = |rig: &RigFile| {
+        let plan = from_rig::plan(rig, &virtual_device_info()).unwrap();
+        let items = plan.steps[0].items();
+        let widths: Vec<(u8, u32)> = items
+            .iter()
+            .filter_map(|i| match i.action {
+                Action::Trigger { camera, exposure } => Some((camera, exposure)),
+                _ => None,
+            })
+            .take(2)
+            .collect();
+        (plan.steps[0].triggers.clone(), widths)
+    };
+    // Both cameras by default, fired together with the longer pulse (300 µs) as the exposure.
+    let rig = RigFile::parse(&text, &path).unwrap();
+    assert_eq!(triggers_per_camera(&rig), (vec![(0, 12), (2, 12)], vec![(0, 300), (2, 300)]));
+    assert_eq!(triggers_per_camera(&with("cameras = [\"side\"]")).0, [(2, 12)]);
+    assert_eq!(triggers_per_camera(&with("cameras = [2, \"hdr\"]")).0, [(2, 12), (0, 12)]);
+    for (key, says) in [
+        ("cameras = [\"top\"]", "no camera `top` (the rig has: hdr (0), side (2))"),
+        ("cameras = [0, \"hdr\"]", "camera `hdr` is listed twice"),
+        ("cameras = []", "is empty"),
+        ("cameras = \"hdr\"", "must be a list of camera names or device indices"),
+    ] {
+        let e = from_rig::plan(&with(key), &virtual_device_info()).unwrap_err().to_string();
+        assert!(e.contains("plan.cameras") && e.contains(says), "{key}: {e}");
+        assert!(e.contains("disco.toml:"), "names the file and line: {e}");
+    }
 }

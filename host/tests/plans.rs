@@ -18,13 +18,13 @@ fn run(c: &mut Client<VirtualTransport>, plan: &Plan) -> Vec<lightrig_protocol::
     let mut triggers = Vec::new();
     for step in &plan.steps {
         let out = c
-            .run_sequence(100 + step.id, step.items.clone(), StartAt::Now, |e| {
+            .run_sequence(100 + step.id, step.items(), StartAt::Now, |e| {
                 if let Event::Trigger(t) = &e.event {
                     triggers.push(t.clone());
                 }
             })
             .unwrap();
-        assert_eq!(out.items as usize, step.items.len());
+        assert_eq!(out.items as usize, step.items().len());
     }
     triggers
 }
@@ -62,7 +62,7 @@ fn lls_board_light_box_and_backlit_frames_are_single_shots_at_the_start() {
     let params =
         lls::LlsParams { passes: vec![Pass::Board, Pass::LightBox, Pass::Backlit], ..common::lls_params() };
     let plan = lls::plan(&params).unwrap();
-    assert_eq!(plan.steps.iter().map(|s| s.shots.len()).collect::<Vec<_>>(), [1, 1, 1]);
+    assert_eq!(plan.steps.iter().map(|s| s.shot_count()).collect::<Vec<_>>(), [1, 1, 1]);
     assert_eq!(plan.steps[0].meta["operator"], "place the calibration board on the reference plane");
     assert_eq!(plan.steps[1].meta["pass"], "light-box");
     let triggers = run(&mut c, &plan);
@@ -96,7 +96,7 @@ fn lls_diagonal_passes_carry_their_mount_and_ask_for_the_turn() {
     assert_eq!(plan.steps[2].meta["operator"], "turn the linear light's mount to -15°");
     assert_eq!(plan.steps[1].name, "pass reflectance +15°");
     // Each sweeps the whole pass.
-    assert!(plan.steps.iter().all(|s| s.shots.len() == 21));
+    assert!(plan.steps.iter().all(|s| s.shot_count() == 21));
 }
 
 #[test]
@@ -111,7 +111,7 @@ fn disco_never_triggers_while_the_mirrors_move() {
         lasers: vec![0, 1],
         galvo: 0,
         grid: grid.clone(),
-        camera: 0,
+        cameras: vec![0],
         exposure: 1_000,
         settle: 300,
         frame_gap: 1_500,
@@ -154,7 +154,7 @@ fn immersion_sweeps_one_frame_per_sheet_per_orientation() {
         galvo: 0,
         sweep: (10_000, 50_000, 11),
         sheet_y: 32_768,
-        camera: 0,
+        cameras: vec![0],
         exposure: 1_000,
         settle: 300,
         frame_gap: 1_200,
@@ -238,7 +238,7 @@ fn bispectral_takes_an_exposure_series_per_pair_with_the_right_slot() {
         geometries: vec![(0, 3_000), (1_500, 4_500)],
         wheel: 0,
         pairs: pairs.clone(),
-        camera: 0,
+        cameras: vec![0],
         exposures: vec![1_000, 4_000, 16_000],
         readout: 2_000,
         min_interval: 10_000,
@@ -290,7 +290,7 @@ fn brdf_display_ramps_the_coils_then_captures_then_fades() {
         targets,
         ramp: 50_000,
         settle: 200_000,
-        camera: 0,
+        cameras: vec![0],
         captures: 3,
         exposure: 5_000,
         frame_gap: 10_000,

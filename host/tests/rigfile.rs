@@ -507,8 +507,10 @@ fn capabilities_exceeded_name_what_the_device_has() {
         "rig.toml:20: laser[3].channel: the device has only 3 lasers (channels 0..=2)"
     );
     let camera = "[[camera]]\ncamera = 1\npulse_us = 100\n";
+    let mut info = virtual_device_info();
+    info.capabilities.cameras = 1;
     assert_eq!(
-        config_err(camera),
+        config_err_with(camera, &info),
         "rig.toml:5: camera[0].camera: the device has only 1 camera output (camera 0)"
     );
     let mut info = virtual_device_info();

@@ -13,7 +13,9 @@
 use lightrig_protocol::sequence::{Action, AxisRef, WaitFor};
 use serde_json::json;
 
-use super::{Plan, PlanError, StepBuilder};
+use std::sync::Arc;
+
+use super::{Plan, PlanError, Step};
 
 /// An (illumination, observation) wavelength pair, nm, and the filter-wheel slot that lights it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -39,8 +41,8 @@ pub struct BispectralParams {
     pub wheel: u8,
     /// Wavelength pairs, in capture order.
     pub pairs: Vec<Pair>,
-    /// Camera.
-    pub camera: u8,
+    /// Cameras, all fired at every exposure (at least one).
+    pub cameras: Vec<u8>,
     /// Exposure series, ticks, shortest first.
     pub exposures: Vec<u32>,
     /// Gap after each exposure (readout), ticks.
@@ -73,28 +75,13 @@ pub fn plan(p: &BispectralParams) -> Result<Plan, PlanError> {
     if p.geometries.is_empty() || p.pairs.is_empty() || p.exposures.is_empty() {
         return Err(PlanError("bispectral: geometries, pairs and exposures must not be empty".into()));
     }
+    if p.cameras.is_empty() {
+        return Err(PlanError("bispectral: no camera to trigger".into()));
+    }
+    let shared = Arc::new(p.clone());
     let mut steps = Vec::new();
     for (g, &(sample, light)) in p.geometries.iter().enumerate() {
-        for pair in &p.pairs {
-            let mut b = StepBuilder::default();
-            for axis in [
-                AxisRef::Stepper(p.sample_axis),
-                AxisRef::Stepper(p.light_axis),
-                AxisRef::FilterWheel(p.wheel),
-            ] {
-                b.settle(axis, p.timeout);
-            }
-            // Both axes and the wheel move together; wait for all three.
-            b.then(Action::StepperMove { axis: p.sample_axis, target: sample, profile: Default::default() });
-            b.then(Action::StepperMove { axis: p.light_axis, target: light, profile: Default::default() });
-            b.then(Action::FilterWheel { wheel: p.wheel, slot: pair.slot });
-            b.until(WaitFor::MoveDone(AxisRef::Stepper(p.sample_axis)), p.timeout);
-            b.until(WaitFor::MoveDone(AxisRef::Stepper(p.light_axis)), p.timeout);
-            b.until(WaitFor::MoveDone(AxisRef::FilterWheel(p.wheel)), p.timeout);
-            for (e, &exposure) in p.exposures.iter().enumerate() {
-                b.shoot(p.camera, exposure, format!("exposure {e}"));
-                b.wait(exposure.saturating_add(p.readout).max(p.min_interval));
-            }
+        for &pair in &p.pairs {
             let meta = json!({
                 "geometry": g, "sample": sample, "light": light,
                 "excitation_nm": pair.excitation, "emission_nm": pair.emission, "slot": pair.slot,
@@ -102,8 +89,43 @@ pub fn plan(p: &BispectralParams) -> Result<Plan, PlanError> {
                 "host": { "light_filter_nm": pair.excitation, "camera_filter_nm": pair.emission },
             });
             let id = steps.len() as u32;
-            steps.push(b.build(id, format!("geometry {g} {}→{} nm", pair.excitation, pair.emission), meta));
+            let name = format!("geometry {g} {}→{} nm", pair.excitation, pair.emission);
+            let p = Arc::clone(&shared);
+            steps.push(Step::new(id, name, meta, move |b| {
+                for axis in [
+                    AxisRef::Stepper(p.sample_axis),
+                    AxisRef::Stepper(p.light_axis),
+                    AxisRef::FilterWheel(p.wheel),
+                ] {
+                    b.settle(axis, p.timeout);
+                }
+                // Both axes and the wheel move together; wait for all three.
+                b.then(Action::StepperMove {
+                    axis: p.sample_axis,
+                    target: sample,
+                    profile: Default::default(),
+                });
+                b.then(Action::StepperMove {
+                    axis: p.light_axis,
+                    target: light,
+                    profile: Default::default(),
+                });
+                b.then(Action::FilterWheel { wheel: p.wheel, slot: pair.slot });
+                b.until(WaitFor::MoveDone(AxisRef::Stepper(p.sample_axis)), p.timeout);
+                b.until(WaitFor::MoveDone(AxisRef::Stepper(p.light_axis)), p.timeout);
+                b.until(WaitFor::MoveDone(AxisRef::FilterWheel(p.wheel)), p.timeout);
+                for (e, &exposure) in p.exposures.iter().enumerate() {
+                    b.shoot_all(&p.cameras, exposure, format!("exposure {e}"));
+                    b.wait(exposure.saturating_add(p.readout).max(p.min_interval));
+                }
+            }));
         }
     }
-    Ok(Plan { method: "bispectral".into(), tick_hz: p.tick_hz, steps, frame_bytes: p.frame_bytes })
+    Ok(Plan {
+        method: "bispectral".into(),
+        tick_hz: p.tick_hz,
+        steps,
+        frame_bytes: p.frame_bytes,
+        meta: serde_json::Value::Null,
+    })
 }

@@ -14,7 +14,9 @@ use lightrig_protocol::sequence::{Action, Partial};
 use lightrig_protocol::MAX_PARTIALS;
 use serde_json::json;
 
-use super::{Plan, PlanError, StepBuilder};
+use std::sync::Arc;
+
+use super::{Plan, PlanError, Step};
 
 /// Primes used as frequency ratios.
 pub const PRIMES: [u32; MAX_PARTIALS] = [2, 3, 5, 7, 11, 13, 17, 19];
@@ -55,8 +57,8 @@ pub struct DisplayParams {
     pub ramp: u32,
     /// Time for the surface to settle after the ramp, ticks.
     pub settle: u32,
-    /// Camera.
-    pub camera: u8,
+    /// Cameras, all fired at every capture (at least one).
+    pub cameras: Vec<u8>,
     /// Captures per target.
     pub captures: u32,
     /// Exposure, ticks.
@@ -74,33 +76,45 @@ pub fn plan(p: &DisplayParams) -> Result<Plan, PlanError> {
     if p.targets.is_empty() || p.captures == 0 {
         return Err(PlanError("brdf-display: need at least one target and one capture".into()));
     }
+    if p.cameras.is_empty() {
+        return Err(PlanError("brdf-display: no camera to trigger".into()));
+    }
+    let shared = Arc::new(p.clone());
     let mut steps = Vec::new();
     for (t, target) in p.targets.iter().enumerate() {
-        let mut b = StepBuilder::default();
+        let mut settings = Vec::new();
         for (channel, partials) in &target.channels {
-            let partials = heapless::Vec::from_slice(partials)
+            let partials: heapless::Vec<Partial, MAX_PARTIALS> = heapless::Vec::from_slice(partials)
                 .map_err(|_| PlanError(format!("brdf-display: {}: more than 8 partials", target.name)))?;
-            b.then(Action::VoiceCoil { channel: *channel, ramp: p.ramp, partials });
+            settings.push((*channel, partials));
         }
-        b.wait(p.ramp.saturating_add(p.settle));
-        for k in 0..p.captures {
-            b.shoot(p.camera, p.exposure, format!("capture {k}"));
-            b.wait(p.frame_gap);
-        }
-        for (channel, _) in &target.channels {
-            b.then(Action::VoiceCoil { channel: *channel, ramp: p.ramp, partials: heapless::Vec::new() });
-        }
-        b.wait(p.ramp);
         let channels: Vec<_> = target
             .channels
             .iter()
             .map(|(c, ps)| json!({ "channel": c, "partials": ps.iter().map(|q| [q.freq_mhz, u32::from(q.amplitude), u32::from(q.phase)]).collect::<Vec<_>>() }))
             .collect();
-        steps.push(b.build(
-            t as u32,
-            target.name.clone(),
-            json!({ "target": target.name, "channels": channels }),
-        ));
+        let meta = json!({ "target": target.name, "channels": channels });
+        let p = Arc::clone(&shared);
+        steps.push(Step::new(t as u32, target.name.clone(), meta, move |b| {
+            for (channel, partials) in &settings {
+                b.then(Action::VoiceCoil { channel: *channel, ramp: p.ramp, partials: partials.clone() });
+            }
+            b.wait(p.ramp.saturating_add(p.settle));
+            for k in 0..p.captures {
+                b.shoot_all(&p.cameras, p.exposure, format!("capture {k}"));
+                b.wait(p.frame_gap);
+            }
+            for (channel, _) in &settings {
+                b.then(Action::VoiceCoil { channel: *channel, ramp: p.ramp, partials: heapless::Vec::new() });
+            }
+            b.wait(p.ramp);
+        }));
     }
-    Ok(Plan { method: "brdf-display".into(), tick_hz: p.tick_hz, steps, frame_bytes: p.frame_bytes })
+    Ok(Plan {
+        method: "brdf-display".into(),
+        tick_hz: p.tick_hz,
+        steps,
+        frame_bytes: p.frame_bytes,
+        meta: serde_json::Value::Null,
+    })
 }

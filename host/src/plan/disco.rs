@@ -11,7 +11,9 @@ use lightrig_protocol::config::Xy;
 use lightrig_protocol::sequence::{Action, WaitFor};
 use serde_json::json;
 
-use super::{Plan, PlanError, StepBuilder};
+use std::sync::Arc;
+
+use super::{Plan, PlanError, Step};
 
 /// Everything the DISCO planner needs, in device units.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -26,8 +28,8 @@ pub struct DiscoParams {
     pub galvo: u8,
     /// Spot positions, DAC codes.
     pub grid: Vec<Xy>,
-    /// Camera.
-    pub camera: u8,
+    /// Cameras, all fired at every spot (at least one).
+    pub cameras: Vec<u8>,
     /// Exposure per spot, ticks.
     pub exposure: u32,
     /// Mirror settle time after a jump, ticks (the galvo's `settle_ticks`).
@@ -55,33 +57,46 @@ pub fn plan(p: &DiscoParams) -> Result<Plan, PlanError> {
             p.frame_gap, p.exposure
         )));
     }
+    if p.cameras.is_empty() {
+        return Err(PlanError("disco: no camera to trigger".into()));
+    }
+    // Shared by every step's builder (the grid alone is 4096 points at 64²).
+    let shared = Arc::new(p.clone());
     let mut steps = Vec::new();
     for (v, &angle) in p.views.iter().enumerate() {
-        let mut b = StepBuilder::default();
-        b.move_to(p.turntable, angle, p.timeout);
-        if let Some(s) = p.spotlight {
-            b.then(Action::Laser { channel: s, on: true });
-            b.until(WaitFor::LaserReady(s), p.timeout);
-            b.shoot(p.camera, p.exposure, "registration");
-            b.wait(p.frame_gap);
-            b.then(Action::Laser { channel: s, on: false });
-        }
-        for &laser in &p.lasers {
-            b.then(Action::Laser { channel: laser, on: true });
-            b.until(WaitFor::LaserReady(laser), p.timeout);
-            for (k, &point) in p.grid.iter().enumerate() {
-                b.then(Action::GalvoPoint { galvo: p.galvo, to: point });
-                b.wait(p.settle);
-                b.shoot(p.camera, p.exposure, format!("laser {laser} point {k}"));
-                b.wait(p.frame_gap);
-            }
-            b.then(Action::Laser { channel: laser, on: false });
-        }
+        let p = Arc::clone(&shared);
         let meta = json!({
             "view": v, "turntable": angle, "lasers": p.lasers, "registration": p.spotlight.is_some(),
-            "grid": p.grid.iter().map(|q| [q.x, q.y]).collect::<Vec<_>>(),
         });
-        steps.push(b.build(v as u32, format!("view {v}"), meta));
+        steps.push(Step::new(v as u32, format!("view {v}"), meta, move |b| {
+            b.move_to(p.turntable, angle, p.timeout);
+            if let Some(s) = p.spotlight {
+                b.then(Action::Laser { channel: s, on: true });
+                b.until(WaitFor::LaserReady(s), p.timeout);
+                b.shoot_all(&p.cameras, p.exposure, "registration");
+                b.wait(p.frame_gap);
+                b.then(Action::Laser { channel: s, on: false });
+            }
+            for &laser in &p.lasers {
+                b.then(Action::Laser { channel: laser, on: true });
+                b.until(WaitFor::LaserReady(laser), p.timeout);
+                for (k, &point) in p.grid.iter().enumerate() {
+                    b.then(Action::GalvoPoint { galvo: p.galvo, to: point });
+                    b.wait(p.settle);
+                    b.shoot_all(&p.cameras, p.exposure, format!("laser {laser} point {k}"));
+                    b.wait(p.frame_gap);
+                }
+                b.then(Action::Laser { channel: laser, on: false });
+            }
+        }));
     }
-    Ok(Plan { method: "disco".into(), tick_hz: p.tick_hz, steps, frame_bytes: p.frame_bytes })
+    // The spot grid is the same in every view: once, in the plan's `meta`.
+    let plan_meta = json!({ "grid": p.grid.iter().map(|q| [q.x, q.y]).collect::<Vec<_>>() });
+    Ok(Plan {
+        method: "disco".into(),
+        tick_hz: p.tick_hz,
+        steps,
+        frame_bytes: p.frame_bytes,
+        meta: plan_meta,
+    })
 }

@@ -29,7 +29,7 @@ use lightrig_protocol::config::{AxisKind, Xy};
 use lightrig_protocol::session::DeviceInfo;
 
 use super::{brdf_display, disco, immersion, lls, Plan};
-use crate::rigfile::{ticks_from_ms, ticks_from_us, Method, RigError, RigFile};
+use crate::rigfile::{ticks_from_ms, ticks_from_us, Camera, Method, RigError, RigFile};
 
 /// Default bytes per frame for the data-volume estimate: a 5 MP 16-bit frame.
 const DEFAULT_FRAME_BYTES: u64 = 2448 * 2048 * 2;
@@ -87,30 +87,77 @@ fn laser_named(rig: &RigFile, key: &str, name: &str) -> Result<u8, RigError> {
     })
 }
 
-/// Trigger-to-trigger time: the exposure plus `readout_us` (1000), and at least the camera's
-/// `min_interval_us`.
-fn frame_gap(
-    rig: &RigFile,
-    camera: &crate::rigfile::Camera,
-    exposure: u32,
-    hz: u32,
-) -> Result<u32, RigError> {
+/// Trigger-to-trigger time: the exposure plus `readout_us` (1000), and at least every fired
+/// camera's `min_interval_us`.
+fn frame_gap(rig: &RigFile, cameras: &[&Camera], exposure: u32, hz: u32) -> Result<u32, RigError> {
     let readout = us(rig, "readout_us", num(rig, "readout_us", Some(1000.0))?, hz)?;
-    let min_interval = us(rig, "camera.min_interval_us", camera.min_interval_us, hz)?;
-    Ok(exposure.saturating_add(readout).max(min_interval))
+    Ok(exposure.saturating_add(readout).max(min_interval(rig, cameras, hz)?))
 }
 
-/// `exposure_us` from `[plan]`, or the camera's pulse.
-fn exposure(rig: &RigFile, camera: &crate::rigfile::Camera, hz: u32) -> Result<u32, RigError> {
-    us(rig, "exposure_us", num(rig, "exposure_us", Some(camera.pulse_us))?, hz)
+/// The longest `min_interval_us` of the fired cameras, ticks.
+fn min_interval(rig: &RigFile, cameras: &[&Camera], hz: u32) -> Result<u32, RigError> {
+    cameras.iter().try_fold(0, |m, c| Ok(m.max(us(rig, "camera.min_interval_us", c.min_interval_us, hz)?)))
+}
+
+/// The longest trigger pulse of the fired cameras, ticks: the default exposure.
+fn pulse(rig: &RigFile, cameras: &[&Camera], hz: u32) -> Result<u32, RigError> {
+    cameras.iter().try_fold(0, |m, c| Ok(m.max(us(rig, "camera.pulse_us", c.pulse_us, hz)?)))
+}
+
+/// `exposure_us` from `[plan]`, or the longest pulse of the fired cameras.
+fn exposure(rig: &RigFile, cameras: &[&Camera], hz: u32) -> Result<u32, RigError> {
+    match rig.plan.get("exposure_us") {
+        Some(_) => us(rig, "exposure_us", num(rig, "exposure_us", None)?, hz),
+        None => pulse(rig, cameras, hz),
+    }
 }
 
 fn frame_bytes(rig: &RigFile) -> Result<u64, RigError> {
     Ok(num(rig, "frame_bytes", Some(DEFAULT_FRAME_BYTES as f64))? as u64)
 }
 
-fn first_camera(rig: &RigFile) -> Result<&crate::rigfile::Camera, RigError> {
-    rig.cameras.first().ok_or_else(|| rig.error("camera", "the plan needs a [[camera]]"))
+/// The cameras the plan fires, all together at every trigger point: `[plan] cameras` (names
+/// or device indices, in that order), or every `[[camera]]` of the rig.
+fn plan_cameras(rig: &RigFile) -> Result<Vec<&Camera>, RigError> {
+    if rig.cameras.is_empty() {
+        return Err(rig.error("camera", "the plan needs a [[camera]]"));
+    }
+    let Some(v) = rig.plan.get("cameras") else { return Ok(rig.cameras.iter().collect()) };
+    let bad = || rig.error("plan.cameras", "must be a list of camera names or device indices");
+    let list = v.as_array().ok_or_else(bad)?;
+    if list.is_empty() {
+        return Err(rig.error("plan.cameras", "is empty: name at least one camera to trigger"));
+    }
+    let mut out: Vec<&Camera> = Vec::new();
+    for x in list {
+        let shown = match (x.as_str(), x.as_integer()) {
+            (Some(n), _) => format!("`{n}`"),
+            (None, Some(i)) => i.to_string(),
+            _ => return Err(bad()),
+        };
+        let found = match (x.as_str(), x.as_integer()) {
+            (Some(name), _) => rig.cameras.iter().find(|c| c.name.as_deref() == Some(name)),
+            (None, Some(i)) => rig.cameras.iter().find(|c| i64::from(c.camera) == i),
+            _ => return Err(bad()),
+        };
+        let camera = found.ok_or_else(|| {
+            let known: Vec<String> = rig
+                .cameras
+                .iter()
+                .map(|c| c.name.clone().map_or(c.camera.to_string(), |n| format!("{n} ({})", c.camera)))
+                .collect();
+            rig.error("plan.cameras", format!("no camera {shown} (the rig has: {})", known.join(", ")))
+        })?;
+        if out.iter().any(|c| c.camera == camera.camera) {
+            return Err(rig.error("plan.cameras", format!("camera {shown} is listed twice")));
+        }
+        out.push(camera);
+    }
+    Ok(out)
+}
+
+fn indices(cameras: &[&Camera]) -> Vec<u8> {
+    cameras.iter().map(|c| c.camera).collect()
 }
 
 fn lls_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
@@ -133,10 +180,10 @@ fn lls_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
     // The far end must lie within the soft limits too (the error names them).
     rig.stepper_steps(axis.axis, to).map_err(|e| rig.error("plan.pass_mm", e.message))?;
     let second = rig.stepper_steps(axis.axis, from + step_mm.copysign(to - from))?;
-    let camera = first_camera(rig)?;
+    let cameras = plan_cameras(rig)?;
     let exposures: Vec<u32> = match nums(rig, "exposures_us")? {
         Some(v) => v.iter().map(|&e| us(rig, "exposures_us", e, hz)).collect::<Result<_, _>>()?,
-        None => vec![us(rig, "camera.pulse_us", camera.pulse_us, hz)?],
+        None => vec![pulse(rig, &cameras, hz)?],
     };
     let longest = exposures.iter().copied().max().unwrap_or(0);
     let settle_ms = num(rig, "settle_ms", Some(20.0))?;
@@ -175,10 +222,10 @@ fn lls_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         start,
         step: second - start,
         count,
-        camera: camera.camera,
+        cameras: indices(&cameras),
         exposures,
         settle,
-        frame_gap: frame_gap(rig, camera, longest, hz)?,
+        frame_gap: frame_gap(rig, &cameras, longest, hz)?,
         light,
         stripe,
         backlight,
@@ -223,18 +270,18 @@ fn disco_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         Some(n) => Some(laser_named(rig, "plan.registration", n)?),
         None => None,
     };
-    let camera = first_camera(rig)?;
-    let exposure = exposure(rig, camera, hz)?;
+    let cameras = plan_cameras(rig)?;
+    let exposure = exposure(rig, &cameras, hz)?;
     let p = disco::DiscoParams {
         turntable,
         views: view_steps,
         lasers,
         galvo: galvo.galvo,
         grid: points,
-        camera: camera.camera,
+        cameras: indices(&cameras),
         exposure,
         settle: us(rig, "galvo.settle_us", galvo.settle_us, hz)?,
-        frame_gap: frame_gap(rig, camera, exposure, hz)?,
+        frame_gap: frame_gap(rig, &cameras, exposure, hz)?,
         spotlight,
         timeout: hz.saturating_mul(60),
         frame_bytes: frame_bytes(rig)?,
@@ -274,8 +321,8 @@ fn immersion_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
             .map(|l| l.channel)
             .ok_or_else(|| rig.error("laser", "the sheet needs a [[laser]]"))?,
     };
-    let camera = first_camera(rig)?;
-    let exposure = exposure(rig, camera, hz)?;
+    let cameras = plan_cameras(rig)?;
+    let exposure = exposure(rig, &cameras, hz)?;
     let calibration = match rig.plan.get("calibration") {
         None => true,
         Some(v) => v.as_bool().ok_or_else(|| rig.error("plan.calibration", "must be true or false"))?,
@@ -287,10 +334,10 @@ fn immersion_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         galvo: galvo.galvo,
         sweep: (galvo.x.min_code, galvo.x.max_code, sheets),
         sheet_y: galvo.y.zero_code,
-        camera: camera.camera,
+        cameras: indices(&cameras),
         exposure,
         settle: us(rig, "galvo.settle_us", galvo.settle_us, hz)?,
-        frame_gap: frame_gap(rig, camera, exposure, hz)?,
+        frame_gap: frame_gap(rig, &cameras, exposure, hz)?,
         calibration,
         timeout: hz.saturating_mul(60),
         frame_bytes: frame_bytes(rig)?,
@@ -363,8 +410,8 @@ fn display_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         let channels = rig.voice_coils.iter().map(|c| (c.channel, partials.clone())).collect();
         targets.push(brdf_display::Target { name: name.clone(), channels });
     }
-    let camera = first_camera(rig)?;
-    let exposure = exposure(rig, camera, hz)?;
+    let cameras = plan_cameras(rig)?;
+    let exposure = exposure(rig, &cameras, hz)?;
     let ms = |key: &str, default: f64| -> Result<u32, RigError> {
         let v = num(rig, key, Some(default))?;
         ticks_from_ms(v, hz)
@@ -374,10 +421,10 @@ fn display_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         targets,
         ramp: ms("ramp_ms", 200.0)?,
         settle: ms("settle_ms", 2000.0)?,
-        camera: camera.camera,
+        cameras: indices(&cameras),
         captures: num(rig, "captures", Some(3.0))? as u32,
         exposure,
-        frame_gap: frame_gap(rig, camera, exposure, hz)?,
+        frame_gap: frame_gap(rig, &cameras, exposure, hz)?,
         frame_bytes: frame_bytes(rig)?,
         tick_hz: hz,
     };
@@ -469,10 +516,10 @@ fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
             out
         }
     };
-    let camera = first_camera(rig)?;
+    let cameras = plan_cameras(rig)?;
     let exposures: Vec<u32> = match nums(rig, "exposures_us")? {
         Some(v) => v.iter().map(|&e| us(rig, "exposures_us", e, hz)).collect::<Result<_, _>>()?,
-        None => vec![us(rig, "camera.pulse_us", camera.pulse_us, hz)?],
+        None => vec![pulse(rig, &cameras, hz)?],
     };
     let readout = us(rig, "readout_us", num(rig, "readout_us", Some(1000.0))?, hz)?;
     let p = bispectral::BispectralParams {
@@ -481,10 +528,10 @@ fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         geometries,
         wheel: wheel.wheel,
         pairs,
-        camera: camera.camera,
+        cameras: indices(&cameras),
         exposures,
         readout,
-        min_interval: us(rig, "camera.min_interval_us", camera.min_interval_us, hz)?,
+        min_interval: min_interval(rig, &cameras, hz)?,
         timeout: hz.saturating_mul(60),
         frame_bytes: frame_bytes(rig)?,
         tick_hz: hz,

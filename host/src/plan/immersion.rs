@@ -17,7 +17,9 @@ use lightrig_protocol::config::Xy;
 use lightrig_protocol::sequence::{Action, WaitFor};
 use serde_json::json;
 
-use super::{Plan, PlanError, StepBuilder};
+use std::sync::Arc;
+
+use super::{Plan, PlanError, Step, StepBuilder};
 
 /// Everything the immersion planner needs, in device units.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -34,8 +36,8 @@ pub struct ImmersionParams {
     pub sweep: (u16, u16, u32),
     /// Fixed Y code.
     pub sheet_y: u16,
-    /// Camera.
-    pub camera: u8,
+    /// Cameras, all fired at every sheet (at least one).
+    pub cameras: Vec<u8>,
     /// Exposure per sheet, ticks.
     pub exposure: u32,
     /// Mirror settle time after a jump, ticks.
@@ -75,60 +77,89 @@ pub fn plan_with_targets(p: &ImmersionParams, targets: &[serde_json::Value]) -> 
     if p.frame_gap < p.exposure {
         return Err(PlanError("immersion: frame_gap is shorter than the exposure".into()));
     }
+    if p.cameras.is_empty() {
+        return Err(PlanError("immersion: no camera to trigger".into()));
+    }
     let codes = sheet_codes(from, to, n);
+    let shared = Arc::new((p.clone(), codes.clone()));
+    let mut steps: Vec<Step> = Vec::new();
+    let mut push = |name: String, meta: serde_json::Value, kind: StepKind| {
+        let q = Arc::clone(&shared);
+        let id = steps.len() as u32;
+        steps.push(Step::new(id, name, meta, move |b| build(b, &q.0, &q.1, &kind)));
+    };
+    if p.calibration && !targets.is_empty() {
+        for (k, pose) in targets.iter().enumerate() {
+            let meta = json!({
+                "kind": "calibration", "pass": "target-board", "target": k, "pose": pose,
+                "operator": format!("remove the object; place the calibration target at position {k} ({pose}); lamp on"),
+            });
+            push(format!("calibration target {k}"), meta, StepKind::TargetBoard { k });
+            let meta = json!({
+                "kind": "calibration", "pass": "target-sweep", "target": k, "pose": pose,
+                "codes": codes, "sheet_y": p.sheet_y,
+                "operator": format!("target at position {k} ({pose}); lamp off"),
+            });
+            push(format!("calibration sweep {k}"), meta, StepKind::DarkAndSweep);
+        }
+    } else if p.calibration {
+        let meta = json!({ "kind": "calibration", "operator": "place the calibration target in the tank", "codes": codes });
+        push("calibration".into(), meta, StepKind::DarkAndSweep);
+    }
+    for (o, &angle) in p.orientations.iter().enumerate() {
+        let meta = json!({ "kind": "scan", "pass": "scan", "orientation": o, "turntable": angle, "codes": codes, "sheet_y": p.sheet_y });
+        push(format!("orientation {o}"), meta, StepKind::Scan { angle });
+    }
+    Ok(Plan {
+        method: "fluorescent-immersion".into(),
+        tick_hz: p.tick_hz,
+        steps,
+        frame_bytes: p.frame_bytes,
+        meta: serde_json::Value::Null,
+    })
+}
+
+/// What an immersion step does (its sequence is built by [`build`] when it runs).
+#[derive(Debug, Clone, Copy)]
+enum StepKind {
+    /// The target under the lamp, laser off, at the first orientation.
+    TargetBoard { k: usize },
+    /// A dark frame and a calibration sweep, at the first orientation.
+    DarkAndSweep,
+    /// A scan sweep at turntable position `angle`.
+    Scan { angle: i32 },
+}
+
+fn build(b: &mut StepBuilder, p: &ImmersionParams, codes: &[u16], kind: &StepKind) {
     let sweep = |b: &mut StepBuilder, tag: &str| {
         b.then(Action::Laser { channel: p.laser, on: true });
         b.until(WaitFor::LaserReady(p.laser), p.timeout);
         for (k, &x) in codes.iter().enumerate() {
             b.then(Action::GalvoPoint { galvo: p.galvo, to: Xy { x, y: p.sheet_y } });
             b.wait(p.settle);
-            b.shoot(p.camera, p.exposure, format!("{tag} sheet {k}"));
+            b.shoot_all(&p.cameras, p.exposure, format!("{tag} sheet {k}"));
             b.wait(p.frame_gap);
         }
         b.then(Action::Laser { channel: p.laser, on: false });
     };
-    let mut steps = Vec::new();
-    if p.calibration && !targets.is_empty() {
-        for (k, pose) in targets.iter().enumerate() {
-            let mut b = StepBuilder::default();
+    match *kind {
+        StepKind::TargetBoard { k } => {
             b.move_to(p.turntable, p.orientations[0], p.timeout);
             b.then(Action::Laser { channel: p.laser, on: false });
-            b.shoot(p.camera, p.exposure, format!("target {k}"));
+            b.shoot_all(&p.cameras, p.exposure, format!("target {k}"));
             b.wait(p.frame_gap);
-            let meta = json!({
-                "kind": "calibration", "pass": "target-board", "target": k, "pose": pose,
-                "operator": format!("remove the object; place the calibration target at position {k} ({pose}); lamp on"),
-            });
-            steps.push(b.build(steps.len() as u32, format!("calibration target {k}"), meta));
-            let mut b = StepBuilder::default();
-            b.move_to(p.turntable, p.orientations[0], p.timeout);
-            b.shoot(p.camera, p.exposure, "dark");
-            b.wait(p.frame_gap);
-            sweep(&mut b, "calibration");
-            let meta = json!({
-                "kind": "calibration", "pass": "target-sweep", "target": k, "pose": pose,
-                "codes": codes, "sheet_y": p.sheet_y,
-                "operator": format!("target at position {k} ({pose}); lamp off"),
-            });
-            steps.push(b.build(steps.len() as u32, format!("calibration sweep {k}"), meta));
         }
-    } else if p.calibration {
-        let mut b = StepBuilder::default();
-        b.move_to(p.turntable, p.orientations[0], p.timeout);
-        b.shoot(p.camera, p.exposure, "dark");
-        b.wait(p.frame_gap);
-        sweep(&mut b, "calibration");
-        let meta = json!({ "kind": "calibration", "operator": "place the calibration target in the tank", "codes": codes });
-        steps.push(b.build(0, "calibration", meta));
+        StepKind::DarkAndSweep => {
+            b.move_to(p.turntable, p.orientations[0], p.timeout);
+            b.shoot_all(&p.cameras, p.exposure, "dark");
+            b.wait(p.frame_gap);
+            sweep(b, "calibration");
+        }
+        StepKind::Scan { angle } => {
+            b.move_to(p.turntable, angle, p.timeout);
+            sweep(b, "scan");
+        }
     }
-    for (o, &angle) in p.orientations.iter().enumerate() {
-        let mut b = StepBuilder::default();
-        b.move_to(p.turntable, angle, p.timeout);
-        sweep(&mut b, "scan");
-        let meta = json!({ "kind": "scan", "pass": "scan", "orientation": o, "turntable": angle, "codes": codes, "sheet_y": p.sheet_y });
-        steps.push(b.build(steps.len() as u32, format!("orientation {o}"), meta));
-    }
-    Ok(Plan { method: "fluorescent-immersion".into(), tick_hz: p.tick_hz, steps, frame_bytes: p.frame_bytes })
 }
 
 #[cfg(test)]
@@ -144,7 +175,7 @@ mod tests {
             galvo: 0,
             sweep: (1000, 2000, 6),
             sheet_y: 32768,
-            camera: 0,
+            cameras: vec![0],
             exposure: 100,
             settle: 10,
             frame_gap: 200,
@@ -168,11 +199,12 @@ mod tests {
             assert_eq!(sweep.meta["pass"], "target-sweep");
             assert_eq!((&board.meta["pose"], &sweep.meta["pose"]), (pose, pose));
             assert_eq!(board.meta["target"], k);
-            assert_eq!(board.shots.len(), 1);
-            assert_eq!(sweep.shots.len(), 7);
+            assert_eq!(board.shot_count(), 1);
+            assert_eq!(sweep.shots().len(), 7);
             // The board frame is taken with the laser off.
-            assert!(board.items.iter().any(|i| matches!(i.action, Action::Laser { on: false, .. })));
-            assert!(!board.items.iter().any(|i| matches!(i.action, Action::Laser { on: true, .. })));
+            let items = board.items();
+            assert!(items.iter().any(|i| matches!(i.action, Action::Laser { on: false, .. })));
+            assert!(!items.iter().any(|i| matches!(i.action, Action::Laser { on: true, .. })));
         }
         assert_eq!(p.steps[4].meta["pass"], "scan");
         // Step ids are the plan order.

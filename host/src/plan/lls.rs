@@ -9,7 +9,9 @@
 use lightrig_protocol::sequence::{Action, WaitFor};
 use serde_json::json;
 
-use super::{Plan, PlanError, StepBuilder};
+use std::sync::Arc;
+
+use super::{Plan, PlanError, Step, StepBuilder};
 
 /// What a pass lights the sample with. `Reflectance` and `Stripe` sweep the gantry, one frame
 /// (bracket) per position; the others are one frame (bracket) with the gantry at the start.
@@ -97,8 +99,8 @@ pub struct LlsParams {
     pub step: i32,
     /// Frames per pass.
     pub count: u32,
-    /// Camera.
-    pub camera: u8,
+    /// Cameras, all fired at every position (at least one).
+    pub cameras: Vec<u8>,
     /// Exposures taken at every position (an HDR bracket), ticks.
     pub exposures: Vec<u32>,
     /// Wait after the gantry stops before exposing (vibration), ticks.
@@ -136,6 +138,10 @@ pub fn plan(p: &LlsParams) -> Result<Plan, PlanError> {
     }
     let last = i64::from(p.start) + i64::from(p.step) * (i64::from(p.count) - 1);
     let last = i32::try_from(last).map_err(|_| PlanError("lls: the pass runs past the axis range".into()))?;
+    if p.cameras.is_empty() {
+        return Err(PlanError("lls: no camera to trigger".into()));
+    }
+    let shared = Arc::new(p.clone());
     let mut steps = Vec::new();
     let mut mount = 0i8;
     for (id, pass) in p.passes.iter().enumerate() {
@@ -147,25 +153,27 @@ pub fn plan(p: &LlsParams) -> Result<Plan, PlanError> {
                 p.backlight.ok_or_else(|| PlanError(format!("lls: a {pass:?} pass needs a backlight")))?,
             ),
         };
-        let mut b = StepBuilder::default();
-        b.move_to(p.axis, p.start, p.timeout);
-        if let Some(channel) = channel {
-            b.then(Action::Laser { channel, on: true });
-            b.until(WaitFor::LaserReady(channel), p.timeout);
-        }
         let count = if pass.sweeps() { p.count } else { 1 };
-        for i in 0..count {
-            let pos = p.start + p.step * i as i32;
-            b.move_to(p.axis, pos, p.timeout);
-            b.wait(p.settle);
-            for (e, &exposure) in p.exposures.iter().enumerate() {
-                b.shoot(p.camera, exposure, format!("{pass:?} {i} e{e}").to_lowercase());
-                b.wait(p.frame_gap);
+        let (q, pass_now) = (Arc::clone(&shared), *pass);
+        let make = move |b: &mut StepBuilder| {
+            b.move_to(q.axis, q.start, q.timeout);
+            if let Some(channel) = channel {
+                b.then(Action::Laser { channel, on: true });
+                b.until(WaitFor::LaserReady(channel), q.timeout);
             }
-        }
-        if let Some(channel) = channel {
-            b.then(Action::Laser { channel, on: false });
-        }
+            for i in 0..count {
+                let pos = q.start + q.step * i as i32;
+                b.move_to(q.axis, pos, q.timeout);
+                b.wait(q.settle);
+                for (e, &exposure) in q.exposures.iter().enumerate() {
+                    b.shoot_all(&q.cameras, exposure, format!("{pass_now:?} {i} e{e}").to_lowercase());
+                    b.wait(q.frame_gap);
+                }
+            }
+            if let Some(channel) = channel {
+                b.then(Action::Laser { channel, on: false });
+            }
+        };
         let mut meta = json!({
             "pass": pass.name(), "axis": p.axis, "start": p.start, "step": p.step, "count": count,
             "last": if pass.sweeps() { last } else { p.start }, "exposures": p.exposures,
@@ -185,7 +193,13 @@ pub fn plan(p: &LlsParams) -> Result<Plan, PlanError> {
         if let Some(op) = operator {
             meta["operator"] = json!(op);
         }
-        steps.push(b.build(id as u32, title, meta));
+        steps.push(Step::new(id as u32, title, meta, make));
     }
-    Ok(Plan { method: "linear-light-source".into(), tick_hz: p.tick_hz, steps, frame_bytes: p.frame_bytes })
+    Ok(Plan {
+        method: "linear-light-source".into(),
+        tick_hz: p.tick_hz,
+        steps,
+        frame_bytes: p.frame_bytes,
+        meta: serde_json::Value::Null,
+    })
 }

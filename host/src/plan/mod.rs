@@ -18,6 +18,8 @@ pub mod immersion;
 pub mod lls;
 
 use lightrig_protocol::sequence::{Action, AxisRef, Item, Profile, WaitFor};
+use std::sync::Arc;
+
 use serde::Serialize;
 
 /// One trigger a step fires, in firing order.
@@ -30,21 +32,117 @@ pub struct Shot {
 }
 
 /// A unit of acquisition: one device sequence.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+///
+/// A step keeps what it is (id, name, `meta`, duration, trigger counts) and *how to build* its
+/// items and shots, not the items themselves: those are built when the step runs
+/// ([`Step::items`], [`Step::body`]) and dropped after. A full DISCO plan (72 views × 64² spots
+/// × 3 lasers, 885 k triggers) would otherwise hold about 200 MB of items and labels before its
+/// first frame; planned lazily it holds its step heads only (`host/tests/plan_memory.rs`).
+#[derive(Clone, Serialize)]
 pub struct Step {
     /// Stable id within the plan (the session journal refers to steps by it).
     pub id: u32,
     /// Human-readable name ("view 3", "pass laser").
     pub name: String,
-    /// The sequence items.
+    /// Duration if every wait ends at once, ticks: a lower bound.
+    pub min_ticks: u64,
+    /// Triggers per camera, cameras in the order of their first trigger.
+    pub triggers: Vec<(u8, u32)>,
+    /// Laser channels the step switches on (bit `n`: channel `n`), for arming.
+    pub lasers: u8,
+    /// Method-specific description of the step, for the pipeline.
+    pub meta: serde_json::Value,
+    /// Builds the items and shots, without the closing marker.
     #[serde(skip)]
+    make: Arc<dyn Fn(&mut StepBuilder) + Send + Sync>,
+}
+
+/// A step's sequence, built: its items and the triggers they fire.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Body {
+    /// The sequence items, ending with `Marker { id }`.
     pub items: Vec<Item>,
     /// The triggers, in the order they fire.
     pub shots: Vec<Shot>,
-    /// Duration if every wait ends at once, ticks: a lower bound.
-    pub min_ticks: u64,
-    /// Method-specific description of the step, for the pipeline.
-    pub meta: serde_json::Value,
+}
+
+impl Step {
+    /// A step whose sequence `make` builds, now once (for the duration and trigger counts) and
+    /// again each time the step runs. `make` must build the same sequence every time: it is a
+    /// plain function of what it captures.
+    pub fn new(
+        id: u32,
+        name: impl Into<String>,
+        meta: serde_json::Value,
+        make: impl Fn(&mut StepBuilder) + Send + Sync + 'static,
+    ) -> Step {
+        let mut b = StepBuilder::default();
+        make(&mut b);
+        let min_ticks = b.ticks + u64::from(b.pending_delta);
+        let mut triggers: Vec<(u8, u32)> = Vec::new();
+        for shot in &b.shots {
+            match triggers.iter_mut().find(|(c, _)| *c == shot.camera) {
+                Some((_, n)) => *n += 1,
+                None => triggers.push((shot.camera, 1)),
+            }
+        }
+        let lasers = b.items.iter().fold(0u8, |mask, i| match i.action {
+            Action::Laser { channel, on: true } => mask | 1u8.checked_shl(u32::from(channel)).unwrap_or(0),
+            _ => mask,
+        });
+        Step { id, name: name.into(), min_ticks, triggers, lasers, meta, make: Arc::new(make) }
+    }
+
+    /// The step's items and shots, built now.
+    pub fn body(&self) -> Body {
+        let mut b = StepBuilder::default();
+        (self.make)(&mut b);
+        b.then(Action::Marker { id: self.id });
+        Body { items: b.items, shots: b.shots }
+    }
+
+    /// The sequence items, built now; the last is `Marker { id }`, after any pending delay, so
+    /// a delay after the last trigger (exposure, readout) still separates this step from the
+    /// next.
+    pub fn items(&self) -> Vec<Item> {
+        self.body().items
+    }
+
+    /// The triggers, in firing order, built now.
+    pub fn shots(&self) -> Vec<Shot> {
+        self.body().shots
+    }
+
+    /// How many triggers the step fires, all cameras together.
+    pub fn shot_count(&self) -> usize {
+        self.triggers.iter().map(|&(_, n)| n as usize).sum()
+    }
+}
+
+impl std::fmt::Debug for Step {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Step")
+            .field("id", &self.id)
+            .field("name", &self.name)
+            .field("min_ticks", &self.min_ticks)
+            .field("triggers", &self.triggers)
+            .field("lasers", &self.lasers)
+            .field("meta", &self.meta)
+            .finish_non_exhaustive()
+    }
+}
+
+/// Steps are equal when they say the same and build the same sequence.
+impl PartialEq for Step {
+    fn eq(&self, other: &Step) -> bool {
+        self.id == other.id
+            && self.name == other.name
+            && self.min_ticks == other.min_ticks
+            && self.triggers == other.triggers
+            && self.lasers == other.lasers
+            && self.meta == other.meta
+            && self.body() == other.body()
+    }
 }
 
 /// A whole acquisition.
@@ -58,6 +156,9 @@ pub struct Plan {
     pub steps: Vec<Step>,
     /// Bytes per frame, for the data-volume estimate.
     pub frame_bytes: u64,
+    /// Method-specific description shared by every step (DISCO's spot grid), for the
+    /// pipeline; `Null` if none.
+    pub meta: serde_json::Value,
 }
 
 /// What a plan will cost, reported before it runs.
@@ -76,7 +177,7 @@ pub struct Summary {
 impl Plan {
     /// Totals, for the user to confirm before running.
     pub fn summary(&self) -> Summary {
-        let triggers: usize = self.steps.iter().map(|s| s.shots.len()).sum();
+        let triggers: usize = self.steps.iter().map(Step::shot_count).sum();
         let ticks: u64 = self.steps.iter().map(|s| s.min_ticks).sum();
         let us = u128::from(ticks) * 1_000_000 / u128::from(self.tick_hz.max(1));
         Summary {
@@ -148,11 +249,14 @@ impl StepBuilder {
         self
     }
 
-    /// The finished step. It ends with a `Marker { id }` after any pending delay, so a delay
-    /// after the last trigger (exposure, readout) still separates this step from the next.
-    pub fn build(mut self, id: u32, name: impl Into<String>, meta: serde_json::Value) -> Step {
-        self.then(Action::Marker { id });
-        Step { id, name: name.into(), items: self.items, shots: self.shots, min_ticks: self.ticks, meta }
+    /// Fires every camera in `cameras` on the same tick (in that order, one item each), all
+    /// with `exposure` ticks: one frame of the same scene state from each camera.
+    pub fn shoot_all(&mut self, cameras: &[u8], exposure: u32, label: impl Into<String>) -> &mut Self {
+        let label = label.into();
+        for &camera in cameras {
+            self.shoot(camera, exposure, label.clone());
+        }
+        self
     }
 }
 

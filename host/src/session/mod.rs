@@ -475,6 +475,39 @@ impl Session {
         self.state.frames_of(step)
     }
 
+    /// The frames of `step`'s completed attempt from `camera` only, in frame order.
+    pub fn camera_frames_of(&self, step: StepId, camera: u8) -> Vec<FrameRecord> {
+        let mut v: Vec<FrameRecord> =
+            self.state.frames_of(step).into_iter().filter(|f| f.camera == camera).collect();
+        v.sort_by_key(|f| f.frame);
+        v
+    }
+
+    /// The cameras the plan triggers, in increasing order.
+    pub fn cameras(&self) -> Vec<u8> {
+        let mut c: Vec<u8> =
+            self.manifest.plan.steps.iter().flat_map(|s| s.triggers.iter().map(|t| t.camera)).collect();
+        c.sort_unstable();
+        c.dedup();
+        c
+    }
+
+    /// The camera a single-camera pipeline reads: `wanted` if the plan triggers it, else the
+    /// plan's only camera, or its lowest one when it has several (the error says which exist).
+    pub fn pipeline_camera(&self, wanted: Option<u8>) -> std::result::Result<u8, String> {
+        let cameras = self.cameras();
+        match (wanted, cameras.first()) {
+            (Some(c), _) if cameras.contains(&c) => Ok(c),
+            (Some(c), _) => Err(format!(
+                "{}: the session has no frames from camera {c} (its cameras: {:?}); pick one of those with --camera",
+                self.dir.display(),
+                cameras
+            )),
+            (None, Some(&c)) => Ok(c),
+            (None, None) => Err(format!("{}: the session's plan triggers no camera", self.dir.display())),
+        }
+    }
+
     /// The plan's steps not done yet, in plan order (those of `plan`, which may differ from the
     /// manifest's).
     pub fn pending_steps_of(&self, plan: &PlanSummary) -> Vec<StepId> {

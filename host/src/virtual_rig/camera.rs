@@ -77,7 +77,7 @@ pub struct VirtualCamera<S: Scene> {
     mount_deg: f64,
     meta: serde_json::Value,
     input: DirectoryInput,
-    on_frame: Option<Box<dyn FnMut(u64)>>,
+    on_frame: Option<Box<dyn FnMut(u64) + Send>>,
     /// The board's changes: with it, frames integrate over their exposure.
     timeline: Option<(Timeline, usize)>,
     /// Triggers whose exposure has not ended yet, with the state at their tick.
@@ -143,7 +143,7 @@ impl<S: Scene> VirtualCamera<S> {
     }
 
     /// Calls `f` with the count of frames rendered after each one (for a progress bar).
-    pub fn on_frame(&mut self, f: impl FnMut(u64) + 'static) {
+    pub fn on_frame(&mut self, f: impl FnMut(u64) + Send + 'static) {
         self.on_frame = Some(Box::new(f));
     }
 

@@ -83,7 +83,7 @@ pub fn lls_params() -> lightrig_host::plan::lls::LlsParams {
         start: -800,
         step: 80,
         count: 21,
-        camera: 0,
+        cameras: vec![0],
         exposures: vec![2_000],
         settle: 5_000,
         frame_gap: 3_000,

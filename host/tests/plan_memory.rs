@@ -1,0 +1,91 @@
+//! A plan holds step heads, not step sequences: planning the DISCO example at full size (72 views
+//! × 64² spots × 3 lasers, 885 k triggers) must not allocate its items and labels up front.
+//!
+//! The whole test binary counts its heap with a global allocator, so this file holds one test
+//! (no other test's allocations run alongside).
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use lightrig_host::plan::from_rig;
+use lightrig_host::rigfile::RigFile;
+use lightrig_host::selfcheck::virtual_device_info;
+use lightrig_protocol::sequence::{Action, Item};
+
+/// The system allocator, counting live bytes and their peak.
+struct Counting;
+
+static LIVE: AtomicUsize = AtomicUsize::new(0);
+static PEAK: AtomicUsize = AtomicUsize::new(0);
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        let p = unsafe { System.alloc(layout) };
+        if !p.is_null() {
+            let now = LIVE.fetch_add(layout.size(), Ordering::Relaxed) + layout.size();
+            PEAK.fetch_max(now, Ordering::Relaxed);
+        }
+        p
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) };
+        LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
+    }
+}
+
+#[global_allocator]
+static ALLOC: Counting = Counting;
+
+/// Resets the peak to what is live now, runs `f`, and returns its result with the peak (bytes
+/// above the start) while it ran and what it left allocated.
+fn measured<R>(f: impl FnOnce() -> R) -> (R, usize, usize) {
+    let base = LIVE.load(Ordering::Relaxed);
+    PEAK.store(base, Ordering::Relaxed);
+    let r = f();
+    let peak = PEAK.load(Ordering::Relaxed) - base;
+    let kept = LIVE.load(Ordering::Relaxed).saturating_sub(base);
+    (r, peak, kept)
+}
+
+#[test]
+fn the_full_disco_plan_holds_heads_and_builds_one_step_at_a_time() {
+    let path = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../docs/rigs/disco.toml"));
+    let rig = RigFile::load(&path).unwrap();
+    let info = virtual_device_info();
+
+    let (plan, peak, kept) = measured(|| from_rig::plan(&rig, &info).unwrap());
+    let s = plan.summary();
+    assert_eq!((s.steps, s.triggers), (72, 72 * 3 * 64 * 64));
+    // One view's sequence: a move, and per laser on/ready/off around
+    // 4096 × (jump, trigger); ≈ 50 k items.
+    let items_per_view = plan.steps[0].items().len();
+    assert!(items_per_view > 3 * 64 * 64 * 2, "{items_per_view}");
+    let all_items = 72 * items_per_view * std::mem::size_of::<Item>();
+    eprintln!(
+        "plan: peak {:.1} MB, kept {:.1} MB; all items would be {:.1} MB (+ labels)",
+        peak as f64 / 1e6,
+        kept as f64 / 1e6,
+        all_items as f64 / 1e6
+    );
+    // Planning builds one view at a time (to count it) and keeps heads only: far below the
+    // items of the whole plan, and not growing with the number of views.
+    assert!(kept < all_items / 50, "the plan keeps {kept} B; all its items are {all_items} B");
+    assert!(peak < all_items / 16, "planning peaked at {peak} B; all its items are {all_items} B");
+
+    // Running the steps one after another: the peak is one step's body, whatever the count.
+    let (lasers, peak, _) = measured(|| {
+        let mut on = 0usize;
+        for step in &plan.steps {
+            on += step.items().iter().filter(|i| matches!(i.action, Action::Laser { on: true, .. })).count();
+        }
+        on
+    });
+    assert_eq!(lasers, 72 * 3, "three lasers per view");
+    let one_body = {
+        let b = plan.steps[0].body();
+        b.items.capacity() * std::mem::size_of::<Item>()
+            + b.shots.iter().map(|s| std::mem::size_of_val(s) + s.label.capacity()).sum::<usize>()
+    };
+    assert!(peak < 3 * one_body, "building every step in turn peaked at {peak} B; one step is {one_body} B");
+}
