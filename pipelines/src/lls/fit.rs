@@ -531,29 +531,39 @@ pub type StripTrace = ([Vec<f64>; 3], [Vec<bool>; 3], Vec<f64>);
 /// trace to the model trace of a Lambertian surface of the strip's albedo (least squares), and
 /// the median over the pixels. `traces[i][c][k]` are exposure-normalised values.
 pub fn strip_scale(traces: &[StripTrace], albedo: f64) -> Option<[f64; 3]> {
-    if traces.is_empty() {
+    let ratios: Vec<[Option<f64>; 3]> = traces.iter().map(|t| strip_ratio(t, albedo)).collect();
+    strip_scale_of(&ratios)
+}
+
+/// One strip pixel's part of [`strip_scale`]: per channel the ratio of its trace to the
+/// model's, `None` where no frame is valid. (A streamed fit computes these block by block.)
+pub fn strip_ratio(trace: &StripTrace, albedo: f64) -> [Option<f64>; 3] {
+    let (obs, valid, d) = trace;
+    std::array::from_fn(|c| {
+        let (mut od, mut dd) = (0.0, 0.0);
+        for k in 0..d.len() {
+            if valid[c][k] {
+                od += obs[c][k] * d[k];
+                dd += d[k] * d[k];
+            }
+        }
+        (dd > 0.0).then(|| od / dd / albedo)
+    })
+}
+
+/// [`strip_scale`] from the pixels' [`strip_ratio`]s: per channel their median.
+pub fn strip_scale_of(ratios: &[[Option<f64>; 3]]) -> Option<[f64; 3]> {
+    if ratios.is_empty() {
         return None;
     }
     let mut out = [0.0; 3];
     for (c, o) in out.iter_mut().enumerate() {
-        let mut ratios: Vec<f64> = traces
-            .iter()
-            .filter_map(|(obs, valid, d)| {
-                let (mut od, mut dd) = (0.0, 0.0);
-                for k in 0..d.len() {
-                    if valid[c][k] {
-                        od += obs[c][k] * d[k];
-                        dd += d[k] * d[k];
-                    }
-                }
-                (dd > 0.0).then(|| od / dd / albedo)
-            })
-            .collect();
-        if ratios.is_empty() {
+        let mut r: Vec<f64> = ratios.iter().filter_map(|p| p[c]).collect();
+        if r.is_empty() {
             return None;
         }
-        ratios.sort_by(f64::total_cmp);
-        *o = ratios[ratios.len() / 2];
+        r.sort_by(f64::total_cmp);
+        *o = r[r.len() / 2];
     }
     Some(out)
 }

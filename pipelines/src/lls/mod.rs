@@ -27,8 +27,8 @@ pub use model::{TabledTraces, TraceModel};
 pub use table::{lobe_geometry, LobeGeometry, LobeTables, PixelLobes, TableLobe};
 
 pub use fit::{
-    blend_normals, fit_normal, fit_trace, fit_trace_tabled, normals_from_points, point_on_sheet, strip_scale,
-    stripe_peak, PassTrace, TraceFit,
+    blend_normals, fit_normal, fit_trace, fit_trace_tabled, normals_from_points, point_on_sheet, strip_ratio,
+    strip_scale, strip_scale_of, stripe_peak, PassTrace, StripTrace, TraceFit,
 };
 
 use lightrig_imaging::calib::{find_chessboard, pixel_ray, pose_from_board, Board, Intrinsics, Pose};
