@@ -12,8 +12,9 @@
 //! 4. [`fit_trace`]: per pixel, the Ward lobes integrated over the real tube for that pixel's
 //!    point, normal and view at every frame's tube position ([`TraceModel`], one integration
 //!    per trial for a whole pass); `ρd`, `ρs` per channel by linear least squares for a given
-//!    `α`, and `α` by a search on the residual (a grid, then parabolic steps on `log α`). The
-//!    light's scale comes from the diffuse calibration strip ([`strip_scale`]).
+//!    `α`, and `α` by a search on the residual (a start from the trace's spread, a bracket,
+//!    then parabolic steps on `log α`). The light's scale comes from the diffuse calibration
+//!    strip ([`strip_scale`]).
 //!    [`fit_trace_tabled`] runs the same search with the specular traces looked up in tables
 //!    shared across pixels ([`LobeTables`], Gardner's reflectance tables), a lookup per frame
 //!    per trial.
