@@ -400,13 +400,13 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
     let fitbar = bar(opts.progress, u64::from(w * h), "fit");
     let fb = fitbar.clone();
     let fb_len = fitbar.clone();
-    let maps = fit_session(&session_dir, Some(&calibration), &move |done, total| {
+    let fit_dir = out.join("fit");
+    let maps = fit_session(&session_dir, Some(&calibration), &fit_dir, &move |done, total| {
         fb_len.set_length(total);
         fb.set_position(done)
     })
     .map_err(|e| CliError { code: FAILURE, message: e.to_string() })?;
     fitbar.finish();
-    let fit_dir = out.join("fit");
     let files =
         write_outputs(&maps, &fit_dir).map_err(|e| CliError { code: FAILURE, message: e.to_string() })?;
     let t_all = t0.elapsed();

@@ -25,6 +25,7 @@ pub mod firs_demo;
 pub mod firs_fit;
 pub mod frames;
 pub mod lls_fit;
+pub mod lls_stack;
 pub mod plan;
 pub mod rigfile;
 pub mod selfcheck;

@@ -21,15 +21,16 @@ use lightrig_imaging::io::{
 };
 use lightrig_pipelines::linear_light::{hides, response, Quadrature, Tube};
 use lightrig_pipelines::lls::{
-    blend_normals, fit_normal, fit_trace_tabled, normals_from_points, point_on_sheet, register, strip_scale,
-    stripe_peak, BoardGeometry, Light, LobeTables, PassTrace, Registration, Setup, Sheet, Strip, TraceFit,
-    TraceModel,
+    blend_normals, fit_normal, fit_trace_tabled, normals_from_points, point_on_sheet, register, strip_ratio,
+    strip_scale_of, stripe_peak, BoardGeometry, Light, LobeTables, PassTrace, Registration, Setup, Sheet,
+    Strip, TraceFit, TraceModel,
 };
 use lightrig_pipelines::vec3::{normalize, sub, V3};
 use lightrig_pipelines::ward::Ward;
 use rayon::prelude::*;
 use serde::Deserialize;
 
+use crate::lls_stack::{block_pixels, Block, TraceStack};
 use crate::rigfile::RigFile;
 use crate::session::{trigger_events, Session};
 
@@ -179,65 +180,143 @@ pub struct LlsMaps {
     pub specular_strip: (f64, f64),
     /// A reflectance frame as captured and as the fitted maps predict it (value per second).
     pub check_frame: (f64, Vec<f32>, Vec<f32>),
+    /// The most bytes of traces the streamed fit held at once (its blocks; see
+    /// [`Streaming::block_bytes`]).
+    pub resident_trace_bytes: usize,
 }
 
 const CLIP: f32 = 0.98;
 
-fn load_pass(
+/// One gantry position of a pass: its images (an exposure bracket) and their exposures, s.
+struct Position {
+    steps: i32,
+    images: Vec<(PathBuf, f64)>,
+}
+
+/// The positions of plan step `step` from the frames' trigger records, without decoding.
+fn positions_of(
     session: &Session,
     dir: &Path,
     step: u32,
     triggers: &std::collections::HashMap<(u32, u32), lightrig_protocol::event::TriggerEvent>,
     gantry: &crate::rigfile::Stepper,
     tick_hz: f64,
-) -> Result<Vec<PassFrame>, FitError> {
+) -> Result<Vec<Position>, FitError> {
     let mut frames = session.frames_of(step);
     frames.sort_by_key(|f| f.frame);
-    let mut out: Vec<(i32, Vec<f32>, Vec<f32>)> = Vec::new(); // steps, Σ w·rate, Σ w
-    let mut size = (0, 0);
+    let mut out: Vec<Position> = Vec::new();
     for f in &frames {
         let t = triggers.get(&(f.sequence, f.item)).ok_or_else(|| {
             fail(format!("{}: frame {} has no trigger record in the journal", dir.display(), f.file))
         })?;
         let steps = t.snapshot.axes.get(usize::from(gantry.axis)).copied().unwrap_or(0);
         let exposure = f64::from(t.width) / tick_hz;
-        let path = dir.join(&f.file);
-        let img = read_with(&path, ReadOptions { assume: Encoding::Linear, expect_depth: None })
+        if out.last().is_none_or(|l| l.steps != steps) {
+            out.push(Position { steps, images: Vec::new() });
+        }
+        if let Some(last) = out.last_mut() {
+            last.images.push((dir.join(&f.file), exposure));
+        }
+    }
+    Ok(out)
+}
+
+/// Decodes a position's bracket and merges it: exposure-weighted, clipped samples dropped.
+/// `size`, when known, is the size every image must have.
+fn merge(pos: &Position, size: Option<(u32, u32)>) -> Result<((u32, u32), Vec<f32>), FitError> {
+    let (mut sum, mut weight): (Vec<f32>, Vec<f32>) = (Vec::new(), Vec::new());
+    let mut size = size;
+    for (path, exposure) in &pos.images {
+        let img = read_with(path, ReadOptions { assume: Encoding::Linear, expect_depth: None })
             .map_err(|e| fail(format!("{}: {e}", path.display())))?;
         if img.channels < 3 {
             return Err(fail(format!("{}: {} channels, the fit needs RGB", path.display(), img.channels)));
         }
-        let ch = usize::from(img.channels);
-        if out.last().is_none_or(|l| l.0 != steps) {
-            let n = (img.width * img.height) as usize * 3;
-            if out.first().is_some_and(|o| o.1.len() != n) {
-                return Err(fail(format!(
-                    "{}: image size differs from the pass's first frame",
-                    path.display()
-                )));
-            }
-            out.push((steps, vec![0.0; n], vec![0.0; n]));
-            size = (img.width, img.height);
+        if let Some(s) = size.filter(|&s| s != (img.width, img.height)) {
+            return Err(fail(format!(
+                "{}: {}×{} pixels where {}×{} were expected",
+                path.display(),
+                img.width,
+                img.height,
+                s.0,
+                s.1
+            )));
         }
-        let Some(last) = out.last_mut() else { continue };
+        size = Some((img.width, img.height));
+        let n = (img.width * img.height) as usize * 3;
+        if sum.is_empty() {
+            (sum, weight) = (vec![0.0; n], vec![0.0; n]);
+        }
+        let ch = usize::from(img.channels);
         // Weight by exposure time (collected light); clipped samples get none.
         for (i, px) in img.data.chunks(ch).enumerate() {
             for (c, &v) in px.iter().take(3).enumerate() {
                 if v < CLIP {
-                    last.1[i * 3 + c] += v;
-                    last.2[i * 3 + c] += exposure as f32;
+                    sum[i * 3 + c] += v;
+                    weight[i * 3 + c] += *exposure as f32;
                 }
             }
         }
     }
-    Ok(out
-        .into_iter()
-        .map(|(steps, sum, w)| PassFrame {
-            size,
-            gantry: gantry.units(i64::from(steps)).unwrap_or(f64::from(steps)),
-            rate: sum.iter().zip(&w).map(|(s, w)| if *w > 0.0 { s / w } else { f32::NAN }).collect(),
+    let rate = sum.iter().zip(&weight).map(|(s, w)| if *w > 0.0 { s / w } else { f32::NAN }).collect();
+    Ok((size.unwrap_or((0, 0)), rate))
+}
+
+fn gantry_mm(gantry: &crate::rigfile::Stepper, steps: i32) -> f64 {
+    gantry.units(i64::from(steps)).unwrap_or(f64::from(steps))
+}
+
+/// The first position of a pass (the board, backlit and light-box passes use one).
+fn first_frame(
+    positions: &[Position],
+    gantry: &crate::rigfile::Stepper,
+) -> Result<Option<PassFrame>, FitError> {
+    positions
+        .first()
+        .map(|p| {
+            merge(p, None).map(|(size, rate)| PassFrame { size, gantry: gantry_mm(gantry, p.steps), rate })
         })
-        .collect())
+        .transpose()
+}
+
+/// A pass streamed into a [`TraceStack`] (each image decoded once), its gantry positions and,
+/// if asked, the merged values of position `keep` (the check frame).
+struct StreamedPass {
+    stack: TraceStack,
+    gantry: Vec<f64>,
+    kept: Option<Vec<f32>>,
+}
+
+fn stream_pass(
+    positions: &[Position],
+    gantry: &crate::rigfile::Stepper,
+    size: (u32, u32),
+    name: &str,
+    scratch: &Path,
+    block_pixels: usize,
+    keep: Option<usize>,
+) -> Result<StreamedPass, FitError> {
+    let pixels = size.0 as usize * size.1 as usize;
+    let path = scratch.join(format!("lls-{name}-{}.stack", std::process::id()));
+    let io = |e: std::io::Error| {
+        fail(format!(
+            "{}: {e}: the fit streams each pass through a scratch file there; check the space and \
+             permissions of the output directory",
+            path.display()
+        ))
+    };
+    let mut stack = TraceStack::create(&path, pixels, positions.len(), block_pixels).map_err(io)?;
+    let (mut bytes, mut kept) = (Vec::new(), None);
+    for (k, pos) in positions.iter().enumerate() {
+        let (_, rate) = merge(pos, Some(size)).map_err(|e| {
+            fail(format!("the {name} pass: {e} (the board frame's size: one camera, one size)"))
+        })?;
+        stack.write_position(k, &rate, &mut bytes).map_err(io)?;
+        if keep == Some(k) {
+            kept = Some(rate);
+        }
+    }
+    Ok(StreamedPass { stack, gantry: positions.iter().map(|p| gantry_mm(gantry, p.steps)).collect(), kept })
 }
 
 /// The camera's intrinsics: from the calibration file if given (its image size must match the
@@ -267,11 +346,41 @@ fn intrinsics(spec: &FitSpec, calibration: Option<&Path>, size: (u32, u32)) -> R
     Ok(Intrinsics::pinhole(k.fx, k.fy, k.cx, k.cy))
 }
 
+/// Where and in what blocks the fit streams the passes ([`TraceStack`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Streaming<'a> {
+    /// Directory for the scratch files (one per streamed pass, removed when the fit ends).
+    pub scratch: &'a Path,
+    /// Bytes of traces resident at a time: the pixels of a block times the positions of the
+    /// streamed passes (reflectance, diagonal, stripe) times RGB `f32`.
+    pub block_bytes: usize,
+}
+
+/// The default resident trace budget: 32 MiB.
+pub const BLOCK_BYTES: usize = 32 << 20;
+
 /// Reads a session and fits it, with the camera calibration file `calibration` if given (else
-/// the rig file's `[plan.fit].camera`). `progress(done, total)` is called as pixels finish.
+/// the rig file's `[plan.fit].camera`), streaming the passes through scratch files in
+/// `scratch` ([`fit_session_with`] with [`BLOCK_BYTES`]). `progress(done, total)` is called
+/// as pixels finish.
 pub fn fit_session(
     dir: &Path,
     calibration: Option<&Path>,
+    scratch: &Path,
+    progress: &(dyn Fn(u64, u64) + Sync),
+) -> Result<LlsMaps, FitError> {
+    fit_session_with(dir, calibration, Streaming { scratch, block_bytes: BLOCK_BYTES }, progress)
+}
+
+/// [`fit_session`] with the streaming's scratch directory and block budget given. Every
+/// image is decoded once; the passes whose traces the fit needs (reflectance, diagonal,
+/// stripe) are written block-major to scratch files and fitted one block of pixels at a time,
+/// so that the traces resident at once take at most `block_bytes` (or one pixel's traces,
+/// if more) whatever the number of frames. The maps do not depend on the block size.
+pub fn fit_session_with(
+    dir: &Path,
+    calibration: Option<&Path>,
+    streaming: Streaming,
     progress: &(dyn Fn(u64, u64) + Sync),
 ) -> Result<LlsMaps, FitError> {
     let (session, _) = Session::read(dir).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
@@ -304,15 +413,15 @@ pub fn fit_session(
             })
             .map(|s| s.id)
     };
-    let load_mount = |name: &str, mount: Option<i64>| -> Result<Vec<PassFrame>, FitError> {
+    let positions_mount = |name: &str, mount: Option<i64>| -> Result<Vec<Position>, FitError> {
         match pass_of(name, mount) {
-            Some(id) => load_pass(&session, dir, id, &triggers, gantry, tick_hz),
+            Some(id) => positions_of(&session, dir, id, &triggers, gantry, tick_hz),
             None => Ok(Vec::new()),
         }
     };
-    let load = |name: &str| load_mount(name, None);
-    let board = load("board")?;
-    let reflect = load_mount("reflectance", Some(0))?;
+    let positions = |name: &str| positions_mount(name, None);
+    let board = first_frame(&positions("board")?, gantry)?;
+    let reflect_pos = positions_mount("reflectance", Some(0))?;
     let mut mounts: Vec<i64> = manifest
         .plan
         .steps
@@ -323,40 +432,61 @@ pub fn fit_session(
         .collect();
     mounts.sort_unstable();
     mounts.dedup();
-    let diagonal: Vec<(i64, Vec<PassFrame>)> =
+    let diagonal_pos: Vec<(i64, Vec<Position>)> =
         if mounts.iter().any(|&m| m > 0) && mounts.iter().any(|&m| m < 0) {
             mounts
                 .iter()
-                .map(|&m| Ok((m, load_mount("reflectance", Some(m))?)))
+                .map(|&m| Ok((m, positions_mount("reflectance", Some(m))?)))
                 .collect::<Result<_, FitError>>()?
         } else {
             Vec::new()
         };
-    let stripe = load("stripe")?;
-    let backlit = load("backlit")?;
-    let lightbox = load("light-box")?;
-    let first =
-        board.first().ok_or_else(|| fail("the session has no board frame: the camera's pose needs one"))?;
-    if reflect.len() < 5 {
+    let stripe_pos = positions("stripe")?;
+    let backlit = first_frame(&positions("backlit")?, gantry)?;
+    let lightbox = first_frame(&positions("light-box")?, gantry)?;
+    let first = board.ok_or_else(|| fail("the session has no board frame: the camera's pose needs one"))?;
+    if reflect_pos.len() < 5 {
         return Err(fail(format!(
             "the reflectance pass has {} positions; the fit needs a sweep",
-            reflect.len()
+            reflect_pos.len()
         )));
     }
     let (w, h) = (first.size.0 as usize, first.size.1 as usize);
-    let setup = spec.setup(intrinsics(&spec, calibration, first.size)?);
-    for (name, pass) in
-        [("reflectance", &reflect), ("stripe", &stripe), ("backlit", &backlit), ("light-box", &lightbox)]
-            .into_iter()
-            .chain(diagonal.iter().map(|(_, p)| ("diagonal reflectance", p)))
-    {
-        if let Some(f) = pass.iter().find(|f| f.size != first.size) {
+    for (name, f) in [("backlit", &backlit), ("light-box", &lightbox)] {
+        if let Some(f) = f.as_ref().filter(|f| f.size != first.size) {
             return Err(fail(format!(
                 "the {name} pass's frames are {}×{} but the board frame is {w}×{h}: one camera, one size",
                 f.size.0, f.size.1
             )));
         }
     }
+    let setup = spec.setup(intrinsics(&spec, calibration, first.size)?);
+    // Stream the passes with traces: one block partition for all (the same pixels in every
+    // pass' block b), sized so that a block of every streamed pass together fits the budget.
+    std::fs::create_dir_all(streaming.scratch)
+        .map_err(|e| fail(format!("{}: {e}: the fit's scratch directory", streaming.scratch.display())))?;
+    let streamed_positions =
+        reflect_pos.len() + stripe_pos.len() + diagonal_pos.iter().map(|(_, p)| p.len()).sum::<usize>();
+    let bp = block_pixels(streaming.block_bytes, streamed_positions);
+    let stream = |pos: &[Position], name: &str, keep: Option<usize>| {
+        stream_pass(pos, gantry, first.size, name, streaming.scratch, bp, keep)
+    };
+    let mut reflect = stream(&reflect_pos, "reflectance", Some(reflect_pos.len() / 2))?;
+    let mut diagonal: Vec<(i64, StreamedPass)> = diagonal_pos
+        .iter()
+        .map(|(m, pos)| Ok((*m, stream(pos, &format!("reflectance{m:+}"), None)?)))
+        .collect::<Result<_, FitError>>()?;
+    let mut stripe = stream(&stripe_pos, "stripe", None)?;
+    let blocks = reflect.stack.blocks();
+    let resident = std::cell::Cell::new(0usize);
+    let read = |s: &mut StreamedPass, b: usize, out: &mut Block| {
+        s.stack.read_block(b, out).map_err(|e| {
+            fail(format!("{}: {e}: reading the fit's scratch file back", s.stack.path().display()))
+        })?;
+        resident.set(resident.get().max(out.resident_bytes()));
+        Ok::<(), FitError>(())
+    };
+
     let board_img = Image {
         width: w as u32,
         height: h as u32,
@@ -367,38 +497,44 @@ pub fn fit_session(
     let reg: Registration = register(&setup, &board_img).map_err(|e| fail(e.to_string()))?;
 
     // Surface points: the stripe's crossing, or the reference plane where no stripe shows.
-    let stripe_pos: Vec<f64> = stripe.iter().map(|f| f.gantry).collect();
-    let stripe_max = stripe.iter().flat_map(|f| f.rate.iter().step_by(3)).fold(0f32, |a, &v| {
-        if v.is_nan() {
-            a
-        } else {
-            a.max(v)
-        }
-    });
-    let points: Vec<Option<V3>> = (0..w * h)
-        .map(|i| {
-            let (o, d) = reg.rays[i];
-            // The red channel sees the laser best; where it clipped, the green one (which
-            // passes a little of it).
-            let channel =
-                |c: usize| -> Vec<f64> { stripe.iter().map(|f| f64::from(f.rate[i * 3 + c])).collect() };
-            let red = channel(0);
-            let trace: Vec<f64> = if red.iter().any(|v| v.is_nan()) { channel(1) } else { red }
-                .into_iter()
-                .map(|v| v.max(0.0))
-                .collect();
-            let on_sheet = if stripe.len() >= 3 {
-                stripe_peak(&trace, &stripe_pos, f64::from(stripe_max) * 0.002)
-                    .and_then(|g| point_on_sheet(o, d, g, &setup.sheet))
-            } else {
-                None
-            };
-            on_sheet.or_else(|| {
-                let t = -o[2] / d[2];
-                (t > 0.0).then(|| [o[0] + t * d[0], o[1] + t * d[1], 0.0])
+    let stripe_max = stripe.stack.peak[0].max(0.0);
+    let mut points: Vec<Option<V3>> = vec![None; w * h];
+    let mut block = Block::default();
+    for b in 0..blocks {
+        read(&mut stripe, b, &mut block)?;
+        let blk = &block;
+        let stripe_pos = &stripe.gantry;
+        let got: Vec<Option<V3>> = blk
+            .pixels
+            .clone()
+            .into_par_iter()
+            .map(|i| {
+                let (o, d) = reg.rays[i];
+                // The red channel sees the laser best; where it clipped, the green one (which
+                // passes a little of it).
+                let channel = |c: usize| -> Vec<f64> {
+                    (0..blk.positions()).map(|k| f64::from(blk.rate(i, k, c))).collect()
+                };
+                let red = channel(0);
+                let trace: Vec<f64> = if red.iter().any(|v| v.is_nan()) { channel(1) } else { red }
+                    .into_iter()
+                    .map(|v| v.max(0.0))
+                    .collect();
+                let on_sheet = if stripe_pos.len() >= 3 {
+                    stripe_peak(&trace, stripe_pos, f64::from(stripe_max) * 0.002)
+                        .and_then(|g| point_on_sheet(o, d, g, &setup.sheet))
+                } else {
+                    None
+                };
+                on_sheet.or_else(|| {
+                    let t = -o[2] / d[2];
+                    (t > 0.0).then(|| [o[0] + t * d[0], o[1] + t * d[1], 0.0])
+                })
             })
-        })
-        .collect();
+            .collect();
+        points[blk.pixels.clone()].copy_from_slice(&got);
+    }
+    drop(stripe);
     let in_strip = |i: usize| {
         points[i]
             .is_some_and(|p| setup.diffuse_strip.contains(p, -0.5) || setup.specular_strip.contains(p, -0.5))
@@ -409,40 +545,49 @@ pub fn fit_session(
             *n = Some([0.0, 0.0, 1.0]);
         }
     }
-    let tubes: Vec<Tube> = reflect.iter().map(|f| setup.light.at(f.gantry)).collect();
+    let tubes: Vec<Tube> = reflect.gantry.iter().map(|&g| setup.light.at(g)).collect();
     let diagonal_tubes: Vec<Vec<Tube>> = diagonal
         .iter()
         .map(|(m, pass)| {
-            pass.iter().map(|f| setup.light.mounted(f.gantry, (*m as f64).to_radians())).collect()
+            pass.gantry.iter().map(|&g| setup.light.mounted(g, (*m as f64).to_radians())).collect()
         })
         .collect();
-    let trace_in = |pass: &[PassFrame], tubes: &[Tube], i: usize, p: V3, v: V3, scale: [f64; 3]| {
+    let trace_in = |pass: &Block, tubes: &[Tube], i: usize, p: V3, v: V3, scale: [f64; 3]| {
         let mut obs: [Vec<f64>; 3] = Default::default();
         let mut valid: [Vec<bool>; 3] = Default::default();
-        for (f, t) in pass.iter().zip(tubes) {
+        for (k, t) in tubes.iter().enumerate() {
             // Leave a millimetre's margin around the tube's silhouette.
             let wide = Tube { radius: t.radius + 1.0, ..*t };
             let hidden = hides(p, v, &wide);
             for c in 0..3 {
-                let r = f64::from(f.rate[i * 3 + c]);
+                let r = f64::from(pass.rate(i, k, c));
                 valid[c].push(!hidden && r.is_finite());
                 obs[c].push(if r.is_finite() { r / scale[c] } else { 0.0 });
             }
         }
         (obs, valid)
     };
-    let trace_of = |i: usize, p: V3, v: V3, scale: [f64; 3]| trace_in(&reflect, &tubes, i, p, v, scale);
     // The light's scale from the diffuse strip (its inner part).
-    let strip_traces: Vec<_> = (0..w * h)
-        .filter(|&i| points[i].is_some_and(|p| setup.diffuse_strip.contains(p, 1.0)))
-        .map(|i| {
-            let p = points[i].unwrap_or([0.0; 3]);
-            let v = normalize(sub(reg.rays[i].0, p));
-            let (obs, valid) = trace_of(i, p, v, [1.0; 3]);
-            (obs, valid, TraceModel::new(p, v, &tubes).diffuse([0.0, 0.0, 1.0]))
-        })
-        .collect();
-    let scale = strip_scale(&strip_traces, setup.diffuse_strip.albedo)
+    let mut strip_ratios = Vec::new();
+    for b in 0..blocks {
+        read(&mut reflect, b, &mut block)?;
+        let blk = &block;
+        let got: Vec<[Option<f64>; 3]> = blk
+            .pixels
+            .clone()
+            .into_par_iter()
+            .filter(|&i| points[i].is_some_and(|p| setup.diffuse_strip.contains(p, 1.0)))
+            .map(|i| {
+                let p = points[i].unwrap_or([0.0; 3]);
+                let v = normalize(sub(reg.rays[i].0, p));
+                let (obs, valid) = trace_in(blk, &tubes, i, p, v, [1.0; 3]);
+                let d = TraceModel::new(p, v, &tubes).diffuse([0.0, 0.0, 1.0]);
+                strip_ratio(&(obs, valid, d), setup.diffuse_strip.albedo)
+            })
+            .collect();
+        strip_ratios.extend(got);
+    }
+    let scale = strip_scale_of(&strip_ratios)
         .ok_or_else(|| fail("no pixel sees the diffuse calibration strip: check [plan.fit.diffuse_strip]"))?;
     // Progress: the first fit, then (with diagonal passes) the normals and the refit.
     let rounds = if diagonal.is_empty() { 1 } else { 3 };
@@ -460,50 +605,71 @@ pub fn fit_session(
     // the pixels need them).
     let tables = LobeTables::new();
     let want_fit = |i: usize| fitted[i] || points[i].is_some_and(|p| setup.specular_strip.contains(p, 1.0));
-    let mut fit: Vec<TraceFit> = (0..w * h)
-        .into_par_iter()
-        .map(|i| {
-            let out = match (want_fit(i), points[i], normals[i]) {
-                (true, Some(p), Some(n)) => {
-                    let v = normalize(sub(reg.rays[i].0, p));
-                    let (obs, valid) = trace_of(i, p, v, scale);
-                    fit_trace_tabled(&obs, &valid, &TraceModel::new(p, v, &tubes), n, None, &tables)
-                }
-                _ => TraceFit::default(),
-            };
-            tick();
-            out
-        })
-        .collect();
-    let geometric_normals = normals.clone();
-    let mut photometric_normals = vec![None; w * h];
-    if !diagonal.is_empty() {
-        photometric_normals = (0..w * h)
+    let mut fit: Vec<TraceFit> = vec![TraceFit::default(); w * h];
+    for b in 0..blocks {
+        read(&mut reflect, b, &mut block)?;
+        let blk = &block;
+        let got: Vec<TraceFit> = blk
+            .pixels
+            .clone()
             .into_par_iter()
             .map(|i| {
-                let out = match (fitted[i], points[i], normals[i]) {
+                let out = match (want_fit(i), points[i], normals[i]) {
                     (true, Some(p), Some(n)) => {
                         let v = normalize(sub(reg.rays[i].0, p));
-                        let traces: Vec<_> = diagonal
-                            .iter()
-                            .zip(&diagonal_tubes)
-                            .map(|((_, pass), t)| trace_in(pass, t, i, p, v, scale))
-                            .collect();
-                        let models: Vec<TraceModel> =
-                            diagonal_tubes.iter().map(|t| TraceModel::new(p, v, t)).collect();
-                        let passes: Vec<PassTrace> = traces
-                            .iter()
-                            .zip(&models)
-                            .map(|((obs, valid), model)| PassTrace { obs, valid, model })
-                            .collect();
-                        fit_normal(&passes, n, fit[i].alpha, Some(&tables))
+                        let (obs, valid) = trace_in(blk, &tubes, i, p, v, scale);
+                        fit_trace_tabled(&obs, &valid, &TraceModel::new(p, v, &tubes), n, None, &tables)
                     }
-                    _ => None,
+                    _ => TraceFit::default(),
                 };
                 tick();
                 out
             })
             .collect();
+        fit[blk.pixels.clone()].copy_from_slice(&got);
+    }
+    let geometric_normals = normals.clone();
+    let mut photometric_normals = vec![None; w * h];
+    if !diagonal.is_empty() {
+        let mut diag_blocks: Vec<Block> = diagonal.iter().map(|_| Block::default()).collect();
+        for b in 0..blocks {
+            for ((_, pass), blk) in diagonal.iter_mut().zip(&mut diag_blocks) {
+                read(pass, b, blk)?;
+            }
+            // With the straight pass' buffer, still allocated.
+            let held = block.resident_bytes() + diag_blocks.iter().map(Block::resident_bytes).sum::<usize>();
+            resident.set(resident.get().max(held));
+            let range = diag_blocks[0].pixels.clone();
+            let got: Vec<Option<V3>> = range
+                .clone()
+                .into_par_iter()
+                .map(|i| {
+                    let out = match (fitted[i], points[i], normals[i]) {
+                        (true, Some(p), Some(n)) => {
+                            let v = normalize(sub(reg.rays[i].0, p));
+                            let traces: Vec<_> = diag_blocks
+                                .iter()
+                                .zip(&diagonal_tubes)
+                                .map(|(blk, t)| trace_in(blk, t, i, p, v, scale))
+                                .collect();
+                            let models: Vec<TraceModel> =
+                                diagonal_tubes.iter().map(|t| TraceModel::new(p, v, t)).collect();
+                            let passes: Vec<PassTrace> = traces
+                                .iter()
+                                .zip(&models)
+                                .map(|((obs, valid), model)| PassTrace { obs, valid, model })
+                                .collect();
+                            fit_normal(&passes, n, fit[i].alpha, Some(&tables))
+                        }
+                        _ => None,
+                    };
+                    tick();
+                    out
+                })
+                .collect();
+            photometric_normals[range].copy_from_slice(&got);
+        }
+        drop(diag_blocks);
         // The geometric normals' low frequencies, the photometric ones' detail (σ 2 px).
         let blended = blend_normals(&photometric_normals, &geometric_normals, w, h, 2.0);
         for i in 0..w * h {
@@ -511,28 +677,35 @@ pub fn fit_session(
                 normals[i] = blended[i];
             }
         }
-        let refit: Vec<Option<TraceFit>> = (0..w * h)
-            .into_par_iter()
-            .map(|i| {
-                let out = match (fitted[i], points[i], normals[i]) {
-                    (true, Some(p), Some(n)) => {
-                        let v = normalize(sub(reg.rays[i].0, p));
-                        let (obs, valid) = trace_of(i, p, v, scale);
-                        let model = TraceModel::new(p, v, &tubes);
-                        Some(fit_trace_tabled(&obs, &valid, &model, n, Some(fit[i].alpha), &tables))
-                    }
-                    _ => None,
-                };
-                tick();
-                out
-            })
-            .collect();
-        for (f, r) in fit.iter_mut().zip(refit) {
-            if let Some(r) = r {
-                *f = r;
+        for b in 0..blocks {
+            read(&mut reflect, b, &mut block)?;
+            let blk = &block;
+            let refit: Vec<Option<TraceFit>> = blk
+                .pixels
+                .clone()
+                .into_par_iter()
+                .map(|i| {
+                    let out = match (fitted[i], points[i], normals[i]) {
+                        (true, Some(p), Some(n)) => {
+                            let v = normalize(sub(reg.rays[i].0, p));
+                            let (obs, valid) = trace_in(blk, &tubes, i, p, v, scale);
+                            let model = TraceModel::new(p, v, &tubes);
+                            Some(fit_trace_tabled(&obs, &valid, &model, n, Some(fit[i].alpha), &tables))
+                        }
+                        _ => None,
+                    };
+                    tick();
+                    out
+                })
+                .collect();
+            for (f, r) in fit[blk.pixels.clone()].iter_mut().zip(refit) {
+                if let Some(r) = r {
+                    *f = r;
+                }
             }
         }
     }
+    drop(block);
     let mut spec_strip: Vec<f64> = (0..w * h)
         .filter(|&i| points[i].is_some_and(|p| setup.specular_strip.contains(p, 1.0)))
         .map(|i| (fit[i].specular[0] + fit[i].specular[1] + fit[i].specular[2]) / 3.0)
@@ -542,7 +715,7 @@ pub fn fit_session(
         (spec_strip.get(spec_strip.len() / 2).copied().unwrap_or(f64::NAN), setup.specular_strip.albedo);
 
     let translucency: Vec<f32> = (0..w * h)
-        .map(|i| match (backlit.first(), lightbox.first()) {
+        .map(|i| match (&backlit, &lightbox) {
             (Some(b), Some(l)) => {
                 let (num, den): (f32, f32) = (0..3)
                     .map(|c| (b.rate[i * 3 + c], l.rate[i * 3 + c]))
@@ -558,7 +731,7 @@ pub fn fit_session(
         .collect();
 
     // A frame near the middle of the pass as captured and as the maps predict it.
-    let k = reflect.len() / 2;
+    let k = reflect_pos.len() / 2;
     let predicted: Vec<f32> = (0..w * h)
         .flat_map(|i| {
             let mut px = [0f32; 3];
@@ -573,7 +746,16 @@ pub fn fit_session(
             px
         })
         .collect();
-    let captured: Vec<f32> = reflect[k].rate.iter().map(|v| if v.is_finite() { *v } else { 0.0 }).collect();
+    let captured: Vec<f32> = reflect
+        .kept
+        .take()
+        .unwrap_or_default()
+        .iter()
+        .map(|v| if v.is_finite() { *v } else { 0.0 })
+        .collect();
+    let check_gantry = reflect.gantry[k];
+    drop(reflect);
+    drop(diagonal);
     Ok(LlsMaps {
         width: w as u32,
         height: h as u32,
@@ -583,12 +765,13 @@ pub fn fit_session(
         normals,
         geometric_normals,
         photometric_normals,
-        diagonal_mounts: diagonal.iter().map(|(m, _)| *m).collect(),
+        diagonal_mounts: diagonal_pos.iter().map(|(m, _)| *m).collect(),
         translucency,
         registration_rms: reg.rms,
         scale,
         specular_strip,
-        check_frame: (reflect[k].gantry, captured, predicted),
+        check_frame: (check_gantry, captured, predicted),
+        resident_trace_bytes: resident.get(),
     })
 }
 

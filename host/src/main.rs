@@ -322,11 +322,15 @@ fn main() -> ExitCode {
             }
             let bar = indicatif::ProgressBar::new(0);
             let b = bar.clone();
-            let maps =
-                lightrig_host::lls_fit::fit_session(&session, calibration.as_deref(), &move |done, total| {
+            let maps = lightrig_host::lls_fit::fit_session(
+                &session,
+                calibration.as_deref(),
+                &out,
+                &move |done, total| {
                     b.set_length(total);
                     b.set_position(done);
-                });
+                },
+            );
             bar.finish();
             match maps.and_then(|m| lightrig_host::lls_fit::write_outputs(&m, &out)) {
                 Ok(files) => {

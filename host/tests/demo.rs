@@ -31,15 +31,51 @@ fn lls_demo_meets_the_accuracy_targets() {
     }
     // The session is an ordinary one: `lightrig fit lls` reads it again to the same maps
     // (every number of the comparison with the truth agrees).
-    let again =
-        lightrig_host::lls_fit::fit_session(&out.join("session"), Some(&out.join("camera.toml")), &|_, _| {})
-            .unwrap();
+    let again = lightrig_host::lls_fit::fit_session(
+        &out.join("session"),
+        Some(&out.join("camera.toml")),
+        &out.join("again"),
+        &|_, _| {},
+    )
+    .unwrap();
     let scene = LlsScene::new(LlsSceneSpec::new(80, 60));
     assert_eq!(lightrig_host::demo::lls_accuracy(&scene, &again, 2.0), acc);
+    // Streamed in small blocks (a tenth of the quick session's traces at most resident) the
+    // fit gives exactly the same maps as with all of them in one block.
+    let small = 1 << 20;
+    let streamed = lightrig_host::lls_fit::fit_session_with(
+        &out.join("session"),
+        Some(&out.join("camera.toml")),
+        lightrig_host::lls_fit::Streaming { scratch: &out.join("streamed"), block_bytes: small },
+        &|_, _| {},
+    )
+    .unwrap();
+    assert!(again.resident_trace_bytes > 10 * small, "{} bytes in one block", again.resident_trace_bytes);
+    assert!(streamed.resident_trace_bytes <= small, "{} bytes resident", streamed.resident_trace_bytes);
+    assert_same_maps(&streamed, &again);
+    assert!(std::fs::read_dir(out.join("streamed")).unwrap().next().is_none(), "scratch files left");
     // The diagonal passes were used, and their normals alone meet the target too.
     assert_eq!(again.diagonal_mounts, vec![-15, 15]);
     assert!(acc.photometric_normal_deg < 1.0, "{}", acc.photometric_normal_deg);
     std::fs::remove_dir_all(&out).ok();
+}
+
+/// Every map of two fits, bit for bit (NaN equal to NaN).
+fn assert_same_maps(a: &lightrig_host::lls_fit::LlsMaps, b: &lightrig_host::lls_fit::LlsMaps) {
+    assert_eq!((a.width, a.height), (b.width, b.height));
+    assert_eq!(a.fitted, b.fitted);
+    assert_eq!(a.fit, b.fit);
+    assert_eq!(a.points, b.points);
+    assert_eq!(a.normals, b.normals);
+    assert_eq!(a.geometric_normals, b.geometric_normals);
+    assert_eq!(a.photometric_normals, b.photometric_normals);
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&a.translucency), bits(&b.translucency));
+    assert_eq!(a.scale, b.scale);
+    assert_eq!(a.specular_strip.0.to_bits(), b.specular_strip.0.to_bits());
+    assert_eq!(a.check_frame.0, b.check_frame.0);
+    assert_eq!(bits(&a.check_frame.1), bits(&b.check_frame.1));
+    assert_eq!(bits(&a.check_frame.2), bits(&b.check_frame.2));
 }
 
 fn state(pass: Option<&str>, gantry: f64, lasers: u8) -> RigState {

@@ -157,7 +157,8 @@ pub fn fit_trace(
     alpha0: Option<f64>,
 ) -> TraceFit {
     fit_trace_by(obs, valid, &model.diffuse(n), alpha0, |alpha, s| {
-        s.copy_from_slice(&model.specular(n, alpha))
+        s.copy_from_slice(&model.specular(n, alpha));
+        0..s.len()
     })
 }
 
@@ -176,13 +177,59 @@ pub fn fit_trace_tabled(
     fit_trace_by(obs, valid, &model.diffuse(n), alpha0, |alpha, s| traces.specular_into(alpha, s))
 }
 
-/// The fit for the diffuse trace `d` and the specular traces `specular(α, out)`.
+/// The roughness of the two trials that calibrate the moment start, and the range searched.
+const MOMENT_ALPHAS: [f64; 2] = [0.05, 0.15];
+const ALPHA_RANGE: (f64, f64) = (0.02, 0.6);
+
+/// A trace's spread in frames: the standard deviation of the frame index weighted by the
+/// values above a tenth of the peak (the same measure for the observed excess and the model
+/// traces, so that they compare).
+fn width(x: &[f64]) -> f64 {
+    let peak = x.iter().fold(0f64, |a, &b| a.max(b));
+    let (mut w, mut m1, mut m2) = (0.0, 0.0, 0.0);
+    for (k, &v) in x.iter().enumerate() {
+        if v > 0.1 * peak {
+            let k = k as f64;
+            w += v;
+            m1 += v * k;
+            m2 += v * k * k;
+        }
+    }
+    if w <= 0.0 {
+        return 0.0;
+    }
+    let m = m1 / w;
+    (m2 / w - m * m).max(0.0).sqrt()
+}
+
+/// Gardner et al.'s start for α from the spread of the specular excess: with the spreads
+/// `w` of the model traces at [`MOMENT_ALPHAS`], `spread² = w0² + c²·α²`, solved for the
+/// observed spread. Clamped to [`ALPHA_RANGE`]; the middle of it when the spreads say nothing.
+fn moment_start(w: [f64; 2], observed: f64) -> f64 {
+    let [a1, a2] = MOMENT_ALPHAS;
+    let c2 = (w[1] * w[1] - w[0] * w[0]) / (a2 * a2 - a1 * a1);
+    let fallback = (ALPHA_RANGE.0 * ALPHA_RANGE.1).sqrt();
+    let usable = c2 > 0.0 && observed > 0.0;
+    if !usable {
+        return fallback;
+    }
+    let w0 = w[0] * w[0] - c2 * a1 * a1;
+    let a = ((observed * observed - w0) / c2).max(0.0).sqrt();
+    if a.is_finite() {
+        a.clamp(ALPHA_RANGE.0, ALPHA_RANGE.1)
+    } else {
+        fallback
+    }
+}
+
+/// The fit for the diffuse trace `d` and the specular traces `specular(α, out)`, which
+/// returns the range of frames outside which `out` is zero.
 fn fit_trace_by(
     obs: &[Vec<f64>; 3],
     valid: &[Vec<bool>; 3],
     d: &[f64],
     alpha0: Option<f64>,
-    mut specular: impl FnMut(f64, &mut [f64]),
+    mut specular: impl FnMut(f64, &mut [f64]) -> std::ops::Range<usize>,
 ) -> TraceFit {
     // What does not depend on α, once: per channel the masked diffuse trace and observations,
     // Σd², Σod, Σo².
@@ -200,12 +247,13 @@ fn fit_trace_by(
             .fold((0.0, 0.0, 0.0), |(dd, od, oo), (d, o)| (dd + d * d, od + o * d, oo + o * o))
     });
     let mut s = vec![0.0; frames];
-    let mut residual_at = |alpha: f64| -> (f64, [f64; 3], [f64; 3]) {
-        specular(alpha, &mut s);
+    // The residual, ρd and ρs at α, and (when asked) the spread of the specular trace.
+    let mut residual_at = |alpha: f64, spread: bool| -> (f64, [f64; 3], [f64; 3], f64) {
+        let reach = specular(alpha, &mut s);
         let (mut total, mut da, mut sa) = (0.0, [0.0; 3], [0.0; 3]);
         for c in 0..3 {
             let (mut ds, mut ss, mut os) = (0.0, 0.0, 0.0);
-            for k in 0..frames {
+            for k in reach.clone() {
                 let sk = s[k];
                 ds += sk * vd[c][k];
                 ss += sk * sk * vm[c][k];
@@ -217,36 +265,70 @@ fn fit_trace_by(
             da[c] = a;
             sa[c] = b;
         }
-        (total, da, sa)
+        (total, da, sa, if spread { width(&s) } else { 0.0 })
     };
-    // A grid on log α, then successive parabolic interpolation on log α, kept inside
-    // the bracket around the grid's best point (a golden section step where the parabola is
-    // no help).
-    const GRID: [f64; 8] = [0.025, 0.04, 0.06, 0.09, 0.13, 0.19, 0.28, 0.42];
-    // Every trial as (log α, residual, ρd, ρs): the grid's bracket and the best point are
-    // reused rather than evaluated again.
-    let mut trial = |x: f64| {
-        let (r, d, s) = residual_at(x.exp());
-        (x, r, d, s)
+    // A start for α from the trace's spread (Gardner et al.'s moments), a bracket around it
+    // on log α, then successive parabolic interpolation on log α, kept inside the bracket (a
+    // golden section step where the parabola is no help).
+    // Every trial as (log α, residual, ρd, ρs): the bracket and the best point are reused
+    // rather than evaluated again.
+    let mut spreads = [0.0; 2];
+    let mut trial_traced = |x: f64, spread: Option<&mut f64>| {
+        let (r, d, sp, w) = residual_at(x.exp(), spread.is_some());
+        if let Some(out) = spread {
+            *out = w;
+        }
+        (x, r, d, sp)
     };
     let (lo, hi, mut pts) = match alpha0 {
         Some(a) if a > 0.0 => {
             let (lo, hi) = (a.ln() - 1.5f64.ln(), a.ln() + 1.5f64.ln());
-            (lo, hi, vec![trial(lo), trial(a.ln()), trial(hi)])
+            (lo, hi, vec![trial_traced(lo, None), trial_traced(a.ln(), None), trial_traced(hi, None)])
         }
         _ => {
-            let grid: Vec<_> = GRID.iter().map(|a| trial(a.ln())).collect();
-            let best = grid.iter().enumerate().min_by(|a, b| a.1 .1.total_cmp(&b.1 .1)).map_or(0, |b| b.0);
-            let (i0, i1) = (best.saturating_sub(1), (best + 1).min(GRID.len() - 1));
-            let mut pts = vec![grid[i0], grid[best], grid[i1]];
-            if i0 == best || i1 == best {
-                // At the grid's end: a third point halfway into the bracket.
-                let x = (grid[i0].0 + grid[i1].0) / 2.0;
-                pts[if i0 == best { 0 } else { 2 }] = trial(x);
+            // Two trials whose spreads (in frames) calibrate spread² = w0² + c²·α², and the
+            // observed spread of what the diffuse lobe leaves: the start.
+            let [w1, w2] = &mut spreads;
+            let mut pool = vec![
+                trial_traced(MOMENT_ALPHAS[0].ln(), Some(w1)),
+                trial_traced(MOMENT_ALPHAS[1].ln(), Some(w2)),
+            ];
+            // ρd from the better of the two.
+            let d1 = if pool[0].1 <= pool[1].1 { pool[0].2 } else { pool[1].2 };
+            let excess: Vec<f64> = (0..frames)
+                .map(|k| (0..3).filter(|&c| valid[c][k]).map(|c| obs[c][k] - d1[c] * d[k]).sum())
+                .collect();
+            let start = moment_start(spreads, width(&excess));
+            if pool.iter().all(|p| (p.0 - start.ln()).abs() > 0.05) {
+                pool.push(trial_traced(start.ln(), None));
             }
-            (grid[i0].0, grid[i1].0, pts)
+            // Bracket the best point: its nearest trials on either side, stepping out by a
+            // factor 1.5 where it has none, up to the range the tables cover.
+            let step = 1.5f64.ln();
+            let (min_x, max_x) = (ALPHA_RANGE.0.ln(), ALPHA_RANGE.1.ln());
+            loop {
+                pool.sort_by(|a, b| a.0.total_cmp(&b.0));
+                let best =
+                    pool.iter().enumerate().min_by(|a, b| a.1 .1.total_cmp(&b.1 .1)).map_or(0, |b| b.0);
+                let x = pool[best].0;
+                if best == 0 && x > min_x + 1e-9 {
+                    pool.push(trial_traced((x - step).max(min_x), None));
+                } else if best + 1 == pool.len() && x < max_x - 1e-9 {
+                    pool.push(trial_traced((x + step).min(max_x), None));
+                } else {
+                    let (i0, i1) = (best.saturating_sub(1), (best + 1).min(pool.len() - 1));
+                    let mut pts = vec![pool[i0], pool[best], pool[i1]];
+                    if i0 == best || i1 == best {
+                        // At the range's end: a third point halfway into the bracket.
+                        let x = (pool[i0].0 + pool[i1].0) / 2.0;
+                        pts[if i0 == best { 0 } else { 2 }] = trial_traced(x, None);
+                    }
+                    break (pool[i0].0, pool[i1].0, pts);
+                }
+            }
         }
     };
+    let mut trial = |x: f64| trial_traced(x, None);
     for _ in 0..8 {
         pts.sort_by(|a, b| a.1.total_cmp(&b.1));
         let [(x0, f0, ..), (x1, f1, ..), (x2, f2, ..)] = [pts[0], pts[1], pts[2]];
@@ -449,29 +531,39 @@ pub type StripTrace = ([Vec<f64>; 3], [Vec<bool>; 3], Vec<f64>);
 /// trace to the model trace of a Lambertian surface of the strip's albedo (least squares), and
 /// the median over the pixels. `traces[i][c][k]` are exposure-normalised values.
 pub fn strip_scale(traces: &[StripTrace], albedo: f64) -> Option<[f64; 3]> {
-    if traces.is_empty() {
+    let ratios: Vec<[Option<f64>; 3]> = traces.iter().map(|t| strip_ratio(t, albedo)).collect();
+    strip_scale_of(&ratios)
+}
+
+/// One strip pixel's part of [`strip_scale`]: per channel the ratio of its trace to the
+/// model's, `None` where no frame is valid. (A streamed fit computes these block by block.)
+pub fn strip_ratio(trace: &StripTrace, albedo: f64) -> [Option<f64>; 3] {
+    let (obs, valid, d) = trace;
+    std::array::from_fn(|c| {
+        let (mut od, mut dd) = (0.0, 0.0);
+        for k in 0..d.len() {
+            if valid[c][k] {
+                od += obs[c][k] * d[k];
+                dd += d[k] * d[k];
+            }
+        }
+        (dd > 0.0).then(|| od / dd / albedo)
+    })
+}
+
+/// [`strip_scale`] from the pixels' [`strip_ratio`]s: per channel their median.
+pub fn strip_scale_of(ratios: &[[Option<f64>; 3]]) -> Option<[f64; 3]> {
+    if ratios.is_empty() {
         return None;
     }
     let mut out = [0.0; 3];
     for (c, o) in out.iter_mut().enumerate() {
-        let mut ratios: Vec<f64> = traces
-            .iter()
-            .filter_map(|(obs, valid, d)| {
-                let (mut od, mut dd) = (0.0, 0.0);
-                for k in 0..d.len() {
-                    if valid[c][k] {
-                        od += obs[c][k] * d[k];
-                        dd += d[k] * d[k];
-                    }
-                }
-                (dd > 0.0).then(|| od / dd / albedo)
-            })
-            .collect();
-        if ratios.is_empty() {
+        let mut r: Vec<f64> = ratios.iter().filter_map(|p| p[c]).collect();
+        if r.is_empty() {
             return None;
         }
-        ratios.sort_by(f64::total_cmp);
-        *o = ratios[ratios.len() / 2];
+        r.sort_by(f64::total_cmp);
+        *o = r[r.len() / 2];
     }
     Some(out)
 }
@@ -571,6 +663,23 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn moment_start_inverts_the_spread_model() {
+        // Spreads that follow spread² = w0² + c²·α² exactly give α back.
+        let (w0, c) = (7.0f64, 60.0f64);
+        let spread = |a: f64| (w0 * w0 + c * c * a * a).sqrt();
+        let w = MOMENT_ALPHAS.map(spread);
+        for a in [0.03, 0.1, 0.25, 0.5] {
+            assert!((moment_start(w, spread(a)) / a - 1.0).abs() < 1e-9);
+        }
+        // Out of range: clamped; nothing to go by: the middle of the range.
+        assert_eq!(moment_start(w, spread(2.0)), ALPHA_RANGE.1);
+        assert_eq!(moment_start(w, w0 / 2.0), ALPHA_RANGE.0);
+        let middle = (ALPHA_RANGE.0 * ALPHA_RANGE.1).sqrt();
+        assert_eq!(moment_start([w[1], w[0]], spread(0.1)), middle);
+        assert_eq!(moment_start(w, 0.0), middle);
     }
 
     #[test]

@@ -12,8 +12,9 @@
 //! 4. [`fit_trace`]: per pixel, the Ward lobes integrated over the real tube for that pixel's
 //!    point, normal and view at every frame's tube position ([`TraceModel`], one integration
 //!    per trial for a whole pass); `ρd`, `ρs` per channel by linear least squares for a given
-//!    `α`, and `α` by a search on the residual (a grid, then parabolic steps on `log α`). The
-//!    light's scale comes from the diffuse calibration strip ([`strip_scale`]).
+//!    `α`, and `α` by a search on the residual (a start from the trace's spread, a bracket,
+//!    then parabolic steps on `log α`). The light's scale comes from the diffuse calibration
+//!    strip ([`strip_scale`]).
 //!    [`fit_trace_tabled`] runs the same search with the specular traces looked up in tables
 //!    shared across pixels ([`LobeTables`], Gardner's reflectance tables), a lookup per frame
 //!    per trial.
@@ -27,8 +28,8 @@ pub use model::{TabledTraces, TraceModel};
 pub use table::{lobe_geometry, LobeGeometry, LobeTables, PixelLobes, TableLobe};
 
 pub use fit::{
-    blend_normals, fit_normal, fit_trace, fit_trace_tabled, normals_from_points, point_on_sheet, strip_scale,
-    stripe_peak, PassTrace, TraceFit,
+    blend_normals, fit_normal, fit_trace, fit_trace_tabled, normals_from_points, point_on_sheet, strip_ratio,
+    strip_scale, strip_scale_of, stripe_peak, PassTrace, StripTrace, TraceFit,
 };
 
 use lightrig_imaging::calib::{find_chessboard, pixel_ray, pose_from_board, Board, Intrinsics, Pose};

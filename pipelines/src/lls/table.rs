@@ -422,7 +422,25 @@ impl<'a> PixelLobes<'a> {
             m,
             g,
             cut,
+            columns: [Columns::default(), Columns::default()],
         })
+    }
+}
+
+/// The cut-off tables of a lobe's four `α` nodes combined with their weights, column by
+/// column (`s_j`) as lookups need them: a broad lobe's frames use a few columns, and a
+/// combined column makes each lookup one bilinear interpolation instead of four.
+struct Columns {
+    /// `values[j·NC + i]` at `t_i`, `s_j`; allocated on first use.
+    values: Vec<f64>,
+    /// Per column: whether combined, and the combined mass over all `t`.
+    built: [bool; NC],
+    total: [f64; NC],
+}
+
+impl Default for Columns {
+    fn default() -> Self {
+        Columns { values: Vec::new(), built: [false; NC], total: [0.0; NC] }
     }
 }
 
@@ -437,6 +455,8 @@ pub struct TableLobe {
     /// `M'` times the step (Hermite tangents).
     g: [f64; NT],
     cut: [(Arc<Node>, [i32; 4], f64); 4],
+    /// Combined cut-off columns: below `s` (`[0]`) and above it (`[1]`).
+    columns: [Columns; 2],
 }
 
 impl TableLobe {
@@ -455,12 +475,22 @@ impl TableLobe {
             + (f3 - f2) * self.g[i + 1]
     }
 
-    /// The mass cut off at `t' ∈ [t0, t1]` below `s` (`upper` false) or above it.
-    fn cut(&self, t0: f64, t1: f64, s: f64, upper: bool) -> f64 {
-        let y = ((s + R) / HC).clamp(0.0, (NC - 1) as f64);
-        let j = (y as usize).min(NC - 2);
-        let fy = y - j as f64;
-        let mut out = 0.0;
+    /// The `θ` range outside which every band's `S` is zero (the tables' extent).
+    pub fn theta_window(&self) -> (f64, f64) {
+        (self.theta - R / self.scale, self.theta + R / self.scale)
+    }
+
+    /// Combines column `j` of the cut-off tables (`upper`: above `s_j`).
+    fn column(&mut self, upper: bool, j: usize) {
+        let cols = &mut self.columns[usize::from(upper)];
+        if cols.built[j] {
+            return;
+        }
+        if cols.values.is_empty() {
+            cols.values = vec![0.0; NC * NC];
+        }
+        let col = &mut cols.values[j * NC..(j + 1) * NC];
+        let mut total = 0.0;
         for (node, key, w) in &self.cut {
             let (key, w) = (*key, *w);
             if w == 0.0 {
@@ -471,25 +501,39 @@ impl TableLobe {
                 build_cut(tilt, um, alpha)
             });
             let (table, totals) = if upper { (&c.high, &c.high_total) } else { (&c.low, &c.low_total) };
-            // Nothing there: skip the 2-D lookups.
-            if totals[j].max(totals[j + 1]) < 1e-12 {
-                continue;
+            for (i, v) in col.iter_mut().enumerate() {
+                *v += w * f64::from(table[i * NC + j]);
             }
-            let at = |t: f64| -> f64 {
-                let x = ((t + R) / HC).clamp(0.0, (NC - 1) as f64);
-                let i = (x as usize).min(NC - 2);
-                let fx = x - i as f64;
-                let v = |i: usize, j: usize| f64::from(table[i * NC + j]);
-                (1.0 - fx) * ((1.0 - fy) * v(i, j) + fy * v(i, j + 1))
-                    + fx * ((1.0 - fy) * v(i + 1, j) + fy * v(i + 1, j + 1))
-            };
-            out += w * (at(t1) - at(t0));
+            total += w * totals[j];
         }
-        out
+        cols.built[j] = true;
+        cols.total[j] = total;
+    }
+
+    /// The mass cut off at `t' ∈ [t0, t1]` below `s` (`upper` false) or above it.
+    fn cut(&mut self, t0: f64, t1: f64, s: f64, upper: bool) -> f64 {
+        let y = ((s + R) / HC).clamp(0.0, (NC - 1) as f64);
+        let j = (y as usize).min(NC - 2);
+        let fy = y - j as f64;
+        self.column(upper, j);
+        self.column(upper, j + 1);
+        let cols = &self.columns[usize::from(upper)];
+        // Nothing there: skip the lookups.
+        if cols.total[j].abs().max(cols.total[j + 1].abs()) < 1e-12 {
+            return 0.0;
+        }
+        let (c0, c1) = (&cols.values[j * NC..(j + 1) * NC], &cols.values[(j + 1) * NC..(j + 2) * NC]);
+        let at = |t: f64| -> f64 {
+            let x = ((t + R) / HC).clamp(0.0, (NC - 1) as f64);
+            let i = (x as usize).min(NC - 2);
+            let fx = x - i as f64;
+            (1.0 - fx) * ((1.0 - fy) * c0[i] + fy * c1[i]) + fx * ((1.0 - fy) * c0[i + 1] + fy * c1[i + 1])
+        };
+        at(t1) - at(t0)
     }
 
     /// `S` for the band `[lo, hi] × [u0, u1]` (radians, the tube's frame).
-    pub fn band(&self, lo: f64, hi: f64, u0: f64, u1: f64) -> f64 {
+    pub fn band(&mut self, lo: f64, hi: f64, u0: f64, u1: f64) -> f64 {
         let (t0, t1) = ((lo - self.theta) * self.scale, (hi - self.theta) * self.scale);
         if t1 <= -R || t0 >= R || hi <= lo {
             return 0.0;
