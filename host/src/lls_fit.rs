@@ -197,13 +197,12 @@ struct Position {
 fn positions_of(
     session: &Session,
     dir: &Path,
-    step: u32,
+    (step, camera): (u32, u8),
     triggers: &std::collections::HashMap<(u32, u32), lightrig_protocol::event::TriggerEvent>,
     gantry: &crate::rigfile::Stepper,
     tick_hz: f64,
 ) -> Result<Vec<Position>, FitError> {
-    let mut frames = session.frames_of(step);
-    frames.sort_by_key(|f| f.frame);
+    let frames = session.camera_frames_of(step, camera);
     let mut out: Vec<Position> = Vec::new();
     for f in &frames {
         let t = triggers.get(&(f.sequence, f.item)).ok_or_else(|| {
@@ -402,6 +401,8 @@ pub fn fit_session_with(
     let tick_hz = f64::from(manifest.device.tick_hz);
     let triggers = trigger_events(dir).map_err(|e| fail(e.to_string()))?;
     // Passes by name and, for the reflectance passes, mount angle (the first of each).
+    // One camera's frames (a rig may fire several together): the lowest-numbered.
+    let camera = session.pipeline_camera(None).map_err(fail)?;
     let mount_of = |s: &crate::session::PlanStep| s.extra["meta"]["mount_deg"].as_i64().unwrap_or(0);
     let pass_of = |name: &str, mount: Option<i64>| {
         manifest
@@ -415,7 +416,7 @@ pub fn fit_session_with(
     };
     let positions_mount = |name: &str, mount: Option<i64>| -> Result<Vec<Position>, FitError> {
         match pass_of(name, mount) {
-            Some(id) => positions_of(&session, dir, id, &triggers, gantry, tick_hz),
+            Some(id) => positions_of(&session, dir, (id, camera), &triggers, gantry, tick_hz),
             None => Ok(Vec::new()),
         }
     };
