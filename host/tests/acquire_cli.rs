@@ -154,7 +154,6 @@ fn disco_frames_show_the_spot_where_each_trigger_pointed_the_galvos() {
 #[cfg(unix)]
 #[test]
 fn a_step_that_needs_a_person_stops_without_a_terminal_and_runs_with_yes() {
-    use std::io::{BufRead, BufReader};
     let dir = scratch("operator");
     // The board pass asks the operator to place the calibration board. No homing: the device
     // runs in real time behind the pseudo-terminal.
@@ -167,14 +166,9 @@ fn a_step_that_needs_a_person_stops_without_a_terminal_and_runs_with_yes() {
             ("exposures_us", "exposures_us = [500]"),
         ],
     );
-    let mut sim = Command::new(env!("CARGO_BIN_EXE_lightrig"))
-        .args(["sim", "--pty", "--seconds", "120", "--rig", rig.to_str().unwrap()])
-        .stdout(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(sim.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    let connect = format!("serial:{}", line.trim());
+    let link = dir.join("rig-tty");
+    let mut sim = sim_on(&rig, &link);
+    let connect = format!("serial:{}", link.display());
     let session = dir.join("session");
     let s = session.to_str().unwrap();
 

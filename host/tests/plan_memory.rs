@@ -4,49 +4,16 @@
 //! The whole test binary counts its heap with a global allocator, so this file holds one test
 //! (no other test's allocations run alongside).
 
-use std::alloc::{GlobalAlloc, Layout, System};
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicUsize, Ordering};
 
 use lightrig_host::plan::from_rig;
 use lightrig_host::rigfile::RigFile;
 use lightrig_host::selfcheck::virtual_device_info;
 use lightrig_protocol::sequence::{Action, Item};
 
-/// The system allocator, counting live bytes and their peak.
-struct Counting;
-
-static LIVE: AtomicUsize = AtomicUsize::new(0);
-static PEAK: AtomicUsize = AtomicUsize::new(0);
-
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        let p = unsafe { System.alloc(layout) };
-        if !p.is_null() {
-            let now = LIVE.fetch_add(layout.size(), Ordering::Relaxed) + layout.size();
-            PEAK.fetch_max(now, Ordering::Relaxed);
-        }
-        p
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        unsafe { System.dealloc(ptr, layout) };
-        LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
-    }
-}
-
-#[global_allocator]
-static ALLOC: Counting = Counting;
-
-/// Resets the peak to what is live now, runs `f`, and returns its result with the peak (bytes
-/// above the start) while it ran and what it left allocated.
-fn measured<R>(f: impl FnOnce() -> R) -> (R, usize, usize) {
-    let base = LIVE.load(Ordering::Relaxed);
-    PEAK.store(base, Ordering::Relaxed);
-    let r = f();
-    let peak = PEAK.load(Ordering::Relaxed) - base;
-    let kept = LIVE.load(Ordering::Relaxed).saturating_sub(base);
-    (r, peak, kept)
-}
+#[path = "support/counting_alloc.rs"]
+mod counting_alloc;
+use counting_alloc::measured;
 
 #[test]
 fn the_full_disco_plan_holds_heads_and_builds_one_step_at_a_time() {
