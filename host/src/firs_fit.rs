@@ -27,16 +27,18 @@ use lightrig_pipelines::firs::calib::{
     fit_pixel_rays, target_world_map, Aabb, PixelRays, Sheet18, SheetSample, TargetView,
 };
 use lightrig_pipelines::firs::mesh::{
-    edge_defects, enclosed_volume, marching_cubes, write_ply, Grid, Mesh, Solid,
+    edge_defects, enclosed_volume, write_ply, Grid, MarchingCubes, Mesh, Solid,
 };
 use lightrig_pipelines::firs::surface::{
     depth_to_points, grid_mesh, merge_turntable, DepthMap, SurfaceDetector, SurfaceParams,
 };
 use lightrig_pipelines::firs::volume::{
-    median_reference, resample, segment_slices, write_raw_volume, Laser, SliceMap, VolumeParams, ISO,
+    median_reference, Laser, RawVolumeWriter, SliceMap, VolumeParams, ISO,
 };
+use lightrig_pipelines::firs::volume_stream::{ResampleStream, SegmentStream};
 use lightrig_pipelines::vec3::{add, dot, normalize, scale, sub, V3};
 use lightrig_protocol::event::TriggerEvent;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::rigfile::RigFile;
@@ -824,7 +826,7 @@ pub fn write_outputs(s: &FirsSurface, out: &Path) -> Result<Vec<PathBuf>, FitErr
     Ok(files)
 }
 
-/// Volume mode's result.
+/// Volume mode's result. The occupancy volume itself went to `volume.raw` as it was computed.
 #[derive(Debug, Clone)]
 pub struct FirsVolume {
     /// Pixels with a ray.
@@ -839,20 +841,56 @@ pub struct FirsVolume {
     pub map_rms: f64,
     /// The world grid.
     pub grid: Grid,
-    /// Occupancy per voxel (x fastest), 0 liquid, 1 object.
-    pub values: Vec<f32>,
     /// The surface at occupancy 0.5.
     pub mesh: Mesh,
     /// The volume it encloses, mm³.
     pub enclosed_mm3: f64,
+    /// `volume.raw` and `volume.json`, the occupancy per voxel (x fastest), 0 liquid, 1 object.
+    pub raw: [PathBuf; 2],
+    /// What the streamed steps held (slices of the sweep).
+    pub held: VolumeMemory,
+}
+
+/// What volume mode held at most: the reference pass's band of rows over the whole sweep, then
+/// float slices per streamed step (none of it grows with the sweep's length but the band, which
+/// the budget bounds).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct VolumeMemory {
+    /// Image rows per band of the reference pass (the per-pixel median needs a pixel's whole
+    /// sweep); bands of `rows × width × frames` floats within the memory budget.
+    pub reference_band_rows: usize,
+    /// Bands of the reference pass (each decodes the sweep's frames once).
+    pub reference_bands: usize,
+    /// Frames decoded together in the segmentation pass (one per thread).
+    pub batch_frames: usize,
+    /// The blocked-streak fill's slab, slices.
+    pub fill_slices: usize,
+    /// Slices waiting for the small-region decision.
+    pub clean_slices: usize,
+    /// Slices the resampling held.
+    pub resample_slices: usize,
+    /// Blocked streaks deeper than the fill's slab (filled approximately).
+    pub forced_fills: usize,
 }
 
 /// Fits a volume-mode session (index-matched object, sheet and camera at about 90°): the
 /// calibration as for the surface, then the first scan step's sweep segmented slice by slice
 /// against the median of the sweep (the reference: the object must cover each pixel in fewer
 /// than half the sheets), resampled to world voxels through the affine slice map fitted to
-/// the calibrated rays and sheets, and meshed by marching cubes.
-pub fn fit_volume(dir: &Path, progress: &dyn Fn(u64, u64)) -> Result<FirsVolume, FitError> {
+/// the calibrated rays and sheets, and meshed by marching cubes. Streamed: the reference is
+/// taken in bands of rows, then the frames go through the steps a few at a time and the
+/// occupancy volume is written to `out/volume.raw` (+ `volume.json`) z-slice by z-slice.
+pub fn fit_volume(dir: &Path, out: &Path, progress: &dyn Fn(u64, u64)) -> Result<FirsVolume, FitError> {
+    fit_volume_banded(dir, out, BAND_BYTES, progress)
+}
+
+/// [`fit_volume`] with the reference pass's band budget in bytes (tests use a small one).
+pub fn fit_volume_banded(
+    dir: &Path,
+    out: &Path,
+    band_bytes: usize,
+    progress: &dyn Fn(u64, u64),
+) -> Result<FirsVolume, FitError> {
     let c = calibrate(dir, BAND_BYTES, progress)?;
     let (w, h) = (c.w, c.h);
     let s = c.steps.iter().find(|s| s.pass == "scan").ok_or_else(|| {
@@ -860,10 +898,11 @@ pub fn fit_volume(dir: &Path, progress: &dyn Fn(u64, u64)) -> Result<FirsVolume,
     })?;
     let what = format!("{}: step {}", dir.display(), s.id);
     let frames = step_frames(&c.session, dir, s.id, &c.triggers)?;
-    let lit: Vec<&(PathBuf, TriggerEvent)> =
-        frames.iter().filter(|(_, t)| t.snapshot.lasers & c.laser_bit != 0).collect();
-    let codes: Vec<f64> = lit
+    let lit: Vec<&PathBuf> =
+        frames.iter().filter(|(_, t)| t.snapshot.lasers & c.laser_bit != 0).map(|(p, _)| p).collect();
+    let codes: Vec<f64> = frames
         .iter()
+        .filter(|(_, t)| t.snapshot.lasers & c.laser_bit != 0)
         .map(|(_, t)| t.snapshot.galvos.get(c.galvo).map_or(f64::NAN, |g| f64::from(g.x)))
         .collect();
     let n = codes.len();
@@ -880,17 +919,6 @@ pub fn fit_volume(dir: &Path, progress: &dyn Fn(u64, u64)) -> Result<FirsVolume,
             codes[n - 1]
         )));
     }
-    // The stack (volume mode's segmentation needs all of it).
-    let mut slices = Vec::with_capacity(n);
-    for (path, _) in &lit {
-        let img = read_frame(path)?;
-        if (img.width as usize, img.height as usize) != (w, h) {
-            return Err(fail(format!("{}: image size differs from the board frames'", path.display())));
-        }
-        slices.push(channel_rows(&img, 0, h));
-    }
-    let refs: Vec<&[f32]> = slices.iter().map(Vec::as_slice).collect();
-    let reference = median_reference(&refs, w, h).map_err(|e| fail(format!("{what}: {e}")))?;
     let centre = scale(add(c.volume.min, c.volume.max), 0.5);
     let laser_img =
         laser_image_dir(&c.rays, &c.sheets, c.t_mid, centre, c.spec.laser_dir).ok_or_else(|| {
@@ -905,10 +933,141 @@ pub fn fit_volume(dir: &Path, progress: &dyn Fn(u64, u64)) -> Result<FirsVolume,
     }
     let laser = if laser_img[0] > 0.0 { Laser::PlusU } else { Laser::MinusU };
     let params = VolumeParams { laser, ..VolumeParams::default() };
-    let stack = segment_slices(&refs, &reference, w, h, &params).map_err(|e| fail(format!("{what}: {e}")))?;
-    drop(slices);
+    let (map, map_rms) = slice_map(&c, &codes, &what)?;
+    let voxel = c.spec.voxel_mm.unwrap_or_else(|| lightrig_pipelines::vec3::norm(map.u_step));
+    if !voxel.is_finite() || voxel <= 0.0 || map_rms > 0.25 * voxel {
+        return Err(fail(format!(
+            "{what}: the slices are not an affine map of the world ({:.3} mm RMS off it, voxel {voxel:.3} mm): volume mode needs a telecentric camera at about 90° to parallel sheets",
+            map_rms
+        )));
+    }
+    // The grid: the stack's world box within the calibrated volume.
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for (u, v, k) in [(0, 0, 0), (w - 1, 0, 0), (0, h - 1, 0), (w - 1, h - 1, 0)]
+        .into_iter()
+        .flat_map(|(u, v, _)| [(u, v, 0), (u, v, n - 1)])
+    {
+        let q = add(
+            add(map.origin, scale(map.u_step, u as f64)),
+            add(scale(map.v_step, v as f64), scale(map.slice_step, k as f64)),
+        );
+        for d in 0..3 {
+            lo[d] = lo[d].min(q[d]).max(c.volume.min[d]);
+            hi[d] = hi[d].max(q[d]).min(c.volume.max[d]);
+        }
+    }
+    let dims = [0, 1, 2].map(|d| (((hi[d] - lo[d]) / voxel).floor() as usize + 1).max(2));
+    let grid = Grid { dims, voxel: [voxel; 3], origin: lo };
 
-    // The slice map: least squares of the rays against the sheets, p = o + u·a + v·b + s·c.
+    // Pass 1, the reference: the per-pixel median over the sweep, in bands of rows.
+    let band = (band_bytes / (w * n * 4).max(1)).clamp(1, h);
+    let mut reference = Vec::with_capacity(w * h);
+    let mut bands = 0;
+    let mut r0 = 0;
+    while r0 < h {
+        let r1 = (r0 + band).min(h);
+        let rows: Vec<Vec<f32>> = lit
+            .iter()
+            .map(|path| {
+                let img = read_frame(path)?;
+                if (img.width as usize, img.height as usize) != (w, h) {
+                    return Err(fail(format!(
+                        "{}: image size differs from the board frames'",
+                        path.display()
+                    )));
+                }
+                Ok(channel_rows(&img, r0, r1))
+            })
+            .collect::<Result<_, _>>()?;
+        let refs: Vec<&[f32]> = rows.iter().map(Vec::as_slice).collect();
+        reference.extend(median_reference(&refs, w, r1 - r0).map_err(|e| fail(format!("{what}: {e}")))?);
+        bands += 1;
+        r0 = r1;
+    }
+
+    // Pass 2: the frames through the streamed steps, a thread's worth at a time, in the order
+    // the world grid's z-slices read them; each z-slice out to marching cubes and the file.
+    let mut resampler =
+        ResampleStream::new(&map, &grid, w, h, n).map_err(|e| fail(format!("{what}: resampling: {e}")))?;
+    let reverse = resampler.reversed();
+    let mut seg = SegmentStream::new(reference, w, h, n, reverse, &params)
+        .map_err(|e| fail(format!("{what}: segmentation: {e}")))?;
+    let mut mc = MarchingCubes::new(grid, ISO, Solid::Above).map_err(|e| fail(format!("{what}: {e:?}")))?;
+    std::fs::create_dir_all(out).map_err(|e| fail(format!("{}: {e}", out.display())))?;
+    let stem = out.join("volume");
+    let mut raw =
+        RawVolumeWriter::create(&stem, &grid).map_err(|e| fail(format!("{}: {e}", stem.display())))?;
+    let mut zslice = vec![0f32; dims[0] * dims[1]];
+    let mut drain =
+        |seg: &mut SegmentStream, rs: &mut ResampleStream, finished: bool| -> Result<(), FitError> {
+            let mut emit = |rs: &mut ResampleStream, finished: bool| -> Result<(), FitError> {
+                while rs.next(&mut zslice, finished).map_err(|e| fail(format!("{what}: {e}")))?.is_some() {
+                    mc.push(&zslice).map_err(|e| fail(format!("{what}: {e:?}")))?;
+                    raw.push(&zslice).map_err(|e| fail(format!("{}: {e}", stem.display())))?;
+                }
+                Ok(())
+            };
+            while let Some((k, o)) = seg.pop() {
+                rs.push(k, o).map_err(|e| fail(format!("{what}: {e}")))?;
+                emit(rs, false)?;
+            }
+            if finished {
+                emit(rs, true)?;
+            }
+            Ok(())
+        };
+    let order: Vec<&PathBuf> = if reverse { lit.iter().rev().copied().collect() } else { lit.clone() };
+    let batch = rayon::current_num_threads().max(1);
+    for paths in order.chunks(batch) {
+        let imgs: Vec<Vec<f32>> = paths
+            .par_iter()
+            .map(|path| {
+                let img = read_frame(path)?;
+                if (img.width as usize, img.height as usize) != (w, h) {
+                    return Err(fail(format!(
+                        "{}: image size differs from the board frames'",
+                        path.display()
+                    )));
+                }
+                Ok(channel_rows(&img, 0, h))
+            })
+            .collect::<Result<_, _>>()?;
+        let refs: Vec<&[f32]> = imgs.iter().map(Vec::as_slice).collect();
+        seg.push_many(&refs).map_err(|e| fail(format!("{what}: {e}")))?;
+        drain(&mut seg, &mut resampler, false)?;
+    }
+    seg.finish().map_err(|e| fail(format!("{what}: {e}")))?;
+    drain(&mut seg, &mut resampler, true)?;
+    let mesh = mc.finish().map_err(|e| fail(format!("{what}: {e:?}")))?;
+    raw.finish().map_err(|e| fail(format!("{}: {e}", stem.display())))?;
+    let st = seg.stats();
+    progress(c.sweeps, c.sweeps);
+    Ok(FirsVolume {
+        ray_pixels: c.ray_pixels,
+        sheet_samples: c.sheet_samples,
+        sheet_rms: c.sheet_rms,
+        map,
+        map_rms,
+        grid,
+        enclosed_mm3: enclosed_volume(&mesh),
+        mesh,
+        raw: [out.join("volume.raw"), out.join("volume.json")],
+        held: VolumeMemory {
+            reference_band_rows: band,
+            reference_bands: bands,
+            batch_frames: batch,
+            fill_slices: st.max_fill_slices,
+            clean_slices: st.max_clean_slices,
+            resample_slices: resampler.max_window(),
+            forced_fills: st.forced_fills,
+        },
+    })
+}
+
+/// The slice map: least squares of the calibrated rays against the calibrated sheets,
+/// `p = o + u·a + v·b + s·c`, and its RMS residual, mm.
+fn slice_map(c: &Calibration, codes: &[f64], what: &str) -> Result<(SliceMap, f64), FitError> {
+    let (w, h, n) = (c.w, c.h, codes.len());
     let mut ata = [[0.0f64; 4]; 4];
     let mut atb = [[0.0f64; 3]; 4];
     let mut pts = Vec::new();
@@ -949,57 +1108,18 @@ pub fn fit_volume(dir: &Path, progress: &dyn Fn(u64, u64)) -> Result<FirsVolume,
         .sum::<f64>()
         / pts.len().max(1) as f64)
         .sqrt();
-    let voxel = c.spec.voxel_mm.unwrap_or_else(|| lightrig_pipelines::vec3::norm(map.u_step));
-    if !voxel.is_finite() || voxel <= 0.0 || map_rms > 0.25 * voxel {
-        return Err(fail(format!(
-            "{what}: the slices are not an affine map of the world ({:.3} mm RMS off it, voxel {voxel:.3} mm): volume mode needs a telecentric camera at about 90° to parallel sheets",
-            map_rms
-        )));
-    }
-    // The grid: the stack's world box within the calibrated volume.
-    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
-    for (u, v, k) in [(0, 0, 0), (w - 1, 0, 0), (0, h - 1, 0), (w - 1, h - 1, 0)]
-        .into_iter()
-        .flat_map(|(u, v, _)| [(u, v, 0), (u, v, n - 1)])
-    {
-        let q = add(
-            add(map.origin, scale(map.u_step, u as f64)),
-            add(scale(map.v_step, v as f64), scale(map.slice_step, k as f64)),
-        );
-        for d in 0..3 {
-            lo[d] = lo[d].min(q[d]).max(c.volume.min[d]);
-            hi[d] = hi[d].max(q[d]).min(c.volume.max[d]);
-        }
-    }
-    let dims = [0, 1, 2].map(|d| (((hi[d] - lo[d]) / voxel).floor() as usize + 1).max(2));
-    let grid = Grid { dims, voxel: [voxel; 3], origin: lo };
-    let values = resample(&stack, &map, &grid).map_err(|e| fail(format!("{what}: {e}")))?;
-    let mesh =
-        marching_cubes(&values, &grid, ISO, Solid::Above).map_err(|e| fail(format!("{what}: {e:?}")))?;
-    progress(c.sweeps, c.sweeps);
-    Ok(FirsVolume {
-        ray_pixels: c.ray_pixels,
-        sheet_samples: c.sheet_samples,
-        sheet_rms: c.sheet_rms,
-        map,
-        map_rms,
-        grid,
-        enclosed_mm3: enclosed_volume(&mesh),
-        values,
-        mesh,
-    })
+    Ok((map, map_rms))
 }
 
-/// Writes `volume.ply` (the closed surface), `volume.raw` + `volume.json` (the occupancy
-/// volume, see [`write_raw_volume`]) and `summary.json` into `out`.
+/// Writes `volume.ply` (the closed surface) and `summary.json` into `out`, beside the
+/// `volume.raw` + `volume.json` (the occupancy volume, see [`RawVolumeWriter`]) the fit wrote;
+/// returns the four files.
 pub fn write_volume_outputs(v: &FirsVolume, out: &Path) -> Result<Vec<PathBuf>, FitError> {
     let io = |p: &Path, e: std::io::Error| fail(format!("{}: {e}", p.display()));
     std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
     let ply = out.join("volume.ply");
     let f = std::fs::File::create(&ply).map_err(|e| io(&ply, e))?;
     write_ply(&v.mesh, &mut std::io::BufWriter::new(f)).map_err(|e| io(&ply, e))?;
-    let stem = out.join("volume");
-    write_raw_volume(&stem, &v.values, &v.grid).map_err(|e| io(&stem, e))?;
     let d = edge_defects(&v.mesh);
     let summary = serde_json::json!({
         "ray_pixels": v.ray_pixels,
@@ -1010,9 +1130,11 @@ pub fn write_volume_outputs(v: &FirsVolume, out: &Path) -> Result<Vec<PathBuf>, 
         "triangles": v.mesh.triangles.len(),
         "enclosed_mm3": v.enclosed_mm3,
         "closed": d.boundary == 0 && d.non_manifold == 0 && d.misoriented == 0,
+        "held": v.held,
     });
     let p = out.join("summary.json");
     let text = serde_json::to_string_pretty(&summary).map_err(|e| fail(e.to_string()))?;
     std::fs::write(&p, text + "\n").map_err(|e| io(&p, e))?;
-    Ok(vec![ply, out.join("volume.raw"), out.join("volume.json"), p])
+    let [raw, json] = v.raw.clone();
+    Ok(vec![ply, raw, json, p])
 }

@@ -517,7 +517,7 @@ fn fit_firs_surface(session: &std::path::Path, out: &std::path::Path) -> ExitCod
 
 /// `lightrig fit firs-volume SESSION --out DIR`.
 fn fit_firs_volume(session: &std::path::Path, out: &std::path::Path) -> ExitCode {
-    let fit = lightrig_host::firs_fit::fit_volume(session, &|_, _| {});
+    let fit = lightrig_host::firs_fit::fit_volume(session, out, &|_, _| {});
     match fit.and_then(|v| {
         println!(
             "grid {:?} of {:.3} mm; {} triangles; enclosed {:.1} mm³",

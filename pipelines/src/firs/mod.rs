@@ -6,6 +6,7 @@
 //!
 //! - [`mesh`]: triangle meshes, PLY output, marching cubes, and mesh-to-mesh distances.
 //! - [`volume`]: volume mode, slices to a segmented voxel volume.
+//! - [`volume_stream`]: volume mode streamed, frame by frame, in bounded memory.
 //! - [`calib`]: calibration through the tank wall, per-pixel rays, the curved sheets, and
 //!   triangulation of a ray against a sheet.
 //! - [`surface`]: surface mode, the sheet's cut-off in the space-time stack.
@@ -14,3 +15,4 @@ pub mod calib;
 pub mod mesh;
 pub mod surface;
 pub mod volume;
+pub mod volume_stream;

@@ -78,11 +78,11 @@ impl fmt::Display for VolumeError {
 
 impl std::error::Error for VolumeError {}
 
-fn pixels(width: usize, height: usize) -> Result<usize, VolumeError> {
+pub(crate) fn pixels(width: usize, height: usize) -> Result<usize, VolumeError> {
     width.checked_mul(height).filter(|&n| n > 0).ok_or(VolumeError::BadSize { width, height })
 }
 
-fn check_len(expected: usize, got: usize) -> Result<(), VolumeError> {
+pub(crate) fn check_len(expected: usize, got: usize) -> Result<(), VolumeError> {
     if expected == got {
         Ok(())
     } else {
@@ -488,8 +488,8 @@ pub struct SliceStack {
 /// Steps 1–5 on a sweep: each frame divided by `reference`, shadow-corrected (blocked streaks
 /// filled), segmented, thin streaks and small specks removed. Returns the occupancy (see the module) with what the
 /// clean-up removed set to 0, so marching cubes at [`ISO`] follows the segmentation and its
-/// boundary pixels. Holds the stack's ratio (f32) and masks (bytes): the 3D fill and speck
-/// removal need the whole stack.
+/// boundary pixels. Holds the stack's ratio (f32) and masks (bytes); the same steps in a few
+/// slices at a time: [`crate::firs::volume_stream::SegmentStream`].
 pub fn segment_slices(
     frames: &[&[f32]],
     reference: &[f32],
@@ -558,7 +558,7 @@ pub struct SliceMap {
 
 impl SliceMap {
     /// The inverse map as rows: `(u, v, s) = rows · (p − origin)`.
-    fn inverse(&self) -> Result<[V3; 3], VolumeError> {
+    pub(crate) fn inverse(&self) -> Result<[V3; 3], VolumeError> {
         let (a, b, c) = (self.u_step, self.v_step, self.slice_step);
         let det = dot(a, cross(b, c));
         let scale = crate::vec3::norm(a) * crate::vec3::norm(b) * crate::vec3::norm(c);
@@ -588,8 +588,13 @@ pub fn resample_slice(
     if k >= nz {
         return Err(VolumeError::BadParameter("slice index beyond the grid"));
     }
-    resample_into(stack, map.origin, &inv, grid, k, out);
-    Ok(())
+    let planes: Vec<&[f32]> = stack.data.chunks(stack.width * stack.height).collect();
+    let dims = [stack.width, stack.height, stack.count];
+    if resample_planes(&planes, 0, dims, map.origin, &inv, grid, k, out) {
+        Ok(())
+    } else {
+        Err(VolumeError::BadParameter("internal: a slice the resampling needs is missing"))
+    }
 }
 
 fn check_stack(stack: &SliceStack) -> Result<(), VolumeError> {
@@ -600,9 +605,22 @@ fn check_stack(stack: &SliceStack) -> Result<(), VolumeError> {
     check_len(n.saturating_mul(stack.count), stack.data.len())
 }
 
-fn resample_into(stack: &SliceStack, origin: V3, inv: &[V3; 3], grid: &Grid, k: usize, out: &mut [f32]) {
-    let (w, h, c) = (stack.width, stack.height, stack.count);
-    let at = |u: usize, v: usize, s: usize| stack.data[(s * h + v) * w + u];
+/// Fills `out` with z-slice `k` of `grid` from the stack `dims = [width, height, count]`,
+/// of which `planes[i]` is slice `first + i` (the slices the z-slice needs: a streaming caller
+/// holds only those). Returns `false` when a slice it needs is not in `planes`.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn resample_planes(
+    planes: &[&[f32]],
+    first: usize,
+    dims: [usize; 3],
+    origin: V3,
+    inv: &[V3; 3],
+    grid: &Grid,
+    k: usize,
+    out: &mut [f32],
+) -> bool {
+    let [w, h, c] = dims;
+    let mut complete = true;
     let nx = grid.dims[0];
     for (idx, o) in out.iter_mut().enumerate() {
         let (i, j) = (idx % nx, idx / nx);
@@ -622,13 +640,23 @@ fn resample_into(stack: &SliceStack, origin: V3, inv: &[V3; 3], grid: &Grid, k: 
         let cell = |x: f64, n: usize| (x.floor() as usize).min(n.saturating_sub(2));
         let (u0, v0, s0) = (cell(u, w), cell(v, h), cell(s, c));
         let (u1, v1, s1) = ((u0 + 1).min(w - 1), (v0 + 1).min(h - 1), (s0 + 1).min(c - 1));
+        let (Some(a), Some(b)) = (
+            s0.checked_sub(first).and_then(|i| planes.get(i)),
+            s1.checked_sub(first).and_then(|i| planes.get(i)),
+        ) else {
+            complete = false;
+            *o = 0.0;
+            continue;
+        };
         let (fu, fv, fs) = ((u - u0 as f64) as f32, (v - v0 as f64) as f32, (s - s0 as f64) as f32);
         let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
-        let plane = |s: usize| {
-            lerp(lerp(at(u0, v0, s), at(u1, v0, s), fu), lerp(at(u0, v1, s), at(u1, v1, s), fu), fv)
+        let plane = |pl: &[f32]| {
+            let at = |u: usize, v: usize| pl[v * w + u];
+            lerp(lerp(at(u0, v0), at(u1, v0), fu), lerp(at(u0, v1), at(u1, v1), fu), fv)
         };
-        *o = lerp(plane(s0), plane(s1), fs);
+        *o = lerp(plane(a), plane(b), fs);
     }
+    complete
 }
 
 /// The whole world volume of `grid` resampled from `stack` (see [`resample_slice`]); z-slices
@@ -643,8 +671,18 @@ pub fn resample(stack: &SliceStack, map: &SliceMap, grid: &Grid) -> Result<Vec<f
         .and_then(|n| n.checked_mul(nz).map(|t| (n, t)))
         .ok_or(VolumeError::BadSize { width: nx, height: ny })?;
     let mut out = vec![0.0f32; n.1];
-    out.par_chunks_mut(n.0).enumerate().for_each(|(k, o)| resample_into(stack, map.origin, &inv, grid, k, o));
-    Ok(out)
+    let planes: Vec<&[f32]> = stack.data.chunks(stack.width * stack.height).collect();
+    let dims = [stack.width, stack.height, stack.count];
+    let complete = out
+        .par_chunks_mut(n.0)
+        .enumerate()
+        .map(|(k, o)| resample_planes(&planes, 0, dims, map.origin, &inv, grid, k, o))
+        .reduce(|| true, |a, b| a && b);
+    if complete {
+        Ok(out)
+    } else {
+        Err(VolumeError::BadParameter("internal: a slice the resampling needs is missing"))
+    }
 }
 
 /// Writes a volume for volume renderers as two files, `<stem>.raw` and `<stem>.json`.
@@ -669,24 +707,80 @@ pub fn resample(stack: &SliceStack, map: &SliceMap, grid: &Grid) -> Result<Vec<f
 /// Sample `(i, j, k)` is at `origin_mm + (i·dx, j·dy, k·dz)`; for volume mode the values are
 /// occupancy (0 liquid, 1 object, surface at 0.5).
 pub fn write_raw_volume(stem: &Path, values: &[f32], grid: &Grid) -> io::Result<()> {
-    let invalid = |m: String| io::Error::new(io::ErrorKind::InvalidInput, m);
     let len = grid.len().ok_or_else(|| invalid("grid too large".into()))?;
     if values.len() != len {
         return Err(invalid(format!("expected {len} samples, got {}", values.len())));
     }
-    let name = stem
-        .file_name()
-        .and_then(|n| n.to_str())
-        .ok_or_else(|| invalid("stem has no UTF-8 file name".into()))?;
-    let raw = stem.with_file_name(format!("{name}.raw"));
-    let mut f = io::BufWriter::new(std::fs::File::create(&raw)?);
-    for chunk in values.chunks(1 << 16) {
-        let bytes: Vec<u8> = chunk.iter().flat_map(|x| x.to_le_bytes()).collect();
-        f.write_all(&bytes)?;
+    let mut w = RawVolumeWriter::create(stem, grid)?;
+    let slice = grid.dims[0] * grid.dims[1];
+    for z in values.chunks(slice.max(1)) {
+        w.push(z)?;
     }
-    f.flush()?;
-    let mut j = std::fs::File::create(stem.with_file_name(format!("{name}.json")))?;
-    j.write_all(sidecar_json(&format!("{name}.raw"), grid).as_bytes())
+    w.finish()
+}
+
+fn invalid(m: String) -> io::Error {
+    io::Error::new(io::ErrorKind::InvalidInput, m)
+}
+
+/// [`write_raw_volume`] one z-slice at a time: `create`, [`push`](Self::push) the grid's
+/// `dims[2]` z-slices in order, [`finish`](Self::finish) (which writes the sidecar). Holds no
+/// slice.
+pub struct RawVolumeWriter {
+    raw: io::BufWriter<std::fs::File>,
+    json: std::path::PathBuf,
+    name: String,
+    grid: Grid,
+    written: usize,
+}
+
+impl RawVolumeWriter {
+    /// Creates `<stem>.raw` for the volume `grid`.
+    pub fn create(stem: &Path, grid: &Grid) -> io::Result<Self> {
+        grid.len().filter(|&n| n > 0).ok_or_else(|| invalid(format!("bad grid {:?}", grid.dims)))?;
+        let name = stem
+            .file_name()
+            .and_then(|n| n.to_str())
+            .ok_or_else(|| invalid("stem has no UTF-8 file name".into()))?;
+        let raw = stem.with_file_name(format!("{name}.raw"));
+        Ok(RawVolumeWriter {
+            raw: io::BufWriter::new(std::fs::File::create(&raw)?),
+            json: stem.with_file_name(format!("{name}.json")),
+            name: format!("{name}.raw"),
+            grid: *grid,
+            written: 0,
+        })
+    }
+
+    /// Appends the next z-slice (`dims[0]·dims[1]` samples, x fastest).
+    pub fn push(&mut self, slice: &[f32]) -> io::Result<()> {
+        let n = self.grid.dims[0] * self.grid.dims[1];
+        if slice.len() != n {
+            return Err(invalid(format!("expected a z-slice of {n} samples, got {}", slice.len())));
+        }
+        if self.written >= self.grid.dims[2] {
+            return Err(invalid(format!("more than the grid's {} z-slices", self.grid.dims[2])));
+        }
+        for chunk in slice.chunks(1 << 14) {
+            let bytes: Vec<u8> = chunk.iter().flat_map(|x| x.to_le_bytes()).collect();
+            self.raw.write_all(&bytes)?;
+        }
+        self.written += 1;
+        Ok(())
+    }
+
+    /// Flushes the raw file and writes the sidecar; refuses a volume missing z-slices.
+    pub fn finish(mut self) -> io::Result<()> {
+        if self.written != self.grid.dims[2] {
+            return Err(invalid(format!(
+                "{} of the grid's {} z-slices written",
+                self.written, self.grid.dims[2]
+            )));
+        }
+        self.raw.flush()?;
+        let mut j = std::fs::File::create(&self.json)?;
+        j.write_all(sidecar_json(&self.name, &self.grid).as_bytes())
+    }
 }
 
 fn sidecar_json(data: &str, grid: &Grid) -> String {
@@ -1057,6 +1151,84 @@ mod tests {
         let truth = 4.0 / 3.0 * std::f64::consts::PI * r.powi(3);
         let vol = enclosed_volume(&m);
         assert!((vol / truth - 1.0).abs() < 0.01, "volume {vol} vs {truth}");
+    }
+
+    /// Volume mode streamed over `frames` (in the sweep's order): the world volume and the
+    /// mesh, and what the stages held.
+    fn streamed_chain(
+        frames: &[&[f32]],
+        reference: &[f32],
+        p: &VolumeParams,
+        grid: &Grid,
+    ) -> (Vec<f32>, Mesh, crate::firs::volume_stream::StreamStats, usize) {
+        use crate::firs::mesh::MarchingCubes;
+        use crate::firs::volume_stream::{ResampleStream, SegmentStream};
+        let n = frames.len();
+        let mut rs = ResampleStream::new(&MAP, grid, W, H, n).unwrap();
+        assert!(!rs.reversed());
+        let mut seg = SegmentStream::new(reference.to_vec(), W, H, n, false, p).unwrap();
+        let mut mc = MarchingCubes::new(*grid, ISO, Solid::Above).unwrap();
+        let mut vol = Vec::new();
+        let mut z = vec![0.0f32; grid.dims[0] * grid.dims[1]];
+        let mut drain = |seg: &mut SegmentStream, rs: &mut ResampleStream, finished: bool| {
+            // Each slice in, then the z-slices it completes out.
+            while let Some((k, o)) = seg.pop() {
+                rs.push(k, o).unwrap();
+                while rs.next(&mut z, false).unwrap().is_some() {
+                    mc.push(&z).unwrap();
+                    vol.extend_from_slice(&z);
+                }
+            }
+            while finished && rs.next(&mut z, true).unwrap().is_some() {
+                mc.push(&z).unwrap();
+                vol.extend_from_slice(&z);
+            }
+        };
+        // Two frames at a time, as the host feeds its threads.
+        for pair in frames.chunks(2) {
+            seg.push_many(pair).unwrap();
+            drain(&mut seg, &mut rs, false);
+        }
+        seg.finish().unwrap();
+        drain(&mut seg, &mut rs, true);
+        (vol, mc.finish().unwrap(), seg.stats(), rs.max_window())
+    }
+
+    #[test]
+    fn streamed_chain_equals_the_whole_array_in_a_few_slices() {
+        // The dusty sphere sweep: streaks, shadows, specks. The streamed steps give the same
+        // world volume and mesh, bit for bit, and hold a few slices whatever the sweep's
+        // length (the first half of the sweep and the whole of it).
+        let (c, r) = ([32.0, 29.0, 36.0], 16.0);
+        let sdf = move |p: V3| norm(sub(p, c)) - r;
+        let (frames, refs) = render(&|p| sdf(p) < 0.0, 25, 7);
+        let refs: Vec<&[f32]> = refs.iter().map(|r| r.as_slice()).collect();
+        let reference = median_reference(&refs, W, H).unwrap();
+        let frames: Vec<&[f32]> = frames.iter().map(|f| f.as_slice()).collect();
+        let p = VolumeParams { min_height: 4, min_region: 40, ..VolumeParams::default() };
+        let (lo, hi) = ([10.0, 7.0, 14.0], [54.0, 51.0, 58.0]);
+        let dims: [usize; 3] = std::array::from_fn(|a| (hi[a] - lo[a]) as usize + 1);
+        let grid = Grid { dims, voxel: [1.0; 3], origin: lo };
+        let mut blocked_slices = 0;
+        for n in [N / 2, N] {
+            let stack = segment_slices(&frames[..n], &reference, W, H, &p).unwrap();
+            let whole = resample(&stack, &MAP, &grid).unwrap();
+            let mesh = marching_cubes(&whole, &grid, ISO, Solid::Above).unwrap();
+            let (vol, streamed, stats, window) = streamed_chain(&frames[..n], &reference, &p, &grid);
+            assert_eq!(stats.forced_fills, 0, "{stats:?}");
+            assert!(vol == whole, "n {n}: streamed volume differs");
+            assert_eq!(streamed, mesh, "n {n}");
+            assert!(!mesh.triangles.is_empty());
+            // Constant bounds, not the sweep's length: the fill slab (streaks are two sheets
+            // deep: themselves, context and the newest slice), the small-region stage, the
+            // resampling window (four slices plus the next z-slice's).
+            assert!(stats.max_fill_slices <= 5, "n {n}: {stats:?}");
+            assert!(stats.max_clean_slices <= 4, "n {n}: {stats:?}");
+            assert!(window <= 5, "n {n}: window {window}");
+            blocked_slices = stats.max_fill_slices;
+        }
+        // The dust did block the sheet (the fill stage held a streak).
+        assert!(blocked_slices >= 3, "{blocked_slices}");
     }
 
     #[test]
