@@ -160,8 +160,9 @@ fn step_frames(
     step: u32,
     triggers: &HashMap<(u32, u32), TriggerEvent>,
 ) -> Result<Vec<(PathBuf, TriggerEvent)>, FitError> {
-    let mut frames = session.frames_of(step);
-    frames.sort_by_key(|f| f.frame);
+    // One camera's frames (a rig may fire several together): the lowest-numbered.
+    let camera = session.pipeline_camera(None).map_err(fail)?;
+    let frames = session.camera_frames_of(step, camera);
     frames
         .iter()
         .map(|f| {
