@@ -88,6 +88,13 @@ pub struct FirsSheet {
     /// the zero code and move along their normal by this many mm per code.
     #[serde(default)]
     pub parallel_mm_per_code: Option<f64>,
+    /// The flat glass side wall (its inner face the liquid's `x = tank.min.x` face) the fanned
+    /// sheet crosses into the liquid: then `mirror` is the real mirror in air, `angle0_deg` the
+    /// sheet's angle in air, and each ray of the fan refracts at both faces by its own
+    /// incidence, so the sheet in the liquid is curved. `None`: `mirror` is the mirror's
+    /// virtual image (the wall folded in) and the sheets are planes.
+    #[serde(default)]
+    pub side_wall: Option<FirsSideWall>,
     /// Fluorescence per mm of path through the sheet's centre, radiance units.
     pub glow: f64,
     /// The stray term's size relative to `glow`.
@@ -96,6 +103,33 @@ pub struct FirsSheet {
     pub laser: u8,
     /// Galvo index.
     pub galvo: u8,
+}
+
+/// The side wall the laser crosses: flat glass, faces normal to `x`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FirsSideWall {
+    /// Thickness, mm.
+    pub wall_mm: f64,
+    /// Refractive index.
+    pub n_wall: f64,
+}
+
+/// A refracted laser path (see `FirsSceneSpec::refraction`).
+#[derive(Debug, Clone, Copy)]
+struct Refraction {
+    /// Sine of the air ray's angle to the wall normal (times the index: the Snell invariant).
+    k: f64,
+    /// Air and glass stretches along the wall normal, mm.
+    a: f64,
+    g: f64,
+    /// The lateral offset of the point from the mirror and its `y`, `z` parts.
+    lat: f64,
+    ey: f64,
+    ez: f64,
+    /// tan of the angle to the normal in air, glass, liquid.
+    tan: [f64; 3],
+    /// d(lateral reach)/dk.
+    reach_dk: f64,
 }
 
 /// The chessboard target: `cols × rows` inner corners, corner `(i, j)` at
@@ -216,6 +250,8 @@ impl FirsSceneSpec {
         s.sheet.angle0_deg = 0.0;
         s.sheet.mirror = [-700.0, 0.0, 0.0];
         s.sheet.parallel_mm_per_code = Some(0.3 / 20.0);
+        s.sheet.side_wall = None;
+        s.sheet.urad_per_code = 13.3158;
         s.sheet.sigma_mm = 0.3;
         s.target = FirsTarget { cols: 7, rows: 5, square_mm: 3.0, origin_mm: [-9.0, -6.0], lamp: 1.0 };
         s.object = FirsObject::Matched { centre: [0.8, 0.3, 0.0], radius: 10.0, absorb: 0.02 };
@@ -267,6 +303,7 @@ impl FirsSceneSpec {
                 urad_per_code: 13.3158,
                 sigma_mm: 0.14,
                 parallel_mm_per_code: None,
+                side_wall: None,
                 glow: 1.0,
                 stray: 0.01,
                 laser: 0,
@@ -278,6 +315,7 @@ impl FirsSceneSpec {
             turntable_dir: [0.0, -1.0, 0.0],
             turntable_axis: 0,
         };
+        s.set_side_wall(FirsSideWall { wall_mm: 6.0, n_wall: 1.5 });
         // Aim the optical axis at the world origin through the wall: trace it from a camera
         // 280 mm away along the axis, then shift the camera by the miss.
         let psi = s.camera.yaw_deg.to_radians();
@@ -357,21 +395,212 @@ impl FirsSceneSpec {
         }
     }
 
+    /// Puts the fanned sheet's mirror behind the glass side wall `wall`, keeping the sheets
+    /// in the liquid where they were: the zero code's central ray crosses the origin at the
+    /// liquid angle the virtual mirror gave (from `+x` towards `+z`), the real mirror sits at
+    /// the same `x` in air, and the galvo's step is scaled so the sheets keep their spacing in
+    /// the liquid at the origin.
+    pub fn set_side_wall(&mut self, wall: FirsSideWall) {
+        let sh = &mut self.sheet;
+        let nl = self.tank.n_liquid;
+        let th_l = sh.angle0_deg.to_radians();
+        let sin_a = (nl * th_l.sin()).min(0.999);
+        let th_a = sin_a.asin();
+        let th_g = (sin_a / wall.n_wall).asin();
+        let (x_in, x_out) = (self.tank.min[0], self.tank.min[0] - wall.wall_mm);
+        let z_in = th_l.tan() * x_in;
+        let z_out = z_in - wall.wall_mm * th_g.tan();
+        let mx = sh.mirror[0];
+        sh.mirror = [mx, sh.mirror[1], z_out - (x_out - mx) * th_a.tan()];
+        // dθ_liquid/dθ_air in the horizontal plane, from sin θ_a = n_l sin θ_l.
+        sh.urad_per_code *= nl * th_l.cos() / th_a.cos();
+        sh.angle0_deg = th_a.to_degrees();
+        sh.side_wall = Some(wall);
+    }
+
+    /// The laser's path from the mirror to the liquid point `p` through the side wall (Fermat:
+    /// Snell's law at both faces): the mirror, the points on the outer and inner faces, `p`.
+    /// `None` without a side wall or for a point not beyond the wall.
+    pub fn laser_path(&self, p: V3) -> Option<[V3; 4]> {
+        let r = self.refraction(p, None)?;
+        let m = self.sheet.mirror;
+        let (uy, uz) = if r.lat > 0.0 { (r.ey / r.lat, r.ez / r.lat) } else { (0.0, 0.0) };
+        let (ta, tg) = (r.a * r.tan[0], r.g * r.tan[1]);
+        let pa = [m[0] + r.a, m[1] + uy * ta, m[2] + uz * ta];
+        let pb = [pa[0] + r.g, pa[1] + uy * tg, pa[2] + uz * tg];
+        Some([m, pa, pb, p])
+    }
+
+    /// The refracted path to `p` in the plane of the wall normal and `p − mirror`'s lateral
+    /// part: Newton (bracketed) on the invariant `k = sin` of the air ray's angle to the wall
+    /// normal, from `guess`.
+    fn refraction(&self, p: V3, guess: Option<f64>) -> Option<Refraction> {
+        let wall = self.sheet.side_wall?;
+        let m = self.sheet.mirror;
+        let (x_in, x_out) = (self.tank.min[0], self.tank.min[0] - wall.wall_mm);
+        let (a, g, l) = (x_out - m[0], wall.wall_mm, (p[0] - x_in).max(0.0));
+        if a <= 0.0 {
+            return None;
+        }
+        let (ey, ez) = (p[1] - m[1], p[2] - m[2]);
+        let lat = ey.hypot(ez);
+        let n = [1.0, wall.n_wall, self.tank.n_liquid];
+        let len = [a, g, l];
+        // tan of the angle in medium i and its derivative in k.
+        let tans = |k: f64| {
+            let mut t = [0.0; 3];
+            let mut dt = [0.0; 3];
+            for i in 0..3 {
+                let s = k / n[i];
+                let c2 = 1.0 - s * s;
+                let c = c2.sqrt();
+                t[i] = s / c;
+                dt[i] = 1.0 / (n[i] * c2 * c);
+            }
+            (t, dt)
+        };
+        let (mut lo, mut hi) = (0.0f64, 1.0f64);
+        let mut k = guess.unwrap_or(lat / lat.hypot(a + g + l)).clamp(0.0, 0.999_999);
+        for _ in 0..60 {
+            let (t, dt) = tans(k);
+            let f = (0..3).map(|i| len[i] * t[i]).sum::<f64>() - lat;
+            if f > 0.0 {
+                hi = k;
+            } else {
+                lo = k;
+            }
+            let step = f / (0..3).map(|i| len[i] * dt[i]).sum::<f64>();
+            if step.abs() < 1e-15 {
+                break;
+            }
+            let next = k - step;
+            k = if next > lo && next < hi { next } else { 0.5 * (lo + hi) };
+            if hi - lo < 1e-15 {
+                break;
+            }
+        }
+        let (tan, dtan) = tans(k);
+        let reach_dk = (0..3).map(|i| len[i] * dtan[i]).sum::<f64>();
+        Some(Refraction { k, a, g, lat, ey, ez, tan, reach_dk })
+    }
+
+    /// The fractional galvo code whose sheet passes through the liquid point `p`.
+    pub fn code_at(&self, p: V3) -> f64 {
+        self.code_grad(p, None).0
+    }
+
+    /// The code at `p`, its gradient (codes per mm) and the path's `k` (warm start for a
+    /// neighbouring point).
+    fn code_grad(&self, p: V3, guess: Option<f64>) -> (f64, V3, Option<f64>) {
+        let s = &self.sheet;
+        let per_rad = 1.0 / (s.urad_per_code * 1e-6);
+        let zero = f64::from(s.zero_code);
+        let th0 = s.angle0_deg.to_radians();
+        if let Some(step) = s.parallel_mm_per_code {
+            let n = [-th0.sin(), 0.0, th0.cos()];
+            return (zero + dot(n, sub(p, s.mirror)) / step, scale(n, 1.0 / step), None);
+        }
+        let Some(r) = self.refraction(p, guess) else {
+            // The plane through the vertical line through the (virtual) mirror.
+            let (dx, dz) = (p[0] - s.mirror[0], p[2] - s.mirror[2]);
+            let r2 = dx * dx + dz * dz;
+            return (zero + (dz.atan2(dx) - th0) * per_rad, scale([-dz / r2, 0.0, dx / r2], per_rad), None);
+        };
+        // θ = atan2(k·e_z, √(1 − k²)), e = the lateral unit vector; k(lat, l) from the reach
+        // equation: ∂k/∂lat = 1/R', ∂k/∂l = −tan_l/R'.
+        let (k, lat) = (r.k, r.lat.max(1e-12));
+        let ezu = r.ez / lat;
+        let (f, g) = (k * ezu, (1.0 - k * k).sqrt());
+        let theta = f.atan2(g);
+        let dk = [-r.tan[2] / r.reach_dk, (r.ey / lat) / r.reach_dk, (r.ez / lat) / r.reach_dk];
+        let lat3 = lat * lat * lat;
+        let dezu = [0.0, -r.ez * r.ey / lat3, r.ey * r.ey / lat3];
+        let q = f * f + g * g;
+        let grad: V3 = std::array::from_fn(|i| {
+            let df = ezu * dk[i] + k * dezu[i];
+            let dg = -k / g * dk[i];
+            (g * df - f * dg) / q * per_rad
+        });
+        (zero + (theta - th0) * per_rad, grad, Some(k))
+    }
+
+    /// The laser's direction at the liquid point `p` (unit).
+    pub fn laser_dir_at(&self, p: V3) -> V3 {
+        let s = &self.sheet;
+        if s.parallel_mm_per_code.is_some() {
+            let th = s.angle0_deg.to_radians();
+            return [th.cos(), 0.0, th.sin()];
+        }
+        match self.laser_path(p) {
+            Some([_, _, b, _]) => normalize(sub(p, b)),
+            None => normalize(sub(p, s.mirror)),
+        }
+    }
+
+    /// The `z` of sheet `code` (fractional) at `(x, y)`: the root of `code_at` along `z`.
+    pub fn sheet_z(&self, code: f64, x: f64, y: f64) -> Option<f64> {
+        let f = |z: f64| self.code_at([x, y, z]) - code;
+        let (mut z0, mut z1) = (0.0, 1.0);
+        let (mut f0, mut f1) = (f(z0), f(z1));
+        for _ in 0..50 {
+            if f1 == f0 {
+                break;
+            }
+            let z2 = z1 - f1 * (z1 - z0) / (f1 - f0);
+            (z0, f0) = (z1, f1);
+            z1 = z2;
+            f1 = f(z1);
+            if (z1 - z0).abs() < 1e-10 {
+                return Some(z1);
+            }
+        }
+        (f1.abs() < 1e-6).then_some(z1)
+    }
+
+    /// The sheet `code` near the liquid ray `o + s·d`: its unit normal and the point where the
+    /// ray crosses it (the sheet's tangent plane there; the sheet is the level set of
+    /// [`code_at`](Self::code_at), found by Newton's method along the ray from `s0`).
+    fn sheet_crossing(&self, o: V3, d: V3, code: u16, s0: f64) -> Option<(V3, V3)> {
+        let c = f64::from(code);
+        let mut s = s0;
+        let mut guess = None;
+        for _ in 0..30 {
+            let p = add(o, scale(d, s));
+            let (v, g, k) = self.code_grad(p, guess);
+            guess = k;
+            let slope = dot(g, d);
+            if slope == 0.0 || !slope.is_finite() {
+                return None;
+            }
+            let step = (v - c) / slope;
+            s -= step;
+            if step.abs() < 1e-9 {
+                let p = add(o, scale(d, s));
+                let (_, g, _) = self.code_grad(p, guess);
+                return (norm(g) > 0.0).then(|| (normalize(g), p));
+            }
+        }
+        None
+    }
+
     /// Sheet angle of galvo code `code`, radians.
     pub fn sheet_angle(&self, code: u16) -> f64 {
         let s = &self.sheet;
         s.angle0_deg.to_radians() + (f64::from(code) - f64::from(s.zero_code)) * s.urad_per_code * 1e-6
     }
 
-    /// The galvo code whose sheet crosses `x = 0` at depth `z` (fractional).
+    /// The galvo code whose sheet crosses `x = 0, y = 0` at depth `z` (fractional).
     pub fn code_for_depth(&self, z: f64) -> f64 {
-        let s = &self.sheet;
-        if let Some(k) = s.parallel_mm_per_code {
-            let th = s.angle0_deg.to_radians();
-            return f64::from(s.zero_code) + (z - s.mirror[2] + s.mirror[0] * th.tan()) * th.cos() / k;
+        self.code_at([0.0, 0.0, z])
+    }
+
+    /// The sheets' slope `dz/dx` in the liquid at the origin, along `y = 0`.
+    pub fn liquid_slope(&self) -> f64 {
+        let c = self.code_at([0.0; 3]);
+        match (self.sheet_z(c, -10.0, 0.0), self.sheet_z(c, 10.0, 0.0)) {
+            (Some(a), Some(b)) => (b - a) / 20.0,
+            _ => self.sheet.angle0_deg.to_radians().tan(),
         }
-        let theta = ((z - s.mirror[2]) / (0.0 - s.mirror[0])).atan();
-        f64::from(s.zero_code) + (theta - s.angle0_deg.to_radians()) / (s.urad_per_code * 1e-6)
     }
 
     /// The object's centre at turntable angle `deg`.
@@ -514,6 +743,20 @@ impl FirsSceneSpec {
     fn glow(&self, o: V3, d: V3, code: u16, what: Occluder<'_>) -> f64 {
         let sh = &self.sheet;
         let Some((_, exit)) = box_interval(o, d, self.tank.min, self.tank.max) else { return 0.0 };
+        // The sheet where the ray crosses it: its tangent plane (a plane of the family without
+        // a side wall), and the apex of the sphere's shadow cone (the mirror; with a side wall,
+        // the virtual source of the liquid ray through the crossing, as far back as the mirror).
+        let sheet = match (sh.side_wall, sh.parallel_mm_per_code) {
+            (Some(_), None) => self.sheet_crossing(o, d, code, 0.5 * exit).map(|(n, x)| {
+                let l = self.laser_dir_at(x);
+                (n, x, sub(x, scale(l, norm(sub(x, sh.mirror)))))
+            }),
+            _ => {
+                let (n, q) = self.sheet_plane(code);
+                Some((n, q, sh.mirror))
+            }
+        };
+        let Some((n, q, apex)) = sheet else { return 0.0 };
         let mut end = exit;
         let mut shadow: Option<(f64, f64)> = None;
         let mut behind = 0.0;
@@ -525,7 +768,7 @@ impl FirsSceneSpec {
                         end = end.min(e0);
                     }
                 }
-                shadow = cone_shadow(o, d, sh.mirror, c, r);
+                shadow = cone_shadow(o, d, apex, c, r);
             }
             Occluder::Glass(planes, n) => {
                 if let Some((e0, _, i0, _)) =
@@ -574,7 +817,6 @@ impl FirsSceneSpec {
                 .collect();
         }
         let th = self.sheet_angle(code);
-        let (n, q) = self.sheet_plane(code);
         let nd = dot(n, d);
         if nd.abs() < 1e-9 {
             return 0.0;
@@ -868,6 +1110,64 @@ mod tests {
         // In the liquid the ray is steeper than in air (n 1.40 > 1): sin ratio = 1/1.40.
         let a = s.air_dir(100.0, 75.0);
         assert!((a[0] / d[0] - 1.40).abs() < 1e-9, "{} {}", a[0], d[0]);
+    }
+
+    #[test]
+    fn the_refracted_sheet_follows_snell_at_both_faces_and_is_curved() {
+        let s = FirsSceneSpec::new(64, 48);
+        let wall = s.sheet.side_wall.unwrap();
+        let (nl, ng) = (s.tank.n_liquid, wall.n_wall);
+        // The zero code's central ray still crosses the origin at the old liquid angle.
+        assert!((s.code_at([0.0; 3]) - f64::from(s.sheet.zero_code)).abs() < 1e-6, "{}", s.code_at([0.0; 3]));
+        let (n, x) = (0.5f64.atan(), [0.0; 3]);
+        let d = s.laser_dir_at(x);
+        assert!((d[2].atan2(d[0]) - n).abs() < 1e-9, "{d:?}");
+        for p in [[12.0, -25.0, 8.0], [-30.0, 30.0, -20.0], [40.0, 3.0, 35.0]] {
+            let [m, a, b, q] = s.laser_path(p).unwrap();
+            assert_eq!(q, p);
+            assert!(
+                (a[0] - (s.tank.min[0] - wall.wall_mm)).abs() < 1e-12 && (b[0] - s.tank.min[0]).abs() < 1e-12
+            );
+            let (d0, d1, d2) = (normalize(sub(a, m)), normalize(sub(b, a)), normalize(sub(p, b)));
+            // Snell: the tangential (y, z) part of n·d is the same in air, glass and liquid
+            // (same direction and size), at both faces.
+            for i in [1, 2] {
+                assert!((d0[i] - ng * d1[i]).abs() < 1e-12, "outer face, {i}: {d0:?} {d1:?}");
+                assert!((ng * d1[i] - nl * d2[i]).abs() < 1e-12, "inner face, {i}: {d1:?} {d2:?}");
+            }
+            // The air ray lies in the air sheet of the code found for p: the vertical plane
+            // through the mirror at that code's angle.
+            let c = s.code_at(p);
+            let th = s.sheet.angle0_deg.to_radians()
+                + (c - f64::from(s.sheet.zero_code)) * s.sheet.urad_per_code * 1e-6;
+            let normal = [-th.sin(), 0.0, th.cos()];
+            assert!(dot(normal, d0).abs() < 1e-12, "{c}: {d0:?}");
+            // The analytic gradient (the sheet's normal) against central differences.
+            let (_, g, _) = s.code_grad(p, None);
+            for i in 0..3 {
+                let (mut u, mut v) = (p, p);
+                u[i] += 1e-4;
+                v[i] -= 1e-4;
+                let fd = (s.code_at(u) - s.code_at(v)) / 2e-4;
+                assert!((fd - g[i]).abs() < 1e-5 * norm(g), "{i}: {fd} vs {}", g[i]);
+            }
+            // And the sheet through p, as z(x, y), gives p back.
+            let z = s.sheet_z(c, p[0], p[1]).unwrap();
+            assert!((z - p[2]).abs() < 1e-8, "{z} vs {}", p[2]);
+        }
+        // Curved: sheet 32768's z at x = 0 bends by tens of µm from y = 0 to ±35 mm (a plane
+        // through the vertical would not), evenly in y.
+        let c = f64::from(s.sheet.zero_code);
+        let z = |y: f64| s.sheet_z(c, 0.0, y).unwrap();
+        let bend = z(35.0) - z(0.0);
+        assert!(bend.abs() > 0.01, "{bend}");
+        eprintln!("sheet {c} at x = 0: z(35) − z(0) = {bend} mm");
+        assert!((z(-35.0) - z(35.0)).abs() < 1e-9);
+        // The rendered glow peaks where the pixel's ray crosses that curved sheet.
+        let (o, dir) = s.liquid_ray(10.0, 5.0).unwrap();
+        let (nrm, xp) = s.sheet_crossing(o, dir, 32768, 50.0).unwrap();
+        assert!((s.code_at(xp) - c).abs() < 1e-6);
+        assert!(nrm[1].abs() > 1e-5, "the normal tilts with the bend: {nrm:?}");
     }
 
     #[test]

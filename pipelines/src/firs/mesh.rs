@@ -1009,6 +1009,9 @@ pub struct SurfaceDistance {
     pub mean: f64,
     /// Area-weighted root mean square over both surfaces.
     pub rms: f64,
+    /// Area-weighted 95th percentile over both surfaces (of the triangle centroids'
+    /// distances).
+    pub p95: f64,
     /// Largest distance from any sample (vertex or triangle centroid) of either surface to the
     /// other (a sampled Hausdorff distance).
     pub max: f64,
@@ -1020,7 +1023,7 @@ pub struct SurfaceDistance {
 /// takes the vertices. `None` when either mesh has no usable triangles.
 pub fn surface_distance(a: &Mesh, b: &Mesh) -> Option<SurfaceDistance> {
     let (ga, gb) = (TriangleGrid::new(a)?, TriangleGrid::new(b)?);
-    let one_way = |from: &Mesh, to: &TriangleGrid| -> (f64, f64, f64, f64) {
+    let one_way = |from: &Mesh, to: &TriangleGrid| -> (Vec<(f64, f64)>, f64) {
         let tri: Vec<(f64, f64)> = from
             .triangles
             .par_iter()
@@ -1031,18 +1034,27 @@ pub fn surface_distance(a: &Mesh, b: &Mesh) -> Option<SurfaceDistance> {
             })
             .collect();
         let vmax = from.vertices.par_iter().map(|&v| to.distance(v)).reduce(|| 0.0, f64::max);
-        let (w, s, s2) =
-            tri.iter().fold((0.0, 0.0, 0.0), |(w, s, s2), &(a, d)| (w + a, s + a * d, s2 + a * d * d));
-        let m = tri.iter().map(|t| t.1).fold(vmax, f64::max);
-        (w, s, s2, m)
+        (tri, vmax)
     };
-    let (wa, sa, qa, ma) = one_way(a, &gb);
-    let (wb, sb, qb, mb) = one_way(b, &ga);
-    let w = wa + wb;
+    let (mut tri, ma) = one_way(a, &gb);
+    let (tb, mb) = one_way(b, &ga);
+    tri.extend(tb);
+    let (w, s, s2) =
+        tri.iter().fold((0.0, 0.0, 0.0), |(w, s, s2), &(a, d)| (w + a, s + a * d, s2 + a * d * d));
     if w <= 0.0 {
         return None;
     }
-    Some(SurfaceDistance { mean: (sa + sb) / w, rms: ((qa + qb) / w).sqrt(), max: ma.max(mb) })
+    let max = tri.iter().map(|t| t.1).fold(ma.max(mb), f64::max);
+    tri.sort_unstable_by(|x, y| x.1.total_cmp(&y.1));
+    let mut acc = 0.0;
+    let p95 = tri
+        .iter()
+        .find(|t| {
+            acc += t.0;
+            acc >= 0.95 * w
+        })
+        .map_or(max, |t| t.1);
+    Some(SurfaceDistance { mean: s / w, rms: (s2 / w).sqrt(), p95, max })
 }
 
 #[cfg(test)]
