@@ -846,8 +846,9 @@ pub struct FirsVolume {
     pub mesh: Mesh,
     /// The volume it encloses, mm³.
     pub enclosed_mm3: f64,
-    /// `volume.raw` and `volume.json`, the occupancy per voxel (x fastest), 0 liquid, 1 object.
-    pub raw: [PathBuf; 2],
+    /// `volume.raw`, the occupancy per voxel (x fastest), 0 liquid, 1 object, and its
+    /// descriptions `volume.json` and `volume.nhdr` (a detached NRRD header).
+    pub raw: [PathBuf; 3],
     /// What the streamed steps held (slices of the sweep).
     pub held: VolumeMemory,
 }
@@ -880,7 +881,7 @@ pub struct VolumeMemory {
 /// than half the sheets), resampled to world voxels through the affine slice map fitted to
 /// the calibrated rays and sheets, and meshed by marching cubes. Streamed: the reference is
 /// taken in bands of rows, then the frames go through the steps a few at a time and the
-/// occupancy volume is written to `out/volume.raw` (+ `volume.json`) z-slice by z-slice.
+/// occupancy volume is written to `out/volume.raw` (+ `volume.json`, `volume.nhdr`) z-slice by z-slice.
 pub fn fit_volume(dir: &Path, out: &Path, progress: &dyn Fn(u64, u64)) -> Result<FirsVolume, FitError> {
     fit_volume_banded(dir, out, BAND_BYTES, progress)
 }
@@ -1052,7 +1053,7 @@ pub fn fit_volume_banded(
         grid,
         enclosed_mm3: enclosed_volume(&mesh),
         mesh,
-        raw: [out.join("volume.raw"), out.join("volume.json")],
+        raw: [out.join("volume.raw"), out.join("volume.json"), out.join("volume.nhdr")],
         held: VolumeMemory {
             reference_band_rows: band,
             reference_bands: bands,
@@ -1113,7 +1114,7 @@ fn slice_map(c: &Calibration, codes: &[f64], what: &str) -> Result<(SliceMap, f6
 }
 
 /// Writes `volume.ply` (the closed surface) and `summary.json` into `out`, beside the
-/// `volume.raw` + `volume.json` (the occupancy volume, see [`RawVolumeWriter`]) the fit wrote;
+/// `volume.raw` + `volume.json` + `volume.nhdr` (the occupancy volume, see [`RawVolumeWriter`]) the fit wrote;
 /// returns the four files.
 pub fn write_volume_outputs(v: &FirsVolume, out: &Path) -> Result<Vec<PathBuf>, FitError> {
     let io = |p: &Path, e: std::io::Error| fail(format!("{}: {e}", p.display()));
@@ -1136,6 +1137,6 @@ pub fn write_volume_outputs(v: &FirsVolume, out: &Path) -> Result<Vec<PathBuf>, 
     let p = out.join("summary.json");
     let text = serde_json::to_string_pretty(&summary).map_err(|e| fail(e.to_string()))?;
     std::fs::write(&p, text + "\n").map_err(|e| io(&p, e))?;
-    let [raw, json] = v.raw.clone();
-    Ok(vec![ply, raw, json, p])
+    let [raw, json, nhdr] = v.raw.clone();
+    Ok(vec![ply, raw, json, nhdr, p])
 }

@@ -332,18 +332,7 @@ fn main() -> ExitCode {
                 },
             );
             bar.finish();
-            match maps.and_then(|m| lightrig_host::lls_fit::write_outputs(&m, &out)) {
-                Ok(files) => {
-                    for f in files {
-                        println!("{}", f.display());
-                    }
-                    ExitCode::SUCCESS
-                }
-                Err(e) => {
-                    eprintln!("error: {e}");
-                    ExitCode::from(exit::FAILURE)
-                }
-            }
+            report_files(maps.and_then(|m| lightrig_host::lls_fit::write_outputs(&m, &out)))
         }
         Cmd::Acquire { rig, session, connect, yes } => {
             match lightrig_host::cli_acquire::acquire(&rig, &session, connect.as_ref(), yes) {
@@ -491,7 +480,7 @@ fn firs_demo(quick: bool, out: &std::path::Path, seed: u64, check: bool, real_ti
 /// `lightrig fit firs-surface SESSION --out DIR`.
 fn fit_firs_surface(session: &std::path::Path, out: &std::path::Path) -> ExitCode {
     let fit = lightrig_host::firs_fit::fit_surface(session, &|done, total| eprintln!("sweep {done}/{total}"));
-    match fit.and_then(|s| {
+    report_files(fit.and_then(|s| {
         println!(
             "{} pixels with a ray; sheets: {} samples, {:.2} µm RMS; {} points merged from {} orientation(s)",
             s.ray_pixels,
@@ -501,24 +490,13 @@ fn fit_firs_surface(session: &std::path::Path, out: &std::path::Path) -> ExitCod
             s.scans.len()
         );
         lightrig_host::firs_fit::write_outputs(&s, out)
-    }) {
-        Ok(files) => {
-            for f in files {
-                println!("{}", f.display());
-            }
-            ExitCode::SUCCESS
-        }
-        Err(e) => {
-            eprintln!("error: {e}");
-            ExitCode::from(exit::FAILURE)
-        }
-    }
+    }))
 }
 
 /// `lightrig fit firs-volume SESSION --out DIR`.
 fn fit_firs_volume(session: &std::path::Path, out: &std::path::Path) -> ExitCode {
     let fit = lightrig_host::firs_fit::fit_volume(session, out, &|_, _| {});
-    match fit.and_then(|v| {
+    report_files(fit.and_then(|v| {
         println!(
             "grid {:?} of {:.3} mm; {} triangles; enclosed {:.1} mm³",
             v.grid.dims,
@@ -527,7 +505,12 @@ fn fit_firs_volume(session: &std::path::Path, out: &std::path::Path) -> ExitCode
             v.enclosed_mm3
         );
         lightrig_host::firs_fit::write_volume_outputs(&v, out)
-    }) {
+    }))
+}
+
+/// A fit's written files, one per line, or its error.
+fn report_files<E: std::fmt::Display>(files: Result<Vec<std::path::PathBuf>, E>) -> ExitCode {
+    match files {
         Ok(files) => {
             for f in files {
                 println!("{}", f.display());

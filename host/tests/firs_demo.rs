@@ -109,16 +109,17 @@ fn firs_volume_mode_within_a_voxel_and_a_percent() {
     let result = run_firs(&opts).unwrap();
     assert!(result.missed().is_empty(), "{:?}", result.missed());
     let acc = result.volume.unwrap();
-    // The targets: surface distance within a voxel (measured: mean 0.10, RMS 0.14,
-    // 95th percentile 0.29, largest 1.3 voxels of 0.3 mm), volume within 1 % (measured
-    // +0.5 %), a closed mesh.
-    assert!(acc.distance_vox.0 < 0.3 && acc.distance_vox.1 <= 1.0, "{acc:?}");
+    // The targets: surface distance within a voxel, everywhere (seed 1 measured: mean
+    // 0.10, RMS 0.14, 95th percentile 0.29, largest 0.48 voxels of 0.3 mm), volume within 1 %
+    // (measured +0.5 %), a closed mesh.
+    let (mean, rms, _, max) = acc.distance_vox;
+    assert!(mean < 0.3 && rms <= 1.0 && max <= 1.0, "{acc:?}");
     assert!(acc.volume_err_pct.abs() <= 1.0, "{acc:?}");
     assert!(acc.closed, "{acc:?}");
     // The slices are an affine map of the world to a small fraction of a voxel.
     assert!(acc.map_rms_mm < 0.1 * acc.voxel_mm, "{acc:?}");
     let fit = out.join("volume/fit");
-    for f in ["volume.ply", "volume.raw", "volume.json", "summary.json"] {
+    for f in ["volume.ply", "volume.raw", "volume.json", "volume.nhdr", "summary.json"] {
         assert!(fit.join(f).exists(), "{f} missing");
     }
     let json: serde_json::Value =

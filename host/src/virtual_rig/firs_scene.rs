@@ -35,6 +35,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::camera::{RigState, Scene};
+use lightrig_imaging::synth::normal_cdf;
 use lightrig_pipelines::vec3::{add, dot, norm, normalize, scale, sub, V3};
 
 /// The pinhole camera in air.
@@ -822,13 +823,13 @@ impl FirsSceneSpec {
             return 0.0;
         }
         let h = |s: f64| dot(n, sub(add(o, scale(d, s)), q)) / sh.sigma_mm;
-        let mut lit: f64 = segs.iter().map(|&(a, b)| (phi(h(b)) - phi(h(a))).abs()).sum();
+        let mut lit: f64 = segs.iter().map(|&(a, b)| (normal_cdf(h(b)) - normal_cdf(h(a))).abs()).sum();
         if let Some((e0, e1, c, r, mu)) = matched {
             // The undyed sphere glows not; the liquid behind it along the laser (+x within
             // the sheet) is lit through the sphere's absorption, taken where the ray crosses
             // the sheet's centre.
-            lit -=
-                (phi(h(e1.min(end))) - phi(h(e0.max(0.0)))).abs() * f64::from(u8::from(e1 > 0.0 && e0 < end));
+            lit -= (normal_cdf(h(e1.min(end))) - normal_cdf(h(e0.max(0.0)))).abs()
+                * f64::from(u8::from(e1 > 0.0 && e0 < end));
             let p = add(o, scale(d, -dot(n, sub(o, q)) / nd));
             let l = [th.cos(), 0.0, th.sin()];
             let chord = sphere_interval(p, scale(l, -1.0), c, r)
@@ -969,27 +970,6 @@ fn cone_shadow(o: V3, d: V3, m: V3, c: V3, r: f64) -> Option<(f64, f64)> {
         return None;
     };
     (lo < hi).then_some((lo, hi))
-}
-
-/// The standard normal distribution function, from erfc (Numerical Recipes' Chebyshev fit,
-/// relative error below 1.2e-7).
-pub fn phi(x: f64) -> f64 {
-    let z = x.abs() / std::f64::consts::SQRT_2;
-    let t = 1.0 / (1.0 + 0.5 * z);
-    let poly = -z * z - 1.265_512_23
-        + t * (1.000_023_68
-            + t * (0.374_091_96
-                + t * (0.096_784_18
-                    + t * (-0.186_288_06
-                        + t * (0.278_868_07
-                            + t * (-1.135_203_98
-                                + t * (1.488_515_87 + t * (-0.822_152_23 + t * 0.170_872_77))))))));
-    let erfc = t * poly.exp();
-    if x >= 0.0 {
-        1.0 - 0.5 * erfc
-    } else {
-        0.5 * erfc
-    }
 }
 
 /// The scene for the virtual camera.

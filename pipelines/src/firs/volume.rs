@@ -15,7 +15,7 @@
 //! 3. [`segment`]: binary segmentation, object where the corrected ratio is under a relative
 //!    threshold.
 //! 4. [`remove_thin_horizontal`]: shadows of dust and bubbles are thin dark streaks along the
-//!    laser; they go by an opening along the vertical.
+//!    laser; they go by an opening along the vertical, the runs measured at the threshold.
 //! 5. [`remove_small_regions`]: specks (3D, 6-connected components under a voxel count).
 //! 6. [`resample`]: from (u, v, slice) to world voxels, trilinear.
 //! 7. Marching cubes ([`crate::firs::mesh::marching_cubes`] or the streaming
@@ -343,27 +343,35 @@ pub fn segment(q: &[f32], threshold: f32) -> Vec<u8> {
     q.iter().map(|&x| (x < threshold) as u8).collect()
 }
 
-/// Removes object runs shorter than `min_height` pixels along each image column, in place:
-/// exactly a morphological opening of the mask by a vertical line of `min_height` pixels (in
-/// 1D, opening by a segment deletes the shorter runs and leaves the others whole). Shadows of
-/// dust and bubbles are thin streaks along the laser (horizontal), the object is not.
+/// Removes the thin horizontal features of `mask` (the clearly dark pixels), in place: along
+/// each image column, the pixels of every run of `within` (the pixels under the segmentation
+/// threshold; `mask` counts as within too) shorter than `min_height` pixels. With `within`
+/// equal to `mask` this is exactly a morphological opening by a vertical line of `min_height`
+/// pixels (in 1D, opening by a segment deletes the shorter runs and leaves the others whole).
+/// Shadows of dust and bubbles are thin streaks along the laser (horizontal) with lit liquid
+/// above and below; the object is not. Measuring the run on `within` keeps the dark core of
+/// a partly covered cross-section: the last slices through a cap facing the sweep are
+/// mostly partial pixels around a few dark ones, whose dark run alone is short.
 pub fn remove_thin_horizontal(
     mask: &mut [u8],
+    within: &[u8],
     width: usize,
     height: usize,
     min_height: usize,
 ) -> Result<(), VolumeError> {
     let n = pixels(width, height)?;
     check_len(n, mask.len())?;
+    check_len(n, within.len())?;
+    let inside = |mask: &[u8], i: usize| mask[i] != 0 || within[i] != 0;
     for u in 0..width {
         let mut v = 0;
         while v < height {
-            if mask[v * width + u] == 0 {
+            if !inside(mask, v * width + u) {
                 v += 1;
                 continue;
             }
             let start = v;
-            while v < height && mask[v * width + u] != 0 {
+            while v < height && inside(mask, v * width + u) {
                 v += 1;
             }
             if v - start < min_height {
@@ -527,8 +535,12 @@ pub fn segment_slices(
     // laser) sits at the threshold, its mask is noise, and cutting it there would eat the
     // surface.
     let raw = segment(&q, 0.5 * p.threshold);
+    let within = segment(&q, p.threshold);
     let mut mask = raw.clone();
-    mask.par_chunks_mut(n).try_for_each(|m| remove_thin_horizontal(m, width, height, p.min_height))?;
+    mask.par_chunks_mut(n)
+        .zip(within.par_chunks(n))
+        .try_for_each(|(m, w)| remove_thin_horizontal(m, w, width, height, p.min_height))?;
+    drop(within);
     let mut data: Vec<f32> = q.iter().map(|&x| 1.0 - x.clamp(0.0, 1.0)).collect();
     drop(q);
     remove_small_regions(&mut mask, [width, height, frames.len()], p.min_region)?;
@@ -706,6 +718,10 @@ pub fn resample(stack: &SliceStack, map: &SliceMap, grid: &Grid) -> Result<Vec<f
 ///
 /// Sample `(i, j, k)` is at `origin_mm + (i·dx, j·dy, k·dz)`; for volume mode the values are
 /// occupancy (0 liquid, 1 object, surface at 0.5).
+///
+/// `<stem>.nhdr` says the same as a detached NRRD header (NRRD0004: `type: float`, `sizes`,
+/// `space directions`, `space origin`, `space units`, `data file: <stem>.raw`), so 3D Slicer,
+/// ParaView, ITK or `pynrrd` open the volume in place in millimetres.
 pub fn write_raw_volume(stem: &Path, values: &[f32], grid: &Grid) -> io::Result<()> {
     let len = grid.len().ok_or_else(|| invalid("grid too large".into()))?;
     if values.len() != len {
@@ -724,11 +740,12 @@ fn invalid(m: String) -> io::Error {
 }
 
 /// [`write_raw_volume`] one z-slice at a time: `create`, [`push`](Self::push) the grid's
-/// `dims[2]` z-slices in order, [`finish`](Self::finish) (which writes the sidecar). Holds no
+/// `dims[2]` z-slices in order, [`finish`](Self::finish) (which writes the sidecars). Holds no
 /// slice.
 pub struct RawVolumeWriter {
     raw: io::BufWriter<std::fs::File>,
     json: std::path::PathBuf,
+    nhdr: std::path::PathBuf,
     name: String,
     grid: Grid,
     written: usize,
@@ -742,10 +759,15 @@ impl RawVolumeWriter {
             .file_name()
             .and_then(|n| n.to_str())
             .ok_or_else(|| invalid("stem has no UTF-8 file name".into()))?;
+        // A NRRD header is line-based.
+        if name.contains(['\n', '\r']) {
+            return Err(invalid("stem has a line break in its file name".into()));
+        }
         let raw = stem.with_file_name(format!("{name}.raw"));
         Ok(RawVolumeWriter {
             raw: io::BufWriter::new(std::fs::File::create(&raw)?),
             json: stem.with_file_name(format!("{name}.json")),
+            nhdr: stem.with_file_name(format!("{name}.nhdr")),
             name: format!("{name}.raw"),
             grid: *grid,
             written: 0,
@@ -778,9 +800,23 @@ impl RawVolumeWriter {
             )));
         }
         self.raw.flush()?;
-        let mut j = std::fs::File::create(&self.json)?;
-        j.write_all(sidecar_json(&self.name, &self.grid).as_bytes())
+        std::fs::write(&self.json, sidecar_json(&self.name, &self.grid))?;
+        std::fs::write(&self.nhdr, nrrd_header(&self.name, &self.grid))
     }
+}
+
+/// The detached NRRD header of `data` (see [`write_raw_volume`]).
+fn nrrd_header(data: &str, grid: &Grid) -> String {
+    let [nx, ny, nz] = grid.dims;
+    let [dx, dy, dz] = grid.voxel;
+    let [x0, y0, z0] = grid.origin;
+    format!(
+        "NRRD0004\n# lightrig volume: occupancy, 0 liquid, 1 object, surface at 0.5\n\
+         type: float\ndimension: 3\nsizes: {nx} {ny} {nz}\nkinds: domain domain domain\n\
+         space dimension: 3\nspace directions: ({dx},0,0) (0,{dy},0) (0,0,{dz})\n\
+         space origin: ({x0},{y0},{z0})\nspace units: \"mm\" \"mm\" \"mm\"\n\
+         endian: little\nencoding: raw\ndata file: {data}\n"
+    )
 }
 
 fn sidecar_json(data: &str, grid: &Grid) -> String {
@@ -913,6 +949,32 @@ mod tests {
     }
 
     #[test]
+    fn a_dark_core_inside_a_tall_partial_run_stays() {
+        // Column 0: a dark run of 2 inside a run of 6 under the threshold (the core of a cap's
+        // last slice): kept. Column 1: a dark run of 1 with partial pixels either side, 3 under
+        // the threshold in all (a streak and its penumbra): gone. Column 2: a dark run of 2
+        // with lit liquid around: gone, as by a plain opening.
+        let (w, h) = (3, 10);
+        let mut mask = vec![0u8; w * h];
+        let mut within = vec![0u8; w * h];
+        let set = |m: &mut Vec<u8>, u: usize, vs: &[usize]| vs.iter().for_each(|&v| m[v * w + u] = 1);
+        set(&mut mask, 0, &[4, 5]);
+        set(&mut within, 0, &[2, 3, 4, 5, 6, 7]);
+        set(&mut mask, 1, &[5]);
+        set(&mut within, 1, &[4, 5, 6]);
+        set(&mut mask, 2, &[1, 2]);
+        set(&mut within, 2, &[1, 2]);
+        let before = mask.clone();
+        remove_thin_horizontal(&mut mask, &within, w, h, 4).unwrap();
+        let col = |m: &[u8], c: usize| (0..h).filter(|v| m[v * w + c] == 1).collect::<Vec<_>>();
+        assert_eq!(col(&mask, 0), col(&before, 0));
+        assert_eq!(col(&mask, 1), Vec::<usize>::new());
+        assert_eq!(col(&mask, 2), Vec::<usize>::new());
+        // `within` of the wrong length is refused.
+        assert!(remove_thin_horizontal(&mut mask, &within[1..], w, h, 4).is_err());
+    }
+
+    #[test]
     fn thin_runs_and_small_regions() {
         // Column 0: runs of 2 and 4; column 1: a run of 3.
         let mut m = vec![0u8; 2 * 10];
@@ -922,7 +984,8 @@ mod tests {
         for v in [6, 7, 8] {
             m[v * 2 + 1] = 1;
         }
-        remove_thin_horizontal(&mut m, 2, 10, 3).unwrap();
+        let within = m.clone();
+        remove_thin_horizontal(&mut m, &within, 2, 10, 3).unwrap();
         let col = |c: usize| (0..10).filter(|v| m[v * 2 + c] == 1).collect::<Vec<_>>();
         assert_eq!(col(0), vec![4, 5, 6, 7]);
         assert_eq!(col(1), vec![6, 7, 8]);
@@ -1013,6 +1076,16 @@ mod tests {
         assert!(json.contains("\"voxel_mm\": [0.5, 0.5, 1.25]"), "{json}");
         assert!(json.contains("\"origin_mm\": [-1, 2, 3.5]"), "{json}");
         assert!(json.contains("\"data\": \"vol.raw\""), "{json}");
+        let nhdr = std::fs::read_to_string(dir.join("vol.nhdr")).unwrap();
+        assert_eq!(
+            nhdr,
+            "NRRD0004\n# lightrig volume: occupancy, 0 liquid, 1 object, surface at 0.5\n\
+             type: float\ndimension: 3\nsizes: 3 2 2\nkinds: domain domain domain\n\
+             space dimension: 3\nspace directions: (0.5,0,0) (0,0.5,0) (0,0,1.25)\n\
+             space origin: (-1,2,3.5)\nspace units: \"mm\" \"mm\" \"mm\"\n\
+             endian: little\nencoding: raw\ndata file: vol.raw\n"
+        );
+        assert!(write_raw_volume(&dir.join("two\nlines"), &values, &grid).is_err());
         assert!(write_raw_volume(&dir.join("bad"), &values[1..], &grid).is_err());
         std::fs::remove_dir_all(&dir).unwrap();
     }
@@ -1147,7 +1220,9 @@ mod tests {
         assert!(naive as f64 > 1.3 * kept as f64, "naive {naive}, kept {kept}");
         assert!(crate::firs::mesh::edge_defects(&m).is_closed());
         let d = surface_distance(&m, &reference).unwrap();
-        assert!(d.mean < 0.2 && d.max < 1.0, "{d:?}");
+        // Measured: mean 0.05, largest 0.33 (0.97 before the thin-feature removal measured its
+        // runs at the threshold: the caps facing the sweep were dented).
+        assert!(d.mean < 0.2 && d.max < 0.5, "{d:?}");
         let truth = 4.0 / 3.0 * std::f64::consts::PI * r.powi(3);
         let vol = enclosed_volume(&m);
         assert!((vol / truth - 1.0).abs() < 0.01, "volume {vol} vs {truth}");

@@ -252,7 +252,7 @@ impl SegmentStream {
         let (w, h, p) = (self.width, self.height, self.params);
         let raw = segment(&q, 0.5 * p.threshold);
         let mut mask = raw.clone();
-        remove_thin_horizontal(&mut mask, w, h, p.min_height)?;
+        remove_thin_horizontal(&mut mask, &segment(&q, p.threshold), w, h, p.min_height)?;
         let mut occ: Vec<f32> = q.iter().map(|&x| 1.0 - x.clamp(0.0, 1.0)).collect();
         for ((o, &r), &m) in occ.iter_mut().zip(&raw).zip(&mask) {
             if r == 1 && m == 0 {

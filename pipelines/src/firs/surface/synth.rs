@@ -14,27 +14,7 @@ use super::*;
 use crate::firs::calib::tests::Rng;
 use crate::firs::calib::{Aabb, PixelRays, Ray, Sheet18};
 use crate::vec3::{add, dot, norm, normalize, scale, sub, V3};
-
-/// The standard normal distribution function, from erfc (Numerical Recipes' Chebyshev fit,
-/// relative error below 1.2e-7).
-pub(crate) fn phi(x: f64) -> f64 {
-    let z = x.abs() / std::f64::consts::SQRT_2;
-    let t = 1.0 / (1.0 + 0.5 * z);
-    let poly = -z * z - 1.265_512_23
-        + t * (1.000_023_68
-            + t * (0.374_091_96
-                + t * (0.096_784_18
-                    + t * (-0.186_288_06
-                        + t * (0.278_868_07
-                            + t * (-1.135_203_98
-                                + t * (1.488_515_87 + t * (-0.822_152_23 + t * 0.170_872_77))))))));
-    let erfc = t * poly.exp();
-    if x >= 0.0 {
-        1.0 - 0.5 * erfc
-    } else {
-        0.5 * erfc
-    }
-}
+use lightrig_imaging::synth::normal_cdf;
 
 /// The scanned object.
 #[derive(Debug, Clone)]
@@ -228,7 +208,8 @@ impl Scene {
                     segs.iter().map(|&(a, b, wgt)| (ray.at(a), ray.at(b), wgt)).collect();
                 for t in 0..f {
                     let hh = |p: V3| (p[2] - self.sheet.eval(p[0], p[1], t as f64)) / self.sigma;
-                    let lit: f64 = ends.iter().map(|(a, b, wgt)| wgt * (phi(hh(*b)) - phi(hh(*a)))).sum();
+                    let lit: f64 =
+                        ends.iter().map(|(a, b, wgt)| wgt * (normal_cdf(hh(*b)) - normal_cdf(hh(*a)))).sum();
                     let x = self.dark + self.bright * lit + self.noise * rng.normal();
                     stack[(t * h + v) * w + u] = x as f32;
                 }
