@@ -475,6 +475,11 @@ impl TableLobe {
             + (f3 - f2) * self.g[i + 1]
     }
 
+    /// `t` per radian of `θ` and `s` per radian of `u`: how fast a band moves in the tables.
+    pub fn scales(&self) -> (f64, f64) {
+        (self.scale, self.inv_alpha)
+    }
+
     /// The `θ` range outside which every band's `S` is zero (the tables' extent).
     pub fn theta_window(&self) -> (f64, f64) {
         (self.theta - R / self.scale, self.theta + R / self.scale)
