@@ -26,7 +26,7 @@
 //!   `∫ cos²u du = (u + sin u cos u)/2`, `∫ sin u cos u du = sin²u/2`, and the `θ` integrals
 //!   of `cos θ`, `sin θ`; as in [`crate::linear_light::diffuse_vector`], `D = n·E`.
 
-use std::f64::consts::PI;
+use std::f64::consts::{FRAC_1_PI, PI};
 use std::sync::OnceLock;
 
 use super::table::{lobe_geometry, LobeTables, PixelLobes, TableLobe};
@@ -195,9 +195,17 @@ fn sin_cos_small(x: f64) -> (f64, f64) {
     if x.abs() > 0.2 {
         return x.sin_cos();
     }
+    // Products with the reciprocals, not divisions (a division costs several products).
     let x2 = x * x;
-    let s = x * (1.0 - x2 / 6.0 * (1.0 - x2 / 20.0 * (1.0 - x2 / 42.0 * (1.0 - x2 / 72.0))));
-    let c = 1.0 - x2 / 2.0 * (1.0 - x2 / 12.0 * (1.0 - x2 / 30.0 * (1.0 - x2 / 56.0 * (1.0 - x2 / 90.0))));
+    let s = x
+        * (1.0
+            - x2 * (1.0 / 6.0)
+                * (1.0 - x2 * (1.0 / 20.0) * (1.0 - x2 * (1.0 / 42.0) * (1.0 - x2 * (1.0 / 72.0)))));
+    let c = 1.0
+        - x2 * 0.5
+            * (1.0
+                - x2 * (1.0 / 12.0)
+                    * (1.0 - x2 * (1.0 / 30.0) * (1.0 - x2 * (1.0 / 56.0) * (1.0 - x2 * (1.0 / 90.0)))));
     (s, c)
 }
 
@@ -214,7 +222,7 @@ fn limit_terms(u: f64, q: f64, iq: f64, delta: f64) -> (f64, f64) {
 /// `atan x` by its series for `|x| ≤` [`SMALL_TURN`] (the next term is below 1e-18).
 fn atan_small(x: f64) -> f64 {
     let x2 = x * x;
-    x * (1.0 - x2 * (1.0 / 3.0 - x2 * (1.0 / 5.0 - x2 * (1.0 / 7.0 - x2 * (1.0 / 9.0 - x2 / 11.0)))))
+    x * (1.0 - x2 * (1.0 / 3.0 - x2 * (1.0 / 5.0 - x2 * (1.0 / 7.0 - x2 * (1.0 / 9.0 - x2 * (1.0 / 11.0))))))
 }
 
 /// The largest `tan` of an angle step taken by [`atan_small`].
@@ -226,16 +234,9 @@ const SMALL_TURN: f64 = 0.05;
 /// within 1e-15 of the exact angles, see the tests).
 const ANCHOR: usize = 32;
 
-/// `atan2(a × b, a · b)`: the angle from `a` to `b`, when it is small (else `None`).
-fn turn_between(a: [f64; 2], b: [f64; 2]) -> Option<f64> {
-    let (cross, dot) = (a[0] * b[1] - a[1] * b[0], a[0] * b[0] + a[1] * b[1]);
-    (dot > 0.0 && cross.abs() <= SMALL_TURN * dot).then(|| atan_small(cross / dot))
-}
-
-/// `atan q1 − atan q0` when it is small (else `None`).
-fn atan_step(q0: f64, q1: f64) -> Option<f64> {
-    let (num, den) = (q1 - q0, 1.0 + q0 * q1);
-    (den > 0.0 && num.abs() <= SMALL_TURN * den).then(|| atan_small(num / den))
+/// `atan(num/den)` for a small angle: `den > 0` and `|num| ≤ SMALL_TURN·den`.
+fn small(num: f64, den: f64) -> bool {
+    den > 0.0 && num.abs() <= SMALL_TURN * den
 }
 
 /// A frame's angles, for the next frame's steps: the tangent directions (unnormalised) and
@@ -250,40 +251,58 @@ struct Carry {
     atan_q: [f64; 2],
 }
 
-/// A mean `u` limit with the terms [`limit_terms`] needs: `(ū, q, atan q, 1/(1 + q²))`.
-/// By the Taylor series of `atan(y/ρ)` about the weighted mean `ρ̄` to the third central
-/// moment (one `atan` instead of one per node) when the nodes lie close together (`close`),
-/// else node by node. `atan q` is `prev`'s plus a step where given and the step is small.
+/// The angle steps from `p` to this frame's tangent directions `vlo`, `vhi` and to `atan q`
+/// (`atan(a × b / a · b)` and `atan((q1 − q0)/(1 + q0·q1))`), with one division for the four;
+/// `None` unless every one is small.
+fn steps(p: &Carry, vlo: [f64; 2], vhi: [f64; 2], q: [f64; 2]) -> Option<[f64; 4]> {
+    let turn = |a: [f64; 2], b: [f64; 2]| (a[0] * b[1] - a[1] * b[0], a[0] * b[0] + a[1] * b[1]);
+    let at = |q0: f64, q1: f64| (q1 - q0, 1.0 + q0 * q1);
+    let f = [turn(p.vlo, vlo), turn(p.vhi, vhi), at(p.q[0], q[0]), at(p.q[1], q[1])];
+    if !f.iter().all(|&(n, d)| small(n, d)) {
+        return None;
+    }
+    let (d01, d23) = (f[0].1 * f[1].1, f[2].1 * f[3].1);
+    let inv = 1.0 / (d01 * d23);
+    let (i01, i23) = (d23 * inv, d01 * inv); // 1/(d0·d1), 1/(d2·d3)
+    Some([
+        atan_small(f[0].0 * f[1].1 * i01),
+        atan_small(f[1].0 * f[0].1 * i01),
+        atan_small(f[2].0 * f[3].1 * i23),
+        atan_small(f[3].0 * f[2].1 * i23),
+    ])
+}
+
+/// A mean `u` limit `ū` from `q = y/ρ̄`, `iq = 1/(1 + q²)` and `u = atan q`: by the Taylor
+/// series of `atan(y/ρ)` about the weighted mean `ρ̄` to the third central moment (one
+/// `atan` instead of one per node) when the nodes lie close together (`close`), else node by
+/// node (nodes `ρ`, weights `w`).
+#[allow(clippy::too_many_arguments)]
 fn mean_atan(
     y: f64,
-    rho: [f64; 2],
-    w: [f64; 2],
+    q: f64,
+    iq: f64,
+    u: f64,
     inv_mean: f64,
     moments: (f64, f64),
+    rho_w: ([f64; 2], [f64; 2]),
     close: bool,
-    prev: Option<(f64, f64)>,
-) -> (f64, f64, f64, f64) {
-    let (m2, m3) = moments;
-    let q = y * inv_mean;
-    let iq = 1.0 / (1.0 + q * q);
-    let u = match prev.and_then(|(q0, u0)| Some(u0 + atan_step(q0, q)?)) {
-        Some(u) => u,
-        None => q.atan(),
-    };
+) -> f64 {
     if close {
+        let (m2, m3) = moments;
         // d/dρ of atan(y/ρ), second and third, at ρ̄ (with y = q·ρ̄).
         let f2 = 2.0 * q * iq * iq * inv_mean * inv_mean;
         let f3 = 2.0 * q * (q * q - 3.0) * iq * iq * iq * inv_mean * inv_mean * inv_mean;
-        return (u + f2 * m2 / 2.0 + f3 * m3 / 6.0, q, u, iq);
+        return u + f2 * m2 / 2.0 + f3 * m3 / 6.0;
     }
-    let m = (w[0] * (y / rho[0]).atan() + w[1] * (y / rho[1]).atan()) / (w[0] + w[1]);
-    (m, q, u, iq)
+    let (rho, w) = rho_w;
+    (w[0] * (y / rho[0]).atan() + w[1] * (y / rho[1]).atan()) / (w[0] + w[1])
 }
 
 /// Frame `tube`'s band seen from `pl` (the tube's frame); its diffuse vector `e` also in the
 /// tube's frame. `prev`: the previous frame's angles in the same segment, to step from (the
 /// angles are then found without trigonometric calls where the steps are small), and this
-/// frame's for the next.
+/// frame's for the next. Divisions are shared (`1/(ab)` gives `1/a` and `1/b`): they, not the
+/// additions, bound the time a frame takes.
 fn band_of(pl: V3, t: &Tube, prev: Option<&Carry>) -> (Band, Option<Carry>) {
     let (cx, cz) = (t.x - pl[0], t.z - pl[2]);
     let d2 = cx * cx + cz * cz;
@@ -298,40 +317,48 @@ fn band_of(pl: V3, t: &Tube, prev: Option<&Carry>) -> (Band, Option<Carry>) {
     // turned by ∓a, with sin a = r/d, cos a = l/d; scaled by d².
     let l = (d2 - r * r).sqrt();
     let (vlo, vhi) = ([cx * l + cz * r, cz * l - cx * r], [cx * l - cz * r, cz * l + cx * r]);
-    // Stepping is only done above the point (cz > 0), where `atan2(cz, cx)` does not wrap.
-    let prev = prev.filter(|_| cz > 0.0);
-    let stepped = prev.and_then(|p| Some((p.lo + turn_between(p.vlo, vlo)?, p.hi + turn_between(p.vhi, vhi)?)));
-    let (lo, hi) = stepped.unwrap_or_else(|| {
-        let (centre, a) = (cz.atan2(cx), sa.asin());
-        (centre - a, centre + a)
-    });
-    let a = (hi - lo) / 2.0;
     // The mean over φ ∈ [−a, a] of the u limits, with sin φ = (r/d)·sin ψ so that the square
-    // root's edge behaviour becomes smooth: ρ = d·cos φ − r·cos ψ, dφ ∝ cos ψ / cos φ dψ.
+    // root's edge behaviour becomes smooth: ρ = d·cos φ − r·cos ψ, dφ ∝ cos ψ / cos φ dψ
+    // (the weights scaled by cos φ0·cos φ1, which the mean divides out).
     let [(sp0, cp0, wr0), (sp1, cp1, wr1)] = *mean_rule();
     let (s0, s1) = (sa * sp0, sa * sp1);
     let (c0, c1) = ((1.0 - s0 * s0).sqrt(), (1.0 - s1 * s1).sqrt());
-    let inv_c = 1.0 / (c0 * c1);
     let rho = [d * c0 - r * cp0, d * c1 - r * cp1];
-    let w = [wr0 * cp0 * c1 * inv_c, wr1 * cp1 * c0 * inv_c];
-    let inv_wsum = 1.0 / (w[0] + w[1]);
-    let mean = (w[0] * rho[0] + w[1] * rho[1]) * inv_wsum;
+    let w = [wr0 * cp0 * c1, wr1 * cp1 * c0];
+    let (wsum, wrho) = (w[0] + w[1], w[0] * rho[0] + w[1] * rho[1]);
+    let inv = 1.0 / (wsum * wrho);
+    let (inv_wsum, inv_mean) = (wrho * inv, wsum * wsum * inv);
+    let mean = wrho * inv_wsum;
     let (d0, d1) = (rho[0] - mean, rho[1] - mean);
     let m2 = (w[0] * d0 * d0 + w[1] * d1 * d1) * inv_wsum;
     let m3 = (w[0] * d0 * d0 * d0 + w[1] * d1 * d1 * d1) * inv_wsum;
-    let inv_mean = 1.0 / mean;
+    let (y0, y1) = (t.y0 - pl[1], t.y1 - pl[1]);
+    let q = [y0 * inv_mean, y1 * inv_mean];
+    let (p0, p1) = (1.0 + q[0] * q[0], 1.0 + q[1] * q[1]);
+    let inv_p = 1.0 / (p0 * p1);
+    let (iq0, iq1) = (p1 * inv_p, p0 * inv_p);
+    // Stepping is only done above the point (cz > 0), where `atan2(cz, cx)` does not wrap.
+    let stepped = prev.filter(|_| cz > 0.0).and_then(|p| {
+        let s = steps(p, vlo, vhi, q)?;
+        Some([p.lo + s[0], p.hi + s[1], p.atan_q[0] + s[2], p.atan_q[1] + s[3]])
+    });
+    let [lo, hi, a0, a1] = stepped.unwrap_or_else(|| {
+        let (centre, a) = (cz.atan2(cx), sa.asin());
+        [centre - a, centre + a, q[0].atan(), q[1].atan()]
+    });
+    let a = (hi - lo) / 2.0;
     // The series' next term is below (r/d)⁴ of the limits' curvature scale: 1e-9 rad at the
     // rigs' r/d ≈ 0.1; node by node beyond r/d = 0.3.
     let close = sa <= 0.3;
-    let (y0, y1) = (t.y0 - pl[1], t.y1 - pl[1]);
-    let (u0, q0, a0, iq0) = mean_atan(y0, rho, w, inv_mean, (m2, m3), close, prev.map(|p| (p.q[0], p.atan_q[0])));
-    let (u1, q1, a1, iq1) = mean_atan(y1, rho, w, inv_mean, (m2, m3), close, prev.map(|p| (p.q[1], p.atan_q[1])));
-    let ((big_a0, big_b0), (big_a1, big_b1)) = (limit_terms(u0, q0, iq0, u0 - a0), limit_terms(u1, q1, iq1, u1 - a1));
+    let u0 = mean_atan(y0, q[0], iq0, a0, inv_mean, (m2, m3), (rho, w), close);
+    let u1 = mean_atan(y1, q[1], iq1, a1, inv_mean, (m2, m3), (rho, w), close);
+    let ((big_a0, big_b0), (big_a1, big_b1)) =
+        (limit_terms(u0, q[0], iq0, u0 - a0), limit_terms(u1, q[1], iq1, u1 - a1));
     let (da, db) = (big_a1 - big_a0, big_b1 - big_b0);
     // sin(c + a) − sin(c − a) = 2 cos c sin a, cos(c − a) − cos(c + a) = 2 sin c sin a.
-    let k = 2.0 * r * inv_d * inv_d / PI;
-    let e = [da * k * cx, db * 2.0 * a / PI, da * k * cz];
-    let carry = Carry { vlo, vhi, lo, hi, q: [q0, q1], atan_q: [a0, a1] };
+    let k = 2.0 * r * inv_d * inv_d * FRAC_1_PI;
+    let e = [da * k * cx, db * 2.0 * a * FRAC_1_PI, da * k * cz];
+    let carry = Carry { vlo, vhi, lo, hi, q, atan_q: [a0, a1] };
     (Band { lo, hi, u0, u1, e }, Some(carry))
 }
 
@@ -772,7 +799,11 @@ mod tests {
                     let err = |x: &[f64], y: &[f64]| {
                         x.iter().zip(y).map(|(a, b)| (a - b).abs()).fold(0f64, f64::max) / peak
                     };
-                    *w = (w.0.max(err(&got, &direct)), w.1.max(err(&want, &direct)), w.2.max(err(&got, &want)));
+                    *w = (
+                        w.0.max(err(&got, &direct)),
+                        w.1.max(err(&want, &direct)),
+                        w.2.max(err(&got, &want)),
+                    );
                     strided += usize::from(got != want);
                 }
             }
