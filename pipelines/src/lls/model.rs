@@ -398,8 +398,8 @@ fn interpolated(
     let (j0, j1) = (1 - first, last.min(want)); // sample j held for j0 ≤ j ≤ j1
     let count = j1 + 1 - j0;
     if count < 4 {
-        for k in a..b {
-            out[k] = look(lobe, k);
+        for (k, o) in out.iter_mut().enumerate().take(b).skip(a) {
+            *o = look(lobe, k);
         }
         return;
     }
@@ -408,14 +408,14 @@ fn interpolated(
     let inv = 1.0 / stride as f64;
     // Frames past the last sample (at the segment's end): looked up.
     let end = b.min(a + (j1 - 1) * stride + 1);
-    for k in end..b {
-        out[k] = look(lobe, k);
+    for (k, o) in out.iter_mut().enumerate().take(b).skip(end) {
+        *o = look(lobe, k);
     }
-    for k in a..end {
+    for (k, o) in out.iter_mut().enumerate().take(end).skip(a) {
         let off = k - a;
         let (j, f) = (off / stride + 1, off % stride);
         if f == 0 {
-            out[k] = samples[j - j0];
+            *o = samples[j - j0];
             continue;
         }
         // The four samples around, shifted inwards at the ends.
@@ -428,7 +428,7 @@ fn interpolated(
             x * (x - 1.0) * (x - 2.0) / 6.0,
         ];
         let v = &samples[base - j0..base - j0 + 4];
-        out[k] = (w[0] * v[0] + w[1] * v[1] + w[2] * v[2] + w[3] * v[3]).max(0.0);
+        *o = (w[0] * v[0] + w[1] * v[1] + w[2] * v[2] + w[3] * v[3]).max(0.0);
     }
 }
 
@@ -463,7 +463,9 @@ impl TraceModel {
                 });
             }
             // Step from the previous frame's angles, re-anchored every ANCHOR frames.
-            let from = carry.as_ref().filter(|_| (k - segments.last().map_or(k, |s| s.start)) % anchor != 0);
+            let from = carry
+                .as_ref()
+                .filter(|_| !(k - segments.last().map_or(k, |s| s.start)).is_multiple_of(anchor));
             let (mut b, next) = band_of(pl, t, from);
             carry = next;
             b.e = [cs * b.e[0] - sn * b.e[1], sn * b.e[0] + cs * b.e[1], b.e[2]];
