@@ -278,10 +278,42 @@ fn params(key: [i32; 4]) -> ([f64; 2], f64, f64) {
     )
 }
 
+/// A hasher for the nodes' small integer keys: a multiply and a rotate per word (FxHash's),
+/// where the default SipHash cost as much as a lookup's arithmetic. The keys are ours, not
+/// input, so no protection against chosen collisions is needed.
+#[derive(Default, Clone, Copy)]
+struct KeyHasher(u64);
+
+impl std::hash::Hasher for KeyHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(u64::from(b));
+        }
+    }
+
+    fn write_u32(&mut self, i: u32) {
+        self.write_u64(u64::from(i));
+    }
+
+    fn write_i32(&mut self, i: i32) {
+        self.write_u32(i as u32);
+    }
+
+    fn write_u64(&mut self, i: u64) {
+        self.0 = (self.0.rotate_left(5) ^ i).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+}
+
+type KeyMap<V> = HashMap<[i32; 4], V, std::hash::BuildHasherDefault<KeyHasher>>;
+
 /// The node tables, built on first use and shared by every pixel (and thread).
 #[derive(Default)]
 pub struct LobeTables {
-    nodes: RwLock<HashMap<[i32; 4], Arc<Node>>>,
+    nodes: RwLock<KeyMap<Arc<Node>>>,
 }
 
 impl std::fmt::Debug for LobeTables {
@@ -475,6 +507,11 @@ impl TableLobe {
             + (f3 - f2) * self.g[i + 1]
     }
 
+    /// `t` per radian of `θ` and `s` per radian of `u`: how fast a band moves in the tables.
+    pub fn scales(&self) -> (f64, f64) {
+        (self.scale, self.inv_alpha)
+    }
+
     /// The `θ` range outside which every band's `S` is zero (the tables' extent).
     pub fn theta_window(&self) -> (f64, f64) {
         (self.theta - R / self.scale, self.theta + R / self.scale)
@@ -554,7 +591,7 @@ impl TableLobe {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     #[test]
