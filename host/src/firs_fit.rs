@@ -44,21 +44,8 @@ use serde::{Deserialize, Serialize};
 use crate::rigfile::RigFile;
 use crate::session::{trigger_events, Session};
 
-/// Why the fit stopped: what, where, what to do.
-#[derive(Debug, Clone, PartialEq)]
-pub struct FitError(pub String);
-
-impl std::fmt::Display for FitError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(&self.0)
-    }
-}
-
-impl std::error::Error for FitError {}
-
-fn fail(m: impl Into<String>) -> FitError {
-    FitError(m.into())
-}
+use crate::fit_error::fail;
+pub use crate::fit_error::FitError;
 
 /// The `[plan.fit]` table of a fluorescent-immersion rig file: what a lab measures once.
 #[derive(Debug, Clone, Deserialize, Serialize)]

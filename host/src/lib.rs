@@ -23,6 +23,7 @@ pub mod clock;
 pub mod demo;
 pub mod firs_demo;
 pub mod firs_fit;
+pub mod fit_error;
 pub mod frames;
 pub mod lls_fit;
 pub mod lls_stack;

@@ -125,21 +125,8 @@ impl FitSpec {
     }
 }
 
-/// Why a fit could not run; each message names what to check.
-#[derive(Debug)]
-pub struct FitError(pub String);
-
-impl std::fmt::Display for FitError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(&self.0)
-    }
-}
-
-impl std::error::Error for FitError {}
-
-fn fail(m: impl Into<String>) -> FitError {
-    FitError(m.into())
-}
+use crate::fit_error::fail;
+pub use crate::fit_error::FitError;
 
 /// One position of a pass: exposure-normalised values (value per second), NaN where clipped in
 /// every exposure of the bracket.

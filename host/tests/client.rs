@@ -9,6 +9,9 @@ use lightrig_protocol::event::DeviceState;
 use lightrig_protocol::sequence::{Action, Item, StartAt};
 use lightrig_protocol::{Command, Event, Reply, SCHEMA_HASH};
 
+#[path = "support/triggers.rs"]
+mod triggers;
+
 fn client() -> Client<VirtualTransport> {
     Client::connect(VirtualTransport::new(virtual_device_info(), SimBoard::default()), 0x5eed).unwrap()
 }
@@ -60,25 +63,10 @@ fn heartbeats_keep_an_idle_device_out_of_the_safe_state() {
 #[test]
 fn streams_a_sequence_larger_than_the_buffer_and_gets_every_trigger() {
     let mut c = client();
-    let cam = CameraConfig {
-        camera: 0,
-        pulse_ticks: 20,
-        polarity: Polarity::ActiveHigh,
-        exposure_input: Input::Unused,
-        min_interval_ticks: 0,
-    };
-    assert_eq!(c.request(Command::Configure(ConfigItem::Camera(cam))).unwrap(), Reply::Done);
+    triggers::configure_camera(&mut c);
     const N: u32 = 2_000;
-    let items = (0..N).map(|_| Item { delta: 500, action: Action::Trigger { camera: 0, exposure: 0 } });
     let start = c.transport().device().rig().next_due().unwrap_or(0).max(1) + 100_000;
-    let mut frames = Vec::new();
-    let outcome = c
-        .run_sequence(3, items, StartAt::Tick(start), |e| {
-            if let Event::Trigger(t) = &e.event {
-                frames.push((t.frame, t.tick, e.host_us));
-            }
-        })
-        .unwrap();
+    let (outcome, frames) = triggers::run_triggers(&mut c, 3, N, 500, start);
     assert_eq!(outcome.items, N);
     assert_eq!(outcome.tick, start + 500 * u64::from(N));
     assert_eq!(frames.len(), N as usize);

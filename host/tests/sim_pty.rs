@@ -9,10 +9,11 @@ use std::process::{Child, Command, Stdio};
 
 use lightrig_host::client::Client;
 use lightrig_host::transport::SerialTransport;
-use lightrig_protocol::config::{CameraConfig, ConfigItem, Input, Polarity};
-use lightrig_protocol::sequence::{Action, Item, StartAt};
 use lightrig_protocol::session::BoardId;
-use lightrig_protocol::{Command as Cmd, Event, Reply, SCHEMA_HASH};
+use lightrig_protocol::{Command as Cmd, Reply, SCHEMA_HASH};
+
+#[path = "support/triggers.rs"]
+mod triggers;
 
 /// The simulator, killed when dropped.
 struct Sim {
@@ -50,27 +51,12 @@ fn the_host_client_runs_a_sequence_through_the_pseudo_terminal() {
     assert_eq!(c.info().board, BoardId::Virtual);
     assert_eq!(c.info().schema_hash, SCHEMA_HASH);
     assert_ne!(c.info().boot_id, 0, "a fresh boot id, as a real device's");
-    let cam = CameraConfig {
-        camera: 0,
-        pulse_ticks: 20,
-        polarity: Polarity::ActiveHigh,
-        exposure_input: Input::Unused,
-        min_interval_ticks: 0,
-    };
-    assert_eq!(c.request(Cmd::Configure(ConfigItem::Camera(cam))).unwrap(), Reply::Done);
+    triggers::configure_camera(&mut c);
     let Reply::Clock { tick: now } = c.request(Cmd::GetClock).unwrap() else { panic!("no clock") };
     // 300 triggers 1 ms apart, more than the device's buffer holds: streamed under credit.
     const N: u32 = 300;
     let start = now + 200_000;
-    let items = (0..N).map(|_| Item { delta: 1_000, action: Action::Trigger { camera: 0, exposure: 0 } });
-    let mut triggers = Vec::new();
-    let outcome = c
-        .run_sequence(1, items, StartAt::Tick(start), |e| {
-            if let Event::Trigger(t) = &e.event {
-                triggers.push((t.frame, t.tick, e.host_us));
-            }
-        })
-        .unwrap();
+    let (outcome, triggers) = triggers::run_triggers(&mut c, 1, N, 1_000, start);
     assert_eq!(outcome.items, N);
     assert_eq!(outcome.tick, start + 1_000 * u64::from(N));
     assert_eq!(triggers.len(), N as usize);
