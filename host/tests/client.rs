@@ -4,10 +4,9 @@ use lightrig_firmware::sim::SimBoard;
 use lightrig_host::client::{Client, ClientError};
 use lightrig_host::selfcheck::virtual_device_info;
 use lightrig_host::transport::VirtualTransport;
-use lightrig_protocol::config::{CameraConfig, ConfigItem, Input, LaserConfig, Polarity};
+use lightrig_protocol::config::{ConfigItem, Input, LaserConfig, Polarity};
 use lightrig_protocol::event::DeviceState;
-use lightrig_protocol::sequence::{Action, Item, StartAt};
-use lightrig_protocol::{Command, Event, Reply, SCHEMA_HASH};
+use lightrig_protocol::{Command, Reply, SCHEMA_HASH};
 
 #[path = "support/triggers.rs"]
 mod triggers;
@@ -103,25 +102,11 @@ fn paced_in_real_time_a_sequence_takes_as_long_as_on_a_real_rig_and_keeps_its_ti
     let wall = std::time::Instant::now();
     t.pace_in_real_time();
     let mut c = Client::connect(t, 0x5eed).unwrap();
-    let cam = CameraConfig {
-        camera: 0,
-        pulse_ticks: 20,
-        polarity: Polarity::ActiveHigh,
-        exposure_input: Input::Unused,
-        min_interval_ticks: 0,
-    };
-    assert_eq!(c.request(Command::Configure(ConfigItem::Camera(cam))).unwrap(), Reply::Done);
+    triggers::configure_camera(&mut c);
     let Reply::Clock { tick: now } = c.request(Command::GetClock).unwrap() else { panic!("no clock") };
     let start = now + 50_000;
-    let items = (0..100).map(|_| Item { delta: 2_000, action: Action::Trigger { camera: 0, exposure: 0 } });
-    let mut ticks = Vec::new();
-    let outcome = c
-        .run_sequence(1, items, StartAt::Tick(start), |e| {
-            if let Event::Trigger(t) = &e.event {
-                ticks.push(t.tick);
-            }
-        })
-        .unwrap();
+    let (outcome, triggers) = triggers::run_triggers(&mut c, 1, 100, 2_000, start);
+    let ticks: Vec<u64> = triggers.iter().map(|t| t.1).collect();
     assert_eq!(outcome.tick, start + 200_000);
     // Paced, the device cannot reach a tick before the wall clock has (a lower bound only: a
     // loaded machine makes it later, never earlier). Unpaced, this takes a few milliseconds.
