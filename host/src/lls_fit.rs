@@ -170,6 +170,23 @@ pub struct LlsMaps {
     /// The most bytes of traces the streamed fit held at once (its blocks; see
     /// [`Streaming::block_bytes`]).
     pub resident_trace_bytes: usize,
+    /// Where the time went.
+    pub timing: FitTiming,
+}
+
+/// Wall-clock time of the fit's two phases, to see which one bounds it on this machine.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FitTiming {
+    /// Frames (every exposure) of the streamed passes (reflectance, diagonal, stripe) decoded.
+    pub frames: usize,
+    /// Decoding those frames, merging their exposure brackets and writing them block-major to
+    /// the scratch files (one thread), s.
+    pub read_s: f64,
+    /// Everything after: registration, reading the blocks back, the per-pixel fits (on
+    /// `threads` threads), normals and the refit, s.
+    pub fit_s: f64,
+    /// The fit's thread pool.
+    pub threads: usize,
 }
 
 const CLIP: f32 = 0.98;
@@ -459,12 +476,21 @@ pub fn fit_session_with(
     let stream = |pos: &[Position], name: &str, keep: Option<usize>| {
         stream_pass(pos, gantry, first.size, name, streaming.scratch, bp, keep)
     };
+    let t_read = std::time::Instant::now();
     let mut reflect = stream(&reflect_pos, "reflectance", Some(reflect_pos.len() / 2))?;
     let mut diagonal: Vec<(i64, StreamedPass)> = diagonal_pos
         .iter()
         .map(|(m, pos)| Ok((*m, stream(pos, &format!("reflectance{m:+}"), None)?)))
         .collect::<Result<_, FitError>>()?;
     let mut stripe = stream(&stripe_pos, "stripe", None)?;
+    let read_s = t_read.elapsed().as_secs_f64();
+    let read_frames: usize = reflect_pos
+        .iter()
+        .chain(&stripe_pos)
+        .chain(diagonal_pos.iter().flat_map(|(_, p)| p))
+        .map(|p| p.images.len())
+        .sum();
+    let t_fit = std::time::Instant::now();
     let blocks = reflect.stack.blocks();
     let resident = std::cell::Cell::new(0usize);
     let read = |s: &mut StreamedPass, b: usize, out: &mut Block| {
@@ -760,6 +786,12 @@ pub fn fit_session_with(
         specular_strip,
         check_frame: (check_gantry, captured, predicted),
         resident_trace_bytes: resident.get(),
+        timing: FitTiming {
+            frames: read_frames,
+            read_s,
+            fit_s: t_fit.elapsed().as_secs_f64(),
+            threads: rayon::current_num_threads(),
+        },
     })
 }
 

@@ -332,7 +332,14 @@ fn main() -> ExitCode {
                 },
             );
             bar.finish();
-            report_files(maps.and_then(|m| lightrig_host::lls_fit::write_outputs(&m, &out)))
+            report_files(maps.and_then(|m| {
+                let t = m.timing;
+                println!(
+                    "{} frames read in {:.2} s (one thread), fitted in {:.2} s on {} threads",
+                    t.frames, t.read_s, t.fit_s, t.threads
+                );
+                lightrig_host::lls_fit::write_outputs(&m, &out)
+            }))
         }
         Cmd::Acquire { rig, session, connect, yes } => {
             match lightrig_host::cli_acquire::acquire(&rig, &session, connect.as_ref(), yes) {
