@@ -470,8 +470,10 @@ pub fn fit_normal(passes: &[PassTrace], n0: V3, alpha: f64, tables: Option<&Lobe
             }
             step = [step[0] / 2.0, step[1] / 2.0];
         }
-        // Converged below 0.005° of slope, or no step helps.
-        if !accepted || step[0].hypot(step[1]) < 1e-4 {
+        // Converged (the last step under 1e-3 in slope, 0.06°, far below the normals' noise:
+        // against 1e-4, the quick demo's median errors stay 0.1933° (blended) and 0.1942°
+        // (diagonal passes alone) with a fifth fewer model evaluations), or no step helps.
+        if !accepted || step[0].hypot(step[1]) < 1e-3 {
             break;
         }
     }
