@@ -308,12 +308,32 @@ impl std::hash::Hasher for KeyHasher {
     }
 }
 
-type KeyMap<V> = HashMap<[i32; 4], V, std::hash::BuildHasherDefault<KeyHasher>>;
+type KeyMap<V> = HashMap<[i32; 3], V, std::hash::BuildHasherDefault<KeyHasher>>;
+
+/// The `α` nodes of one geometry node `(tilt, tilt, elevation)`, each built on first use. A
+/// pixel finds its geometry nodes once (a map lookup each) and then reaches their `α` nodes
+/// without the map: the lookups and the lock cost as much as combining the nodes.
+#[derive(Default)]
+struct GeoNodes {
+    key: [i32; 3],
+    alphas: [OnceLock<Arc<Node>>; N_ALPHA as usize],
+}
+
+impl GeoNodes {
+    /// `α` node `ja` (`0 ≤ ja < N_ALPHA`).
+    fn node(&self, ja: i32) -> &Arc<Node> {
+        self.alphas[ja as usize].get_or_init(|| {
+            let k = self.key;
+            let (tilt, um, alpha) = params([k[0], k[1], k[2], ja]);
+            Arc::new(build(tilt, um, alpha))
+        })
+    }
+}
 
 /// The node tables, built on first use and shared by every pixel (and thread).
 #[derive(Default)]
 pub struct LobeTables {
-    nodes: RwLock<KeyMap<Arc<Node>>>,
+    geometries: RwLock<KeyMap<Arc<GeoNodes>>>,
 }
 
 impl std::fmt::Debug for LobeTables {
@@ -336,7 +356,9 @@ impl LobeTables {
 
     /// Nodes built so far.
     pub fn len(&self) -> usize {
-        self.nodes.read().map_or(0, |m| m.len())
+        self.geometries
+            .read()
+            .map_or(0, |m| m.values().map(|g| g.alphas.iter().filter(|a| a.get().is_some()).count()).sum())
     }
 
     /// Whether no node has been built.
@@ -344,15 +366,15 @@ impl LobeTables {
         self.len() == 0
     }
 
-    fn node(&self, key: [i32; 4]) -> Arc<Node> {
-        if let Some(n) = self.nodes.read().ok().and_then(|m| m.get(&key).cloned()) {
-            return n;
+    /// Geometry node `key`, its `α` nodes not built yet.
+    fn geometry(&self, key: [i32; 3]) -> Arc<GeoNodes> {
+        if let Some(g) = self.geometries.read().ok().and_then(|m| m.get(&key).cloned()) {
+            return g;
         }
-        let (tilt, um, alpha) = params(key);
-        let node = Arc::new(build(tilt, um, alpha));
-        match self.nodes.write() {
-            Ok(mut m) => m.entry(key).or_insert(node).clone(),
-            Err(_) => node,
+        let fresh = || Arc::new(GeoNodes { key, ..GeoNodes::default() });
+        match self.geometries.write() {
+            Ok(mut m) => m.entry(key).or_insert_with(fresh).clone(),
+            Err(_) => fresh(),
         }
     }
 
@@ -370,11 +392,13 @@ type Combined = ([f64; NT], [f64; NT]);
 /// One pixel's geometry against the tables: the geometry's nodes and weights fixed, their
 /// combination at each `α` node kept for the next trial (a fit's trials share most of them).
 pub struct PixelLobes<'a> {
-    tables: &'a LobeTables,
+    /// The nodes are the tables' (held by `Arc`, so that the map's lock is not held).
+    tables: std::marker::PhantomData<&'a LobeTables>,
     geo: LobeGeometry,
     /// Geometry nodes `(tilt, tilt, elevation)` and weights; empty outside the tables.
-    nodes: Vec<([i32; 3], f64)>,
-    near: [i32; 3],
+    nodes: Vec<(Arc<GeoNodes>, f64)>,
+    /// The nearest geometry node (for the cut-off masses); `None` outside the tables.
+    near: Option<Arc<GeoNodes>>,
     combined: Vec<Option<Box<Combined>>>,
 }
 
@@ -393,27 +417,36 @@ impl<'a> PixelLobes<'a> {
                     for (im, wm) in lm.iter().enumerate().take(2) {
                         let w = wt * wu * wm;
                         if w != 0.0 {
-                            nodes.push(([jt + it as i32, ju + iu as i32, jm + im as i32], w));
+                            nodes
+                                .push((tables.geometry([jt + it as i32, ju + iu as i32, jm + im as i32]), w));
                         }
                     }
                 }
             }
         }
-        let near = [
-            (geo.tilt[0] / D_TILT_T).round() as i32,
-            (geo.tilt[1] / D_TILT_U).round() as i32,
-            (geo.u / D_UM).round() as i32,
-        ];
-        PixelLobes { tables, geo, nodes, near, combined: vec![None; N_ALPHA as usize] }
+        let near = (!nodes.is_empty()).then(|| {
+            tables.geometry([
+                (geo.tilt[0] / D_TILT_T).round() as i32,
+                (geo.tilt[1] / D_TILT_U).round() as i32,
+                (geo.u / D_UM).round() as i32,
+            ])
+        });
+        PixelLobes {
+            tables: std::marker::PhantomData,
+            geo,
+            nodes,
+            near,
+            combined: vec![None; N_ALPHA as usize],
+        }
     }
 
     /// `M` and `M'·HT` of the geometry at `α` node `ja`.
     fn at_node(&mut self, ja: i32) -> &Combined {
-        let (tables, nodes) = (self.tables, &self.nodes);
+        let nodes = &self.nodes;
         self.combined[ja as usize].get_or_insert_with(|| {
             let mut out = Box::new(([0.0; NT], [0.0; NT]));
-            for &(k, w) in nodes {
-                let node = tables.node([k[0], k[1], k[2], ja]);
+            for (geo, w) in nodes {
+                let (node, w) = (geo.node(ja), *w);
                 for i in 0..NT {
                     out.0[i] += w * node.m[i];
                     out.1[i] += w * node.g[i] * HT;
@@ -427,6 +460,7 @@ impl<'a> PixelLobes<'a> {
     pub fn lobe(&mut self, alpha: f64) -> Option<TableLobe> {
         let a = (alpha / ALPHA0).ln() / ALPHA_RATIO.ln();
         let (ja, la) = stencil(a, 4);
+        let near = self.near.clone()?;
         if self.nodes.is_empty() || ja < 0 || ja + 3 >= N_ALPHA {
             return None;
         }
@@ -440,10 +474,9 @@ impl<'a> PixelLobes<'a> {
             }
         }
         // The cut-off masses (a small correction) from the nearest geometry node.
-        let near = self.near;
         let cut = std::array::from_fn(|ia| {
-            let key = [near[0], near[1], near[2], ja + ia as i32];
-            (self.tables.node(key), key, la[ia])
+            let (k, ja) = (near.key, ja + ia as i32);
+            (near.node(ja).clone(), [k[0], k[1], k[2], ja], la[ia])
         });
         let geo = self.geo;
         Some(TableLobe {
