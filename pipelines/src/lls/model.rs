@@ -428,6 +428,20 @@ fn interpolated(
     samples.clear();
     samples.extend((j0..=j1).map(|j| look(lobe, a + j * stride - stride)));
     let inv = 1.0 / stride as f64;
+    // The weights at x (in sample units from the stencil's first sample).
+    let cubic = |x: f64| {
+        [
+            -(x - 1.0) * (x - 2.0) * (x - 3.0) / 6.0,
+            x * (x - 2.0) * (x - 3.0) / 2.0,
+            -x * (x - 1.0) * (x - 3.0) / 2.0,
+            x * (x - 1.0) * (x - 2.0) / 6.0,
+        ]
+    };
+    // Those of the frames between the middle two samples, once per trial.
+    let mut inner = [[0.0; 4]; MAX_STRIDE];
+    for (f, w) in inner.iter_mut().enumerate().take(stride) {
+        *w = cubic(1.0 + f as f64 * inv);
+    }
     // Frames past the last sample (at the segment's end): looked up.
     let end = b.min(a + (j1 - 1) * stride + 1);
     for (k, o) in out.iter_mut().enumerate().take(b).skip(end) {
@@ -442,13 +456,11 @@ fn interpolated(
         }
         // The four samples around, shifted inwards at the ends.
         let base = (j - 1).max(j0).min(j1 - 3);
-        let x = (off as f64 * inv + 1.0) - base as f64; // in sample units from `base`
-        let w = [
-            -(x - 1.0) * (x - 2.0) * (x - 3.0) / 6.0,
-            x * (x - 2.0) * (x - 3.0) / 2.0,
-            -x * (x - 1.0) * (x - 3.0) / 2.0,
-            x * (x - 1.0) * (x - 2.0) / 6.0,
-        ];
+        let w = if base + 1 == j {
+            inner[f]
+        } else {
+            cubic((off as f64 * inv + 1.0) - base as f64) // in sample units from `base`
+        };
         let v = &samples[base - j0..base - j0 + 4];
         *o = (w[0] * v[0] + w[1] * v[1] + w[2] * v[2] + w[3] * v[3]).max(0.0);
     }

@@ -140,7 +140,7 @@ struct Node {
     cut: OnceLock<Cut>,
 }
 
-/// At `t_i = −R + i·HC`, `s_j = −R + j·HC` (`i·NC + j`): the mass at `t' < t_i` and `s' < s_j`
+/// At `t_i = −R + i·HC`, `s_j = −R + j·HC` (`j·NC + i`: a column contiguous): the mass at `t' < t_i` and `s' < s_j`
 /// (`low`), and at `t' < t_i`, `s' > s_j` (`high`); and over all `t`, the masses below and
 /// above `s_j`.
 struct Cut {
@@ -249,8 +249,8 @@ fn build_cut(tilt: [f64; 2], um: f64, alpha: f64) -> Cut {
             }
         }
         for j in 0..NC {
-            out.low[i * NC + j] = low[j] as f32;
-            out.high[i * NC + j] = high[j] as f32;
+            out.low[j * NC + i] = low[j] as f32;
+            out.high[j * NC + i] = high[j] as f32;
         }
     }
     out.low_total = low;
@@ -496,16 +496,21 @@ impl<'a> PixelLobes<'a> {
 /// column (`s_j`) as lookups need them: a broad lobe's frames use a few columns, and a
 /// combined column makes each lookup one bilinear interpolation instead of four.
 struct Columns {
-    /// `values[j·NC + i]` at `t_i`, `s_j`; allocated on first use.
-    values: Vec<f64>,
-    /// Per column: whether combined, and the combined mass over all `t`.
-    built: [bool; NC],
+    /// The combined columns, in the order built; `values[slot[j]][i]` at `t_i`, `s_j`.
+    values: Vec<[f64; NC]>,
+    /// Per column: where it is in `values` ([`Columns::NONE`]: not combined yet), and the
+    /// combined mass over all `t`.
+    slot: [u8; NC],
     total: [f64; NC],
+}
+
+impl Columns {
+    const NONE: u8 = u8::MAX;
 }
 
 impl Default for Columns {
     fn default() -> Self {
-        Columns { values: Vec::new(), built: [false; NC], total: [0.0; NC] }
+        Columns { values: Vec::new(), slot: [Columns::NONE; NC], total: [0.0; NC] }
     }
 }
 
@@ -553,13 +558,10 @@ impl TableLobe {
     /// Combines column `j` of the cut-off tables (`upper`: above `s_j`).
     fn column(&mut self, upper: bool, j: usize) {
         let cols = &mut self.columns[usize::from(upper)];
-        if cols.built[j] {
+        if cols.slot[j] != Columns::NONE {
             return;
         }
-        if cols.values.is_empty() {
-            cols.values = vec![0.0; NC * NC];
-        }
-        let col = &mut cols.values[j * NC..(j + 1) * NC];
+        let mut col = [0.0; NC];
         let mut total = 0.0;
         for (node, key, w) in &self.cut {
             let (key, w) = (*key, *w);
@@ -571,12 +573,14 @@ impl TableLobe {
                 build_cut(tilt, um, alpha)
             });
             let (table, totals) = if upper { (&c.high, &c.high_total) } else { (&c.low, &c.low_total) };
-            for (i, v) in col.iter_mut().enumerate() {
-                *v += w * f64::from(table[i * NC + j]);
+            for (v, &x) in col.iter_mut().zip(&table[j * NC..(j + 1) * NC]) {
+                *v += w * f64::from(x);
             }
             total += w * totals[j];
         }
-        cols.built[j] = true;
+        // At most NC (41) columns: the slot fits a u8 below NONE.
+        cols.slot[j] = cols.values.len() as u8;
+        cols.values.push(col);
         cols.total[j] = total;
     }
 
@@ -592,7 +596,7 @@ impl TableLobe {
         if cols.total[j].abs().max(cols.total[j + 1].abs()) < 1e-12 {
             return 0.0;
         }
-        let (c0, c1) = (&cols.values[j * NC..(j + 1) * NC], &cols.values[(j + 1) * NC..(j + 2) * NC]);
+        let (c0, c1) = (&cols.values[usize::from(cols.slot[j])], &cols.values[usize::from(cols.slot[j + 1])]);
         let at = |t: f64| -> f64 {
             let x = ((t + R) / HC).clamp(0.0, (NC - 1) as f64);
             let i = (x as usize).min(NC - 2);
