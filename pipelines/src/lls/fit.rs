@@ -2,6 +2,7 @@
 
 use crate::vec3::{add, normalize, scale, V3};
 
+use super::table::alpha_node;
 use super::{LobeTables, Sheet, TraceModel};
 
 /// The gantry position at which a trace peaks, between samples: a Gaussian through the largest
@@ -178,7 +179,11 @@ pub fn fit_trace_tabled(
 }
 
 /// The roughness of the two trials that calibrate the moment start, and the range searched.
-const MOMENT_ALPHAS: [f64; 2] = [0.05, 0.15];
+/// Table nodes (0.045 and 0.149), where a trial reads one node's tables instead of
+/// interpolating between four.
+fn moment_alphas() -> [f64; 2] {
+    [alpha_node(5), alpha_node(9)]
+}
 const ALPHA_RANGE: (f64, f64) = (0.02, 0.6);
 /// The first step out from the best of the starting trials (a factor in `α`; then 1.5): the
 /// moment start is usually within a few per cent, and a tight bracket makes the first
@@ -210,10 +215,10 @@ fn width(x: &[f64]) -> f64 {
 }
 
 /// Gardner et al.'s start for α from the spread of the specular excess: with the spreads
-/// `w` of the model traces at [`MOMENT_ALPHAS`], `spread² = w0² + c²·α²`, solved for the
+/// `w` of the model traces at [`moment_alphas`], `spread² = w0² + c²·α²`, solved for the
 /// observed spread. Clamped to [`ALPHA_RANGE`]; the middle of it when the spreads say nothing.
 fn moment_start(w: [f64; 2], observed: f64) -> f64 {
-    let [a1, a2] = MOMENT_ALPHAS;
+    let [a1, a2] = moment_alphas();
     let c2 = (w[1] * w[1] - w[0] * w[0]) / (a2 * a2 - a1 * a1);
     let fallback = (ALPHA_RANGE.0 * ALPHA_RANGE.1).sqrt();
     let usable = c2 > 0.0 && observed > 0.0;
@@ -257,17 +262,26 @@ fn fit_trace_by(
     // The residual, ρd and ρs at α, and (when asked) the spread of the specular trace.
     let mut residual_at = |alpha: f64, spread: bool| -> (f64, [f64; 3], [f64; 3], f64) {
         let reach = specular(alpha, &mut s);
+        // The three channels' sums in one pass: nine independent chains of additions
+        // overlap, where one channel at a time waited on three.
+        let (mut ds, mut ss, mut os) = ([0.0; 3], [0.0; 3], [0.0; 3]);
+        let sr = &s[reach.clone()];
+        let (vd, vm, vo) = (
+            vd.each_ref().map(|v| &v[reach.clone()]),
+            vm.each_ref().map(|v| &v[reach.clone()]),
+            vo.each_ref().map(|v| &v[reach.clone()]),
+        );
+        for (k, &sk) in sr.iter().enumerate() {
+            for c in 0..3 {
+                ds[c] += sk * vd[c][k];
+                ss[c] += sk * sk * vm[c][k];
+                os[c] += sk * vo[c][k];
+            }
+        }
         let (mut total, mut da, mut sa) = (0.0, [0.0; 3], [0.0; 3]);
         for c in 0..3 {
-            let (mut ds, mut ss, mut os) = (0.0, 0.0, 0.0);
-            for k in reach.clone() {
-                let sk = s[k];
-                ds += sk * vd[c][k];
-                ss += sk * sk * vm[c][k];
-                os += sk * vo[c][k];
-            }
             let (dd, od, oo) = fixed[c];
-            let (a, b, r) = two_lobe_solve(dd, ds, ss, od, os, oo);
+            let (a, b, r) = two_lobe_solve(dd, ds[c], ss[c], od, os[c], oo);
             total += r;
             da[c] = a;
             sa[c] = b;
@@ -297,8 +311,8 @@ fn fit_trace_by(
             // observed spread of what the diffuse lobe leaves: the start.
             let [w1, w2] = &mut spreads;
             let mut pool = vec![
-                trial_traced(MOMENT_ALPHAS[0].ln(), Some(w1)),
-                trial_traced(MOMENT_ALPHAS[1].ln(), Some(w2)),
+                trial_traced(moment_alphas()[0].ln(), Some(w1)),
+                trial_traced(moment_alphas()[1].ln(), Some(w2)),
             ];
             // ρd from the better of the two.
             let d1 = if pool[0].1 <= pool[1].1 { pool[0].2 } else { pool[1].2 };
@@ -707,7 +721,7 @@ mod tests {
         // Spreads that follow spread² = w0² + c²·α² exactly give α back.
         let (w0, c) = (7.0f64, 60.0f64);
         let spread = |a: f64| (w0 * w0 + c * c * a * a).sqrt();
-        let w = MOMENT_ALPHAS.map(spread);
+        let w = moment_alphas().map(spread);
         for a in [0.03, 0.1, 0.25, 0.5] {
             assert!((moment_start(w, spread(a)) / a - 1.0).abs() < 1e-9);
         }

@@ -269,6 +269,11 @@ fn stencil(x: f64, k: usize) -> (i32, [f64; 4]) {
     (first as i32, w)
 }
 
+/// The roughness of `α` node `j`: a lookup there reads that node alone.
+pub(crate) fn alpha_node(j: i32) -> f64 {
+    ALPHA0 * ALPHA_RATIO.powi(j)
+}
+
 /// A node's tilt, mirror elevation and roughness.
 fn params(key: [i32; 4]) -> ([f64; 2], f64, f64) {
     (
@@ -459,6 +464,8 @@ impl<'a> PixelLobes<'a> {
     /// The lobe at roughness `alpha`; `None` outside the tables' range.
     pub fn lobe(&mut self, alpha: f64) -> Option<TableLobe> {
         let a = (alpha / ALPHA0).ln() / ALPHA_RATIO.ln();
+        // On a node (to rounding): that node alone (the other weights exactly zero).
+        let a = if (a - a.round()).abs() < 1e-9 { a.round() } else { a };
         let (ja, la) = stencil(a, 4);
         let near = self.near.clone()?;
         if self.nodes.is_empty() || ja < 0 || ja + 3 >= N_ALPHA {
@@ -466,7 +473,7 @@ impl<'a> PixelLobes<'a> {
         }
         let mut m = [0.0; NT];
         let mut g = [0.0; NT];
-        for (ia, wa) in la.iter().enumerate() {
+        for (ia, wa) in la.iter().enumerate().filter(|(_, &wa)| wa != 0.0) {
             let (nm, ng) = self.at_node(ja + ia as i32);
             for i in 0..NT {
                 m[i] += wa * nm[i];
