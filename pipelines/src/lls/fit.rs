@@ -245,19 +245,29 @@ fn fit_trace_by(
 ) -> TraceFit {
     // What does not depend on α, once: per channel the masked diffuse trace and observations,
     // Σd², Σod, Σo².
+    // One pass over the frames for the three channels (independent chains of additions).
     let frames = d.len();
-    let vd: [Vec<f64>; 3] =
-        std::array::from_fn(|c| (0..frames).map(|k| if valid[c][k] { d[k] } else { 0.0 }).collect());
-    let vo: [Vec<f64>; 3] =
-        std::array::from_fn(|c| (0..frames).map(|k| if valid[c][k] { obs[c][k] } else { 0.0 }).collect());
-    let vm: [Vec<f64>; 3] =
-        std::array::from_fn(|c| (0..frames).map(|k| f64::from(u8::from(valid[c][k]))).collect());
-    let fixed: [(f64, f64, f64); 3] = std::array::from_fn(|c| {
-        vd[c]
-            .iter()
-            .zip(&vo[c])
-            .fold((0.0, 0.0, 0.0), |(dd, od, oo), (d, o)| (dd + d * d, od + o * d, oo + o * o))
-    });
+    let (mut vd, mut vo, mut vm): ([Vec<f64>; 3], [Vec<f64>; 3], [Vec<f64>; 3]) = Default::default();
+    for c in 0..3 {
+        vd[c].reserve(frames);
+        vo[c].reserve(frames);
+        vm[c].reserve(frames);
+    }
+    let (mut dd, mut od, mut oo, mut count) = ([0.0; 3], [0.0; 3], [0.0; 3], 0usize);
+    for (k, &dk) in d.iter().enumerate() {
+        for c in 0..3 {
+            let ok = valid[c][k];
+            let (dk, o) = if ok { (dk, obs[c][k]) } else { (0.0, 0.0) };
+            vd[c].push(dk);
+            vo[c].push(o);
+            vm[c].push(f64::from(u8::from(ok)));
+            dd[c] += dk * dk;
+            od[c] += o * dk;
+            oo[c] += o * o;
+            count += usize::from(ok);
+        }
+    }
+    let fixed: [(f64, f64, f64); 3] = std::array::from_fn(|c| (dd[c], od[c], oo[c]));
     let mut s = vec![0.0; frames];
     // The residual, ρd and ρs at α, and (when asked) the spread of the specular trace.
     let mut residual_at = |alpha: f64, spread: bool| -> (f64, [f64; 3], [f64; 3], f64) {
@@ -397,15 +407,7 @@ fn fit_trace_by(
     pts.sort_by(|a, b| a.1.total_cmp(&b.1));
     let (x, r, diffuse, specular) = pts[0];
     let alpha = x.exp();
-    let (mut oo, mut count) = (0.0, 0usize);
-    for c in 0..3 {
-        for k in 0..obs[c].len() {
-            if valid[c][k] {
-                oo += obs[c][k] * obs[c][k];
-                count += 1;
-            }
-        }
-    }
+    let oo: f64 = oo.iter().sum();
     let residual = if oo > 0.0 && count > 0 { (r / oo).sqrt() } else { 0.0 };
     TraceFit { diffuse, specular, alpha, residual }
 }
