@@ -502,14 +502,20 @@ fn band_stride(pl: V3, run: &[Tube], span: f64) -> Option<(usize, [f64; 5])> {
 }
 
 /// Every frame of `run` computed ([`band_of`]), angles stepped between anchors.
-fn exact_bands(pl: V3, run: &[Tube], anchor: usize, bands: &mut Vec<Band>) {
+fn exact_bands(pl: V3, run: &[Tube], anchor: usize, yaw: (f64, f64), bands: &mut Vec<Band>) {
     let mut carry: Option<Carry> = None;
     for (k, t) in run.iter().enumerate() {
         let from = carry.as_ref().filter(|_| !k.is_multiple_of(anchor));
-        let (b, next) = band_of(pl, t, from);
+        let (mut b, next) = band_of(pl, t, from);
         carry = next;
+        b.e = to_world(b.e, yaw);
         bands.push(b);
     }
+}
+
+/// A diffuse vector from a tube's frame to the world's (`yaw`: the tube's `(sin, cos)`).
+fn to_world(e: V3, (sn, cs): (f64, f64)) -> V3 {
+    [cs * e[0] - sn * e[1], sn * e[0] + cs * e[1], e[2]]
 }
 
 /// The Lagrange weights of the six nodes `−2 … 3` at `x`.
@@ -529,6 +535,7 @@ fn interpolated_bands(
     stride: usize,
     step: [f64; 5],
     anchor: usize,
+    yaw: (f64, f64),
     samples: &mut Vec<[f64; 8]>,
     bands: &mut Vec<Band>,
 ) {
@@ -557,10 +564,15 @@ fn interpolated_bands(
         let from = carry.as_ref().filter(|_| !i.is_multiple_of(anchor));
         let (b, next) = band_of(pl, &t, from);
         carry = next;
-        // Padded to eight: the sums below then vectorise.
-        samples.push([b.lo, b.hi, b.u0, b.u1, b.e[0], b.e[1], b.e[2], 0.0]);
+        // The diffuse vector turned to the world's frame here (the quintics commute with
+        // it); padded to eight: the sums below then vectorise.
+        let e = to_world(b.e, yaw);
+        samples.push([b.lo, b.hi, b.u0, b.u1, e[0], e[1], e[2], 0.0]);
     }
-    let weights: Vec<[f64; 6]> = (0..stride).map(|f| quintic(f as f64 / stride as f64)).collect();
+    let mut weights = [[0.0; 6]; MAX_BAND_STRIDE];
+    for (f, w) in weights.iter_mut().enumerate().take(stride) {
+        *w = quintic(f as f64 / stride as f64);
+    }
     for k in 0..n {
         let (j, f) = (k / stride, k % stride);
         let v = if f == 0 {
@@ -601,32 +613,37 @@ impl TraceModel {
             let even = evenly_spaced(run);
             match band_stride(pl, run, span).filter(|_| even) {
                 Some((stride, step)) => {
-                    interpolated_bands(pl, run, stride, step, anchor, &mut samples, &mut bands)
+                    interpolated_bands(pl, run, stride, step, anchor, yaw.sin_cos(), &mut samples, &mut bands)
                 }
-                None => exact_bands(pl, run, anchor, &mut bands),
+                None => exact_bands(pl, run, anchor, yaw.sin_cos(), &mut bands),
             }
-            let (sn, cs) = yaw.sin_cos();
-            let b = &mut bands[start..end];
-            for b in b.iter_mut() {
-                b.e = [cs * b.e[0] - sn * b.e[1], sn * b.e[0] + cs * b.e[1], b.e[2]];
-            }
+            let b = &bands[start..end];
             // One pass: the union of the bands, whether their limits rise or fall throughout,
-            // and their largest steps (plain comparisons: `f64::max`'s NaN handling made
-            // these chains cost as much as the interpolation).
-            let (mut theta, mut u) = ((f64::MAX, f64::MIN), (f64::MAX, f64::MIN));
-            let nonempty = b.iter().all(|b| b.hi > b.lo);
-            for b in b.iter().filter(|b| b.hi > b.lo) {
-                theta = (least(theta.0, b.lo), most(theta.1, b.hi));
-                u = (least(u.0, b.u0), most(u.1, b.u1));
+            // and their largest steps (plain comparisons on scalars: `f64::max`'s NaN
+            // handling, and tuples the compiler kept in memory, made these chains cost as
+            // much as the interpolation).
+            let (mut t_lo, mut t_hi, mut u_lo, mut u_hi) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+            let (mut nonempty, mut rising, mut falling, mut dt, mut du) = (true, true, true, 0f64, 0f64);
+            for (k, x) in b.iter().enumerate() {
+                // Empty bands left out by selects, not branches (which kept the chains in
+                // memory).
+                let some = x.hi > x.lo;
+                nonempty &= some;
+                let pick = |v: f64, none: f64| if some { v } else { none };
+                t_lo = least(t_lo, pick(x.lo, f64::MAX));
+                t_hi = most(t_hi, pick(x.hi, f64::MIN));
+                u_lo = least(u_lo, pick(x.u0, f64::MAX));
+                u_hi = most(u_hi, pick(x.u1, f64::MIN));
+                if k > 0 {
+                    let w = &b[k - 1];
+                    let (dlo, dhi) = (x.lo - w.lo, x.hi - w.hi);
+                    rising &= dlo >= 0.0 && dhi >= 0.0;
+                    falling &= dlo <= 0.0 && dhi <= 0.0;
+                    dt = most(dt, most(dlo.abs(), dhi.abs()));
+                    du = most(du, most((x.u0 - w.u0).abs(), (x.u1 - w.u1).abs()));
+                }
             }
-            let (mut rising, mut falling, mut dt, mut du) = (true, true, 0f64, 0f64);
-            for w in b.windows(2) {
-                let (dlo, dhi) = (w[1].lo - w[0].lo, w[1].hi - w[0].hi);
-                rising &= dlo >= 0.0 && dhi >= 0.0;
-                falling &= dlo <= 0.0 && dhi <= 0.0;
-                dt = most(dt, most(dlo.abs(), dhi.abs()));
-                du = most(du, most((w[1].u0 - w[0].u0).abs(), (w[1].u1 - w[0].u1).abs()));
-            }
+            let (theta, u) = ((t_lo, t_hi), (u_lo, u_hi));
             segments.push(Segment {
                 yaw,
                 start,
