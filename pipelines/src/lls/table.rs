@@ -34,6 +34,10 @@ use crate::vec3::{dot, normalize, V3};
 
 /// Half-width of the tables in `t` and `s` (the lobe is below e⁻²⁵ of its peak beyond).
 const R: f64 = 10.0;
+/// A lobe's reach: where its mass below `t` is more than this fraction of its total away
+/// from both zero and the total. Bands beyond are zero: a lobe reaches about 17 of the
+/// tables' 20 in `t`, and a narrow trial looks up a sixth fewer frames.
+const REACH_EPS: f64 = 1e-9;
 /// `M` grid: step and nodes.
 const HT: f64 = 0.25;
 const NT: usize = 81;
@@ -485,12 +489,22 @@ impl<'a> PixelLobes<'a> {
             let (k, ja) = (near.key, ja + ia as i32);
             (near.node(ja).clone(), [k[0], k[1], k[2], ja], la[ia])
         });
+        // Where the lobe has mass: outside [t_first, t_last] both M and M' are within
+        // REACH_EPS of the total of 0 and of the total, so a band there (or a cut at t' there)
+        // is within 2·REACH_EPS of the total of zero or of the whole lobe. One node of margin
+        // either way for the Hermite cubics between nodes.
+        let eps = REACH_EPS * m[NT - 1].abs();
+        let first = m.iter().zip(&g).position(|(m, g)| m.abs() > eps || g.abs() > eps).unwrap_or(0);
+        let last = m.iter().zip(&g).rposition(|(mi, g)| (m[NT - 1] - mi).abs() > eps || g.abs() > eps);
+        let node_t = |i: usize| -R + i as f64 * HT;
+        let reach = (node_t(first.saturating_sub(1)), node_t((last.unwrap_or(NT - 1) + 1).min(NT - 1)));
         let geo = self.geo;
         Some(TableLobe {
             theta: geo.theta,
             u: geo.u,
             scale: geo.u.cos() / alpha,
             inv_alpha: 1.0 / alpha,
+            reach,
             m,
             g,
             cut,
@@ -528,6 +542,8 @@ pub struct TableLobe {
     /// `t` per radian of `θ`, `s` per radian of `u`.
     scale: f64,
     inv_alpha: f64,
+    /// The `t` range where the lobe has mass (to [`REACH_EPS`]).
+    reach: (f64, f64),
     m: [f64; NT],
     /// `M'` times the step (Hermite tangents).
     g: [f64; NT],
@@ -557,9 +573,11 @@ impl TableLobe {
         (self.scale, self.inv_alpha)
     }
 
-    /// The `θ` range outside which every band's `S` is zero (the tables' extent).
+    /// The `θ` range outside which every band's `S` is zero: where the lobe has mass (a band
+    /// there is within 2·[`REACH_EPS`] of the lobe's total of zero; [`TableLobe::band`]
+    /// returns zero).
     pub fn theta_window(&self) -> (f64, f64) {
-        (self.theta - R / self.scale, self.theta + R / self.scale)
+        (self.theta + self.reach.0 / self.scale, self.theta + self.reach.1 / self.scale)
     }
 
     /// Combines column `j` of the cut-off tables (`upper`: above `s_j`).
@@ -616,7 +634,7 @@ impl TableLobe {
     /// `S` for the band `[lo, hi] × [u0, u1]` (radians, the tube's frame).
     pub fn band(&mut self, lo: f64, hi: f64, u0: f64, u1: f64) -> f64 {
         let (t0, t1) = ((lo - self.theta) * self.scale, (hi - self.theta) * self.scale);
-        if t1 <= -R || t0 >= R || hi <= lo {
+        if t1 <= self.reach.0 || t0 >= self.reach.1 || hi <= lo {
             return 0.0;
         }
         let (s0, s1) = ((u0 - self.u) * self.inv_alpha, (u1 - self.u) * self.inv_alpha);
@@ -702,6 +720,41 @@ pub(crate) mod tests {
             }
         }
         worst
+    }
+
+    #[test]
+    fn lobes_have_no_mass_beyond_their_reach() {
+        // Below the reach M is within 3·REACH_EPS of zero and above it of the total (the
+        // Hermite cubics between nodes bounded by their nodes), over the rig's geometries;
+        // so a band beyond it is within 6·REACH_EPS of the total of zero (or of the whole
+        // lobe).
+        let tables = LobeTables::new();
+        let mut widest = 0f64;
+        for (_, n, v, yaw) in rig_cases() {
+            let turn = |a: V3| crate::linear_light::turn(a, -yaw);
+            let Some(geo) = lobe_geometry(turn(n), turn(v)) else { continue };
+            for alpha in [0.02, 0.04, 0.1, 0.3, 0.6] {
+                let Some(lobe) = tables.lobe(&geo, alpha) else { continue };
+                let total = lobe.m[NT - 1];
+                let (a, b) = lobe.reach;
+                for k in 0..=4000 {
+                    let t = -R + k as f64 * (2.0 * R / 4000.0);
+                    let m = lobe.mass(t);
+                    if t <= a {
+                        assert!(m.abs() <= 3.0 * REACH_EPS * total, "α {alpha} t {t}: {m:e} of {total:e}");
+                    }
+                    if t >= b {
+                        assert!((total - m).abs() <= 3.0 * REACH_EPS * total, "α {alpha} t {t}");
+                    }
+                }
+                if alpha <= 0.04 {
+                    widest = widest.max(b - a);
+                }
+            }
+        }
+        // Measured: 16.5–17 of the tables' 20 at α ≤ 0.04 (the half-vector turns by half as
+        // much as the direction, so the lobe falls as exp(−t²/4)).
+        assert!(widest < 2.0 * R, "{widest}");
     }
 
     #[test]
