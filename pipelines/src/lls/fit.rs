@@ -249,18 +249,19 @@ fn fit_trace_by(
     let frames = d.len();
     let (mut vd, mut vo, mut vm): ([Vec<f64>; 3], [Vec<f64>; 3], [Vec<f64>; 3]) = Default::default();
     for c in 0..3 {
-        vd[c].reserve(frames);
-        vo[c].reserve(frames);
-        vm[c].reserve(frames);
+        // Written by index (pushes cost a capacity check each).
+        vd[c] = vec![0.0; frames];
+        vo[c] = vec![0.0; frames];
+        vm[c] = vec![0.0; frames];
     }
     let (mut dd, mut od, mut oo, mut count) = ([0.0; 3], [0.0; 3], [0.0; 3], 0usize);
     for (k, &dk) in d.iter().enumerate() {
         for c in 0..3 {
             let ok = valid[c][k];
             let (dk, o) = if ok { (dk, obs[c][k]) } else { (0.0, 0.0) };
-            vd[c].push(dk);
-            vo[c].push(o);
-            vm[c].push(f64::from(u8::from(ok)));
+            vd[c][k] = dk;
+            vo[c][k] = o;
+            vm[c][k] = f64::from(u8::from(ok));
             dd[c] += dk * dk;
             od[c] += o * dk;
             oo[c] += o * o;
