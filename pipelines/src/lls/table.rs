@@ -498,6 +498,11 @@ impl<'a> PixelLobes<'a> {
         let last = m.iter().zip(&g).rposition(|(mi, g)| (m[NT - 1] - mi).abs() > eps || g.abs() > eps);
         let node_t = |i: usize| -R + i as f64 * HT;
         let reach = (node_t(first.saturating_sub(1)), node_t((last.unwrap_or(NT - 1) + 1).min(NT - 1)));
+        // Each cell's Hermite cubic in the power basis: three products a lookup.
+        let cells = std::array::from_fn(|i| {
+            let (m0, m1, g0, g1) = (m[i], m[i + 1], g[i], g[i + 1]);
+            [m0, g0, 3.0 * (m1 - m0) - 2.0 * g0 - g1, 2.0 * (m0 - m1) + g0 + g1]
+        });
         let geo = self.geo;
         Some(TableLobe {
             theta: geo.theta,
@@ -505,8 +510,8 @@ impl<'a> PixelLobes<'a> {
             scale: geo.u.cos() / alpha,
             inv_alpha: 1.0 / alpha,
             reach,
-            m,
-            g,
+            total: m[NT - 1],
+            cells,
             cut,
             columns: [Columns::default(), Columns::default()],
         })
@@ -544,9 +549,11 @@ pub struct TableLobe {
     inv_alpha: f64,
     /// The `t` range where the lobe has mass (to [`REACH_EPS`]).
     reach: (f64, f64),
-    m: [f64; NT],
-    /// `M'` times the step (Hermite tangents).
-    g: [f64; NT],
+    /// `M` over all `t`.
+    total: f64,
+    /// `M` on each step of the grid as `Σ c_q·f^q` in the step's fraction `f`: the cubic
+    /// Hermite through the nodes' `M` and `M'`.
+    cells: [[f64; 4]; NT - 1],
     cut: [(Arc<Node>, [i32; 4], f64); 4],
     /// Combined cut-off columns: below `s` (`[0]`) and above it (`[1]`).
     columns: [Columns; 2],
@@ -558,14 +565,14 @@ impl TableLobe {
         if t <= -R {
             return 0.0;
         }
+        if t >= R {
+            return self.total;
+        }
         let x = ((t + R) / HT).min((NT - 1) as f64);
         let i = (x as usize).min(NT - 2);
         let f = x - i as f64;
-        let (f2, f3) = (f * f, f * f * f);
-        (2.0 * f3 - 3.0 * f2 + 1.0) * self.m[i]
-            + (f3 - 2.0 * f2 + f) * self.g[i]
-            + (-2.0 * f3 + 3.0 * f2) * self.m[i + 1]
-            + (f3 - f2) * self.g[i + 1]
+        let c = &self.cells[i];
+        c[0] + f * (c[1] + f * (c[2] + f * c[3]))
     }
 
     /// `t` per radian of `θ` and `s` per radian of `u`: how fast a band moves in the tables.
@@ -735,7 +742,7 @@ pub(crate) mod tests {
             let Some(geo) = lobe_geometry(turn(n), turn(v)) else { continue };
             for alpha in [0.02, 0.04, 0.1, 0.3, 0.6] {
                 let Some(lobe) = tables.lobe(&geo, alpha) else { continue };
-                let total = lobe.m[NT - 1];
+                let total = lobe.total;
                 let (a, b) = lobe.reach;
                 for k in 0..=4000 {
                     let t = -R + k as f64 * (2.0 * R / 4000.0);
