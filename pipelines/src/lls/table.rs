@@ -454,11 +454,27 @@ impl<'a> PixelLobes<'a> {
         let nodes = &self.nodes;
         self.combined[ja as usize].get_or_insert_with(|| {
             let mut out = Box::new(([0.0; NT], [0.0; NT]));
-            for (geo, w) in nodes {
-                let (node, w) = (geo.node(ja), *w);
-                for i in 0..NT {
-                    out.0[i] += w * node.m[i];
-                    out.1[i] += w * node.g[i] * HT;
+            let mut resolved = [(&[0.0; NT], &[0.0; NT], 0.0); ORDER_T * ORDER_U * 2];
+            for ((geo, w), r) in nodes.iter().zip(&mut resolved) {
+                let node = geo.node(ja);
+                *r = (&node.m, &node.g, *w);
+            }
+            let resolved = &resolved[..nodes.len()];
+            // A few grid points at a time over all the nodes: the sums stay in registers
+            // (node by node, every node's pass loaded and stored the whole sum).
+            const CHUNK: usize = 8;
+            for start in (0..NT).step_by(CHUNK) {
+                let end = (start + CHUNK).min(NT);
+                let (mut m, mut g) = ([0.0; CHUNK], [0.0; CHUNK]);
+                for &(nm, ng, w) in resolved {
+                    for (k, i) in (start..end).enumerate() {
+                        m[k] += w * nm[i];
+                        g[k] += w * ng[i];
+                    }
+                }
+                for (k, i) in (start..end).enumerate() {
+                    out.0[i] = m[k];
+                    out.1[i] = g[k] * HT;
                 }
             }
             out
