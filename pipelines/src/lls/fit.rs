@@ -247,13 +247,10 @@ fn fit_trace_by(
     // Σd², Σod, Σo².
     // One pass over the frames for the three channels (independent chains of additions).
     let frames = d.len();
-    let (mut vd, mut vo, mut vm): ([Vec<f64>; 3], [Vec<f64>; 3], [Vec<f64>; 3]) = Default::default();
-    for c in 0..3 {
-        // Written by index (pushes cost a capacity check each).
-        vd[c] = vec![0.0; frames];
-        vo[c] = vec![0.0; frames];
-        vm[c] = vec![0.0; frames];
-    }
+    // Written by index below (pushes cost a capacity check each).
+    let mut vd: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; frames]);
+    let mut vo: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; frames]);
+    let mut vm: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; frames]);
     let (mut dd, mut od, mut oo, mut count) = ([0.0; 3], [0.0; 3], [0.0; 3], 0usize);
     for (k, &dk) in d.iter().enumerate() {
         for c in 0..3 {

@@ -528,12 +528,11 @@ fn quintic(x: f64) -> [f64; 6] {
 
 /// The bands of an evenly stepped `run`: computed at every `stride`-th frame (and up to three
 /// strides beyond the ends, the tube moved on by its `step`, so that every frame's stencil is
-/// centred), quintics in between.
+/// centred), quintics in between; diffuse vectors turned to the world by `yaw` (`sin`, `cos`).
 fn interpolated_bands(
     pl: V3,
     run: &[Tube],
-    stride: usize,
-    step: [f64; 5],
+    (stride, step): (usize, [f64; 5]),
     anchor: usize,
     yaw: (f64, f64),
     samples: &mut Vec<[f64; 8]>,
@@ -612,8 +611,8 @@ impl TraceModel {
             let pl = turn(p, -yaw);
             let even = evenly_spaced(run);
             match band_stride(pl, run, span).filter(|_| even) {
-                Some((stride, step)) => {
-                    interpolated_bands(pl, run, stride, step, anchor, yaw.sin_cos(), &mut samples, &mut bands)
+                Some(stride) => {
+                    interpolated_bands(pl, run, stride, anchor, yaw.sin_cos(), &mut samples, &mut bands)
                 }
                 None => exact_bands(pl, run, anchor, yaw.sin_cos(), &mut bands),
             }
