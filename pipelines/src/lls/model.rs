@@ -141,8 +141,6 @@ struct Band {
     /// Mean `u` limits over the band.
     u0: f64,
     u1: f64,
-    /// The diffuse vector in the world frame: `D = n·e`.
-    e: V3,
 }
 
 /// A run of frames with one tube yaw: the point and view in that tube frame.
@@ -164,6 +162,11 @@ struct Segment {
     /// `θ` and in `u` between neighbouring frames. A broad lobe's trace is then looked up
     /// every few frames and interpolated ([`TabledTraces::specular_into`]).
     steps: Option<(f64, f64)>,
+    /// Where its diffuse vectors start in [`TraceModel`]'s, and the frames from one to the
+    /// next (1: every frame's; more: the computed frames', from two strides before the
+    /// segment's start, the frames between interpolated).
+    e_start: usize,
+    e_stride: usize,
 }
 
 /// One pixel's view of a pass (or several passes): the bands of every frame, built once,
@@ -172,6 +175,8 @@ struct Segment {
 pub struct TraceModel {
     bands: Vec<Band>,
     segments: Vec<Segment>,
+    /// The diffuse vectors in the world frame (`D = n·e`), per segment as it says.
+    es: Vec<V3>,
 }
 
 /// The mean `u` limits' rule: four-node Gauss–Legendre in `ψ` on `[−π/2, π/2]`, where
@@ -307,12 +312,12 @@ fn mean_atan(
 /// angles are then found without trigonometric calls where the steps are small), and this
 /// frame's for the next. Divisions are shared (`1/(ab)` gives `1/a` and `1/b`): they, not the
 /// additions, bound the time a frame takes.
-fn band_of(pl: V3, t: &Tube, prev: Option<&Carry>) -> (Band, Option<Carry>) {
+fn band_of(pl: V3, t: &Tube, prev: Option<&Carry>) -> (Band, V3, Option<Carry>) {
     let (cx, cz) = (t.x - pl[0], t.z - pl[2]);
     let d2 = cx * cx + cz * cz;
     let r = t.radius;
     if d2 <= r * r {
-        return (Band { lo: 0.0, hi: 0.0, u0: 0.0, u1: 0.0, e: [0.0; 3] }, None);
+        return (Band { lo: 0.0, hi: 0.0, u0: 0.0, u1: 0.0 }, [0.0; 3], None);
     }
     let d = d2.sqrt();
     let inv_d = 1.0 / d;
@@ -363,7 +368,7 @@ fn band_of(pl: V3, t: &Tube, prev: Option<&Carry>) -> (Band, Option<Carry>) {
     let k = 2.0 * r * inv_d * inv_d * FRAC_1_PI;
     let e = [da * k * cx, db * 2.0 * a * FRAC_1_PI, da * k * cz];
     let carry = Carry { vlo, vhi, lo, hi, q, atan_q: [a0, a1] };
-    (Band { lo, hi, u0, u1, e }, Some(carry))
+    (Band { lo, hi, u0, u1 }, e, Some(carry))
 }
 
 /// The larger of two numbers, not NaN (a plain comparison, unlike `f64::max`).
@@ -502,14 +507,21 @@ fn band_stride(pl: V3, run: &[Tube], span: f64) -> Option<(usize, [f64; 5])> {
 }
 
 /// Every frame of `run` computed ([`band_of`]), angles stepped between anchors.
-fn exact_bands(pl: V3, run: &[Tube], anchor: usize, yaw: (f64, f64), bands: &mut Vec<Band>) {
+fn exact_bands(
+    pl: V3,
+    run: &[Tube],
+    anchor: usize,
+    yaw: (f64, f64),
+    bands: &mut Vec<Band>,
+    es: &mut Vec<V3>,
+) {
     let mut carry: Option<Carry> = None;
     for (k, t) in run.iter().enumerate() {
         let from = carry.as_ref().filter(|_| !k.is_multiple_of(anchor));
-        let (mut b, next) = band_of(pl, t, from);
+        let (b, e, next) = band_of(pl, t, from);
         carry = next;
-        b.e = to_world(b.e, yaw);
         bands.push(b);
+        es.push(to_world(e, yaw));
     }
 }
 
@@ -535,8 +547,9 @@ fn interpolated_bands(
     (stride, step): (usize, [f64; 5]),
     anchor: usize,
     yaw: (f64, f64),
-    samples: &mut Vec<[f64; 8]>,
+    samples: &mut Vec<[f64; 4]>,
     bands: &mut Vec<Band>,
+    es: &mut Vec<V3>,
 ) {
     let n = run.len();
     // Computed frames j·stride for j in −2 ..= (n − 1)/stride + 3, held at j + 2.
@@ -561,32 +574,39 @@ fn interpolated_bands(
             }
         };
         let from = carry.as_ref().filter(|_| !i.is_multiple_of(anchor));
-        let (b, next) = band_of(pl, &t, from);
+        let (b, e, next) = band_of(pl, &t, from);
         carry = next;
-        // The diffuse vector turned to the world's frame here (the quintics commute with
-        // it); padded to eight: the sums below then vectorise.
-        let e = to_world(b.e, yaw);
-        samples.push([b.lo, b.hi, b.u0, b.u1, e[0], e[1], e[2], 0.0]);
+        samples.push([b.lo, b.hi, b.u0, b.u1]);
+        // The diffuse vectors only at the computed frames: a trace `n·e` is interpolated
+        // when the normal is known (the same quintics, a quarter of the work).
+        es.push(to_world(e, yaw));
     }
-    let mut weights = [[0.0; 6]; MAX_BAND_STRIDE];
-    for (f, w) in weights.iter_mut().enumerate().take(stride) {
-        *w = quintic(f as f64 / stride as f64);
-    }
-    for k in 0..n {
-        let (j, f) = (k / stride, k % stride);
-        let v = if f == 0 {
-            samples[j + 2]
-        } else {
-            let mut acc = [0.0; 8];
-            for (w, s) in weights[f].iter().zip(&samples[j..j + 6]) {
+    let weights = quintic_weights(stride);
+    let start = bands.len();
+    bands.resize(start + n, Band { lo: 0.0, hi: 0.0, u0: 0.0, u1: 0.0 });
+    // Interval j: frame j·stride (computed: its weights pick it exactly) and the next
+    // stride − 1.
+    for (j, chunk) in bands[start..].chunks_mut(stride).enumerate() {
+        let s = &samples[j..j + 6];
+        for (b, w) in chunk.iter_mut().zip(&weights) {
+            let mut acc = [0.0; 4];
+            for (w, s) in w.iter().zip(s) {
                 for (a, s) in acc.iter_mut().zip(s) {
                     *a += w * s;
                 }
             }
-            acc
-        };
-        bands.push(Band { lo: v[0], hi: v[1], u0: v[2], u1: v[3], e: [v[4], v[5], v[6]] });
+            *b = Band { lo: acc[0], hi: acc[1], u0: acc[2], u1: acc[3] };
+        }
     }
+}
+
+/// The quintics' weights at each frame between two computed ones `stride` apart.
+fn quintic_weights(stride: usize) -> [[f64; 6]; MAX_BAND_STRIDE] {
+    let mut weights = [[0.0; 6]; MAX_BAND_STRIDE];
+    for (f, w) in weights.iter_mut().enumerate().take(stride) {
+        *w = quintic(f as f64 / stride as f64);
+    }
+    weights
 }
 
 impl TraceModel {
@@ -602,6 +622,7 @@ impl TraceModel {
         let mut bands = Vec::with_capacity(tubes.len());
         let mut segments: Vec<Segment> = Vec::new();
         let mut samples = Vec::new();
+        let mut es = Vec::with_capacity(tubes.len());
         let mut start = 0;
         while start < tubes.len() {
             // A run of frames with one yaw.
@@ -610,12 +631,26 @@ impl TraceModel {
             let run = &tubes[start..end];
             let pl = turn(p, -yaw);
             let even = evenly_spaced(run);
-            match band_stride(pl, run, span).filter(|_| even) {
+            let e_start = es.len();
+            let e_stride = match band_stride(pl, run, span).filter(|_| even) {
                 Some(stride) => {
-                    interpolated_bands(pl, run, stride, anchor, yaw.sin_cos(), &mut samples, &mut bands)
+                    interpolated_bands(
+                        pl,
+                        run,
+                        stride,
+                        anchor,
+                        yaw.sin_cos(),
+                        &mut samples,
+                        &mut bands,
+                        &mut es,
+                    );
+                    stride.0
                 }
-                None => exact_bands(pl, run, anchor, yaw.sin_cos(), &mut bands),
-            }
+                None => {
+                    exact_bands(pl, run, anchor, yaw.sin_cos(), &mut bands, &mut es);
+                    1
+                }
+            };
             let b = &bands[start..end];
             // One pass: the union of the bands, whether their limits rise or fall throughout,
             // and their largest steps (plain comparisons on scalars: `f64::max`'s NaN
@@ -656,10 +691,12 @@ impl TraceModel {
                     _ => None,
                 },
                 steps: (nonempty && even).then_some((dt, du)),
+                e_start,
+                e_stride,
             });
             start = end;
         }
-        TraceModel { bands, segments }
+        TraceModel { bands, segments, es }
     }
 
     /// The frames of segment `s` (relative to its start) whose bands meet the `θ` range
@@ -688,7 +725,30 @@ impl TraceModel {
 
     /// `D_k` for unit normal `n` (world frame): the diffuse lobe for `ρd = 1`.
     pub fn diffuse(&self, n: V3) -> Vec<f64> {
-        self.bands.iter().map(|b| dot(n, b.e).max(0.0)).collect()
+        let mut out = vec![0.0; self.bands.len()];
+        for s in &self.segments {
+            let (frames, es, out) = (s.end - s.start, &self.es[s.e_start..], &mut out[s.start..s.end]);
+            if s.e_stride == 1 {
+                for (o, e) in out.iter_mut().zip(es) {
+                    *o = dot(n, *e).max(0.0);
+                }
+                continue;
+            }
+            // The computed frames' traces, then the same quintics as the bands'.
+            let stride = s.e_stride;
+            let d: Vec<f64> = es[..(frames - 1) / stride + 6].iter().map(|e| dot(n, *e)).collect();
+            let weights = quintic_weights(stride);
+            // Interval j: frame j·stride (computed: its weights pick it exactly) and the next
+            // stride − 1.
+            for (j, chunk) in out.chunks_mut(stride).enumerate() {
+                let d = &d[j..j + 6];
+                for (o, w) in chunk.iter_mut().zip(&weights) {
+                    let v = w[0] * d[0] + w[1] * d[1] + w[2] * d[2] + w[3] * d[3] + w[4] * d[4] + w[5] * d[5];
+                    *o = v.max(0.0);
+                }
+            }
+        }
+        out
     }
 
     /// `S_k(α)` for unit normal `n`: the specular lobe for `ρs = 1`.
@@ -1025,9 +1085,10 @@ mod tests {
                     .collect();
                 let (a, b) =
                     (TraceModel::built(p, v, &tubes, ANCHOR, 0.0), TraceModel::built(p, v, &tubes, 1, 0.0));
-                for (x, y) in a.bands.iter().zip(&b.bands) {
+                assert_eq!((a.es.len(), b.es.len()), (tubes.len(), tubes.len()));
+                for ((x, y), (ex, ey)) in a.bands.iter().zip(&b.bands).zip(a.es.iter().zip(&b.es)) {
                     let diff = [x.lo - y.lo, x.hi - y.hi, x.u0 - y.u0, x.u1 - y.u1];
-                    let de = (0..3).map(|k| (x.e[k] - y.e[k]).abs()).fold(0f64, f64::max);
+                    let de = (0..3).map(|k| (ex[k] - ey[k]).abs()).fold(0f64, f64::max);
                     worst = diff.iter().fold(worst, |w, d| w.max(d.abs())).max(de);
                 }
             }
@@ -1043,7 +1104,7 @@ mod tests {
         // and the traces, relative to the pass' peak. The rig's geometries, its step sizes,
         // and the tube nearer the sample than on the rig (30 mm above the reference plane).
         let tables = LobeTables::new();
-        let (mut bands, mut traces, mut strided) = (0f64, 0f64, 0usize);
+        let (mut bands, mut traces, mut diffuse, mut strided) = (0f64, 0f64, 0f64, 0usize);
         for (p, n, v, yaw) in crate::lls::table::tests::rig_cases() {
             for (frames, step, height) in
                 [(300, 0.8, 50.0), (600, 0.4, 50.0), (400, 0.6, 50.0), (300, 0.8, 30.0)]
@@ -1057,9 +1118,13 @@ mod tests {
                 assert_eq!(a.segments[0].order, b.segments[0].order);
                 for (x, y) in a.bands.iter().zip(&b.bands) {
                     let diff = [x.lo - y.lo, x.hi - y.hi, x.u0 - y.u0, x.u1 - y.u1];
-                    let de = (0..3).map(|k| (x.e[k] - y.e[k]).abs()).fold(0f64, f64::max);
-                    bands = diff.iter().fold(bands, |w, d| w.max(d.abs())).max(de);
+                    bands = diff.iter().fold(bands, |w, d| w.max(d.abs()));
                 }
+                // The diffuse traces (interpolated from the computed frames' `n·e`).
+                let (got, want) = (a.diffuse(n), b.diffuse(n));
+                let peak = want.iter().fold(0f64, |m, &x| m.max(x));
+                let err = got.iter().zip(&want).map(|(g, w)| (g - w).abs()).fold(0f64, f64::max) / peak;
+                diffuse = diffuse.max(err);
                 for alpha in [0.02, 0.04, 0.3] {
                     let (got, want) =
                         (a.specular_tabled(n, alpha, &tables), b.specular_tabled(n, alpha, &tables));
@@ -1069,11 +1134,11 @@ mod tests {
                 }
             }
         }
-        // Every pass is interpolated. Measured: bands within 2.1e-7, traces within 2.5e-6 of
-        // the peak (a hundredth of the tables' own error, see `lls::table`); with BAND_SPAN
+        // Every pass is interpolated. Measured: bands within 2.1e-7, specular traces within
+        // 2.5e-6 of the peak, diffuse within 1.4e-6 (a hundredth of the tables' own error, see `lls::table`); with BAND_SPAN
         // 0.05: 2.4e-9 and 3e-8, at 0.15: 2.1e-6 and 3e-5 (the sixth power).
         assert_eq!(strided, crate::lls::table::tests::rig_cases().len() * 4);
-        assert!(bands < 4e-7 && traces < 5e-6, "bands {bands:e}, traces {traces:e}");
+        assert!(bands < 4e-7 && traces < 5e-6 && diffuse < 3e-6, "{bands:e}, {traces:e}, {diffuse:e}");
     }
 
     #[test]
