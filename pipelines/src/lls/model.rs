@@ -540,7 +540,8 @@ fn quintic(x: f64) -> [f64; 6] {
 
 /// The bands of an evenly stepped `run`: computed at every `stride`-th frame (and up to three
 /// strides beyond the ends, the tube moved on by its `step`, so that every frame's stencil is
-/// centred), quintics in between; diffuse vectors turned to the world by `yaw` (`sin`, `cos`).
+/// centred), quintics in between, appended to `bands`; the computed frames' diffuse vectors,
+/// turned to the world by `yaw` (`sin`, `cos`), to `es`. `samples`: scratch.
 fn interpolated_bands(
     pl: V3,
     run: &[Tube],
@@ -548,8 +549,7 @@ fn interpolated_bands(
     anchor: usize,
     yaw: (f64, f64),
     samples: &mut Vec<[f64; 4]>,
-    bands: &mut Vec<Band>,
-    es: &mut Vec<V3>,
+    (bands, es): (&mut Vec<Band>, &mut Vec<V3>),
 ) {
     let n = run.len();
     // Computed frames j·stride for j in −2 ..= (n − 1)/stride + 3, held at j + 2.
@@ -641,8 +641,7 @@ impl TraceModel {
                         anchor,
                         yaw.sin_cos(),
                         &mut samples,
-                        &mut bands,
-                        &mut es,
+                        (&mut bands, &mut es),
                     );
                     stride.0
                 }
