@@ -2,6 +2,7 @@
 
 use crate::vec3::{add, normalize, scale, V3};
 
+use super::table::alpha_node;
 use super::{LobeTables, Sheet, TraceModel};
 
 /// The gantry position at which a trace peaks, between samples: a Gaussian through the largest
@@ -178,8 +179,20 @@ pub fn fit_trace_tabled(
 }
 
 /// The roughness of the two trials that calibrate the moment start, and the range searched.
-const MOMENT_ALPHAS: [f64; 2] = [0.05, 0.15];
+/// Table nodes (0.045 and 0.149), where a trial reads one node's tables instead of
+/// interpolating between four.
+fn moment_alphas() -> [f64; 2] {
+    [alpha_node(5), alpha_node(9)]
+}
 const ALPHA_RANGE: (f64, f64) = (0.02, 0.6);
+/// The first step out from the best of the starting trials (a factor in `α`; then 1.5): the
+/// moment start is usually within a few per cent, and a tight bracket makes the first
+/// parabola land close (1.15: a trial more at α 0.04 and 0.22; 1.05: the bracket often
+/// missed).
+const FIRST_STEP: f64 = 1.08;
+/// Where the parabola's minimum falls on the best trial and the other two lie within this of it
+/// (in `log α`), the search stops: the parabola is accurate there.
+const NARROW: f64 = 0.01;
 
 /// A trace's spread in frames: the standard deviation of the frame index weighted by the
 /// values above a tenth of the peak (the same measure for the observed excess and the model
@@ -203,10 +216,10 @@ fn width(x: &[f64]) -> f64 {
 }
 
 /// Gardner et al.'s start for α from the spread of the specular excess: with the spreads
-/// `w` of the model traces at [`MOMENT_ALPHAS`], `spread² = w0² + c²·α²`, solved for the
+/// `w` of the model traces at [`moment_alphas`], `spread² = w0² + c²·α²`, solved for the
 /// observed spread. Clamped to [`ALPHA_RANGE`]; the middle of it when the spreads say nothing.
 fn moment_start(w: [f64; 2], observed: f64) -> f64 {
-    let [a1, a2] = MOMENT_ALPHAS;
+    let [a1, a2] = moment_alphas();
     let c2 = (w[1] * w[1] - w[0] * w[0]) / (a2 * a2 - a1 * a1);
     let fallback = (ALPHA_RANGE.0 * ALPHA_RANGE.1).sqrt();
     let usable = c2 > 0.0 && observed > 0.0;
@@ -233,34 +246,51 @@ fn fit_trace_by(
 ) -> TraceFit {
     // What does not depend on α, once: per channel the masked diffuse trace and observations,
     // Σd², Σod, Σo².
+    // One pass over the frames for the three channels (independent chains of additions).
     let frames = d.len();
-    let vd: [Vec<f64>; 3] =
-        std::array::from_fn(|c| (0..frames).map(|k| if valid[c][k] { d[k] } else { 0.0 }).collect());
-    let vo: [Vec<f64>; 3] =
-        std::array::from_fn(|c| (0..frames).map(|k| if valid[c][k] { obs[c][k] } else { 0.0 }).collect());
-    let vm: [Vec<f64>; 3] =
-        std::array::from_fn(|c| (0..frames).map(|k| f64::from(u8::from(valid[c][k]))).collect());
-    let fixed: [(f64, f64, f64); 3] = std::array::from_fn(|c| {
-        vd[c]
-            .iter()
-            .zip(&vo[c])
-            .fold((0.0, 0.0, 0.0), |(dd, od, oo), (d, o)| (dd + d * d, od + o * d, oo + o * o))
-    });
+    // Written by index below (pushes cost a capacity check each).
+    let mut vd: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; frames]);
+    let mut vo: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; frames]);
+    let mut vm: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; frames]);
+    let (mut dd, mut od, mut oo, mut count) = ([0.0; 3], [0.0; 3], [0.0; 3], 0usize);
+    for (k, &dk) in d.iter().enumerate() {
+        for c in 0..3 {
+            let ok = valid[c][k];
+            let (dk, o) = if ok { (dk, obs[c][k]) } else { (0.0, 0.0) };
+            vd[c][k] = dk;
+            vo[c][k] = o;
+            vm[c][k] = f64::from(u8::from(ok));
+            dd[c] += dk * dk;
+            od[c] += o * dk;
+            oo[c] += o * o;
+            count += usize::from(ok);
+        }
+    }
+    let fixed: [(f64, f64, f64); 3] = std::array::from_fn(|c| (dd[c], od[c], oo[c]));
     let mut s = vec![0.0; frames];
     // The residual, ρd and ρs at α, and (when asked) the spread of the specular trace.
     let mut residual_at = |alpha: f64, spread: bool| -> (f64, [f64; 3], [f64; 3], f64) {
         let reach = specular(alpha, &mut s);
+        // The three channels' sums in one pass: nine independent chains of additions
+        // overlap, where one channel at a time waited on three.
+        let (mut ds, mut ss, mut os) = ([0.0; 3], [0.0; 3], [0.0; 3]);
+        let sr = &s[reach.clone()];
+        let (vd, vm, vo) = (
+            vd.each_ref().map(|v| &v[reach.clone()]),
+            vm.each_ref().map(|v| &v[reach.clone()]),
+            vo.each_ref().map(|v| &v[reach.clone()]),
+        );
+        for (k, &sk) in sr.iter().enumerate() {
+            for c in 0..3 {
+                ds[c] += sk * vd[c][k];
+                ss[c] += sk * sk * vm[c][k];
+                os[c] += sk * vo[c][k];
+            }
+        }
         let (mut total, mut da, mut sa) = (0.0, [0.0; 3], [0.0; 3]);
         for c in 0..3 {
-            let (mut ds, mut ss, mut os) = (0.0, 0.0, 0.0);
-            for k in reach.clone() {
-                let sk = s[k];
-                ds += sk * vd[c][k];
-                ss += sk * sk * vm[c][k];
-                os += sk * vo[c][k];
-            }
             let (dd, od, oo) = fixed[c];
-            let (a, b, r) = two_lobe_solve(dd, ds, ss, od, os, oo);
+            let (a, b, r) = two_lobe_solve(dd, ds[c], ss[c], od, os[c], oo);
             total += r;
             da[c] = a;
             sa[c] = b;
@@ -290,8 +320,8 @@ fn fit_trace_by(
             // observed spread of what the diffuse lobe leaves: the start.
             let [w1, w2] = &mut spreads;
             let mut pool = vec![
-                trial_traced(MOMENT_ALPHAS[0].ln(), Some(w1)),
-                trial_traced(MOMENT_ALPHAS[1].ln(), Some(w2)),
+                trial_traced(moment_alphas()[0].ln(), Some(w1)),
+                trial_traced(moment_alphas()[1].ln(), Some(w2)),
             ];
             // ρd from the better of the two.
             let d1 = if pool[0].1 <= pool[1].1 { pool[0].2 } else { pool[1].2 };
@@ -304,7 +334,7 @@ fn fit_trace_by(
             }
             // Bracket the best point: its nearest trials on either side, stepping out by a
             // factor 1.5 where it has none, up to the range the tables cover.
-            let step = 1.5f64.ln();
+            let mut step = FIRST_STEP.ln();
             let (min_x, max_x) = (ALPHA_RANGE.0.ln(), ALPHA_RANGE.1.ln());
             loop {
                 pool.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -313,8 +343,10 @@ fn fit_trace_by(
                 let x = pool[best].0;
                 if best == 0 && x > min_x + 1e-9 {
                     pool.push(trial_traced((x - step).max(min_x), None));
+                    step = 1.5f64.ln();
                 } else if best + 1 == pool.len() && x < max_x - 1e-9 {
                     pool.push(trial_traced((x + step).min(max_x), None));
+                    step = 1.5f64.ln();
                 } else {
                     let (i0, i1) = (best.saturating_sub(1), (best + 1).min(pool.len() - 1));
                     let mut pts = vec![pool[i0], pool[best], pool[i1]];
@@ -328,6 +360,10 @@ fn fit_trace_by(
             }
         }
     };
+    // Successive parabolic interpolation as in Brent's method: the bracket shrinks around the
+    // best point as trials land on either side of it (a fixed bracket sent the golden step to
+    // the same point again and again once the parabola had converged).
+    let (mut lo, mut hi) = (lo, hi);
     let mut trial = |x: f64| trial_traced(x, None);
     for _ in 0..8 {
         pts.sort_by(|a, b| a.1.total_cmp(&b.1));
@@ -335,28 +371,44 @@ fn fit_trace_by(
         let den = (x1 - x0) * (f1 - f2) - (x1 - x2) * (f1 - f0);
         let num = (x1 - x0).powi(2) * (f1 - f2) - (x1 - x2).powi(2) * (f1 - f0);
         let mut x = if den.abs() > 1e-300 { x1 - 0.5 * num / den } else { f64::NAN };
-        if !x.is_finite() || x <= lo || x >= hi || pts.iter().any(|p| (p.0 - x).abs() < 1e-4) {
+        let inside = x.is_finite() && x > lo && x < hi;
+        if inside && (x - x0).abs() < 1e-4 {
+            // The parabola's minimum is at the best trial. Where the other two lie close, the
+            // parabola is accurate and α known; else a small step off the best point makes
+            // the next parabola's points close.
+            if (x1 - x0).abs().max((x2 - x0).abs()) < NARROW {
+                break;
+            }
+            x = x0 + if x >= x0 { 1e-3 } else { -1e-3 };
+        } else if !inside || pts.iter().any(|p| (p.0 - x).abs() < 1e-4) {
             // Golden step from the best point into the larger side of the bracket.
             x = x0 + 0.382 * (if hi - x0 > x0 - lo { hi - x0 } else { lo - x0 });
         }
         let step = (x - x0).abs();
-        pts[2] = trial(x);
-        if step < 1e-3 {
+        let t = trial(x);
+        if t.1 <= f0 {
+            // A new best point: the old one bounds the bracket on the far side.
+            if x >= x0 {
+                lo = x0;
+            } else {
+                hi = x0;
+            }
+        } else if x < x0 {
+            lo = x;
+        } else {
+            hi = x;
+        }
+        pts[2] = t;
+        // A small step settles α only where the parabola was accurate: built on close points
+        // (a wide one can land next to the best point by chance, 0.4 % off).
+        if step < 1e-3 && (x1 - x0).abs().max((x2 - x0).abs()) < NARROW {
             break;
         }
     }
     pts.sort_by(|a, b| a.1.total_cmp(&b.1));
     let (x, r, diffuse, specular) = pts[0];
     let alpha = x.exp();
-    let (mut oo, mut count) = (0.0, 0usize);
-    for c in 0..3 {
-        for k in 0..obs[c].len() {
-            if valid[c][k] {
-                oo += obs[c][k] * obs[c][k];
-                count += 1;
-            }
-        }
-    }
+    let oo: f64 = oo.iter().sum();
     let residual = if oo > 0.0 && count > 0 { (r / oo).sqrt() } else { 0.0 };
     TraceFit { diffuse, specular, alpha, residual }
 }
@@ -656,7 +708,9 @@ mod tests {
             let tabled = fit_trace_tabled(&obs, &valid, &model, n, None, &tables);
             // Direct: the model traces are within 1e-4 of the render's. Tabled: within 3e-4 of
             // the direct ones up to α 0.22 and 1.5e-3 at 0.3 (`lls::table` tests); measured
-            // α within 1.1e-4 and ρs within 2.4e-4 (relative) of the truth.
+            // α within 5.1e-5 up to α 0.22 and 2.9e-4 at 0.3, ρs within 7.4e-5 and 4.5e-4
+            // (relative) of the truth (before the Brent bracket and its stops: 4.5e-5 and
+            // 2.0e-4, ρs 7.4e-5 and 3.3e-4; 7, 7 and 8 trials against 8, 12 and 8).
             for (f, ta, ts) in [(direct, 2e-3, 3e-3), (tabled, 1e-3, 1.5e-3)] {
                 assert!((f.alpha / alpha - 1.0).abs() < ta, "α {} vs {alpha}", f.alpha);
                 for c in 0..3 {
@@ -672,7 +726,7 @@ mod tests {
         // Spreads that follow spread² = w0² + c²·α² exactly give α back.
         let (w0, c) = (7.0f64, 60.0f64);
         let spread = |a: f64| (w0 * w0 + c * c * a * a).sqrt();
-        let w = MOMENT_ALPHAS.map(spread);
+        let w = moment_alphas().map(spread);
         for a in [0.03, 0.1, 0.25, 0.5] {
             assert!((moment_start(w, spread(a)) / a - 1.0).abs() < 1e-9);
         }
