@@ -312,8 +312,15 @@ fn fit_trace_by(
     };
     let (lo, hi, mut pts) = match alpha0 {
         Some(a) if a > 0.0 => {
-            let (lo, hi) = (a.ln() - 1.5f64.ln(), a.ln() + 1.5f64.ln());
-            (lo, hi, vec![trial_traced(lo, None), trial_traced(a.ln(), None), trial_traced(hi, None)])
+            // A factor 1.5 either side, inside the range the tables cover (a trial beyond it
+            // integrates the lobe directly, twenty times dearer): a start at the range's end
+            // moves a quarter of the way into its bracket.
+            let (min_x, max_x) = (ALPHA_RANGE.0.ln(), ALPHA_RANGE.1.ln());
+            let c = a.ln().clamp(min_x, max_x);
+            let (lo, hi) = ((c - 1.5f64.ln()).max(min_x), (c + 1.5f64.ln()).min(max_x));
+            let q = 0.25 * (hi - lo);
+            let x = c.clamp(lo + q, hi - q);
+            (lo, hi, vec![trial_traced(lo, None), trial_traced(x, None), trial_traced(hi, None)])
         }
         _ => {
             // Two trials whose spreads (in frames) calibrate spread² = w0² + c²·α², and the

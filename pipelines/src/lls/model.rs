@@ -1037,9 +1037,11 @@ mod tests {
             // measured: no worse than looking up every frame. Against that, measured: 0 up
             // to α 0.05 (every frame looked up), 4.1e-5 at 0.12, 8.4e-5 at 0.22, 1.3e-4 at
             // 0.3, 7.1e-4 at 0.6 (a tenth of the tables' own error there).
+            // The tables' own error up to α 0.16 (≤ 2.9e-4) is at the steepest geometries (see
+            // `tabled_traces_match_the_direct_integration`).
             let (tol, tol_between) = match a {
-                a if a <= 0.12 => (2e-4, 5e-5),
-                a if a <= 0.16 => (2e-4, 8e-5),
+                a if a <= 0.12 => (3e-4, 5e-5),
+                a if a <= 0.16 => (3.5e-4, 8e-5),
                 a if a <= 0.22 => (4e-4, 1e-4),
                 a if a <= 0.3 => (2.5e-3, 2e-4),
                 _ => (1e-2, 1e-3),
