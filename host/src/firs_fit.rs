@@ -174,6 +174,20 @@ fn read_frame(path: &Path) -> Result<Image, FitError> {
     Ok(img)
 }
 
+/// Refuses a frame whose size differs from the `w × h` of `than` (the frames it is stacked
+/// with): a session's stack comes from one camera at one resolution.
+fn check_size(img: &Image, path: &Path, (w, h): (usize, usize), than: &str) -> Result<(), FitError> {
+    if (img.width as usize, img.height as usize) == (w, h) {
+        return Ok(());
+    }
+    Err(fail(format!(
+        "{}: image size {}×{} differs from {than} ({w}×{h}); a stack needs one camera at one resolution",
+        path.display(),
+        img.width,
+        img.height
+    )))
+}
+
 /// The brightest channel's values of `img` for rows `r0..r1` (green on an RGB camera: the dye's
 /// emission), or the only one.
 fn channel_rows(img: &Image, r0: usize, r1: usize) -> Vec<f32> {
@@ -232,12 +246,7 @@ fn detect_sweep(
                 (0, Some(i)) => i,
                 _ => read_frame(path)?,
             };
-            if (img.width as usize, img.height as usize) != (w, h) {
-                return Err(fail(format!(
-                    "{}: image size differs from the sweep's first frame",
-                    path.display()
-                )));
-            }
+            check_size(&img, path, (w, h), "the sweep's first frame")?;
             for (k, v) in channel_rows(&img, r0, r1).into_iter().enumerate() {
                 let (row, u) = (k / w, k % w);
                 stack[(row * w + u) * n + t] = v;
@@ -959,12 +968,7 @@ pub fn fit_volume_banded(
             .iter()
             .map(|path| {
                 let img = read_frame(path)?;
-                if (img.width as usize, img.height as usize) != (w, h) {
-                    return Err(fail(format!(
-                        "{}: image size differs from the board frames'",
-                        path.display()
-                    )));
-                }
+                check_size(&img, path, (w, h), "the board frames'")?;
                 Ok(channel_rows(&img, r0, r1))
             })
             .collect::<Result<_, _>>()?;
@@ -1012,12 +1016,7 @@ pub fn fit_volume_banded(
             .par_iter()
             .map(|path| {
                 let img = read_frame(path)?;
-                if (img.width as usize, img.height as usize) != (w, h) {
-                    return Err(fail(format!(
-                        "{}: image size differs from the board frames'",
-                        path.display()
-                    )));
-                }
+                check_size(&img, path, (w, h), "the board frames'")?;
                 Ok(channel_rows(&img, 0, h))
             })
             .collect::<Result<_, _>>()?;
@@ -1126,4 +1125,22 @@ pub fn write_volume_outputs(v: &FirsVolume, out: &Path) -> Result<Vec<PathBuf>, 
     std::fs::write(&p, text + "\n").map_err(|e| io(&p, e))?;
     let [raw, json, nhdr] = v.raw.clone();
     Ok(vec![ply, raw, json, nhdr, p])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_frame_of_another_size_is_refused_with_both_sizes() {
+        let img = Image { width: 4, height: 3, channels: 1, data: vec![0.0; 12], encoding: Encoding::Linear };
+        let path = Path::new("frames/f_0007.png");
+        assert!(check_size(&img, path, (4, 3), "the board frames'").is_ok());
+        let e = check_size(&img, path, (5, 3), "the board frames'").unwrap_err();
+        assert_eq!(
+            e.0,
+            "frames/f_0007.png: image size 4×3 differs from the board frames' (5×3); a stack needs one \
+             camera at one resolution"
+        );
+    }
 }
