@@ -3,7 +3,7 @@
 use crate::vec3::{add, normalize, scale, V3};
 
 use super::table::alpha_node;
-use super::{LobeTables, Sheet, TraceModel};
+use super::{AlphaLobes, LobeTables, Sheet, TraceModel};
 
 /// The gantry position at which a trace peaks, between samples: a Gaussian through the largest
 /// sample and its two neighbours (exact for a Gaussian profile). `None` when the peak is below
@@ -435,84 +435,99 @@ pub struct PassTrace<'a> {
 /// The normal from the diagonal passes (Gardner et al.'s ±15° mounts): with the roughness
 /// known from the straight pass, the normal `(−gx, −gy, 1)` whose model traces fit `passes`
 /// best. The albedos are solved linearly at every step (they absorb any shading the slopes do
-/// not explain); the slopes by Gauss–Newton from `n0`, the Jacobian by finite differences of
-/// the model traces. A turned mount moves both lobes with the slope along its own cross
-/// direction, so two mounts turned opposite ways pin down both slopes. `None` when the
-/// traces carry no information (dark pixel) or the iteration leaves the plausible range.
-/// With `tables` the specular traces are looked up ([`TraceModel::specular_tabled`]).
+/// not explain); the slopes by Gauss–Newton from `n0` on that variable projection, with
+/// Kaufman's Jacobian: the model traces' derivatives in the slopes, scaled by the albedos,
+/// less their part that the albedos could absorb. A turned mount moves both lobes with the
+/// slope along its own cross direction, so two mounts turned opposite ways pin down both
+/// slopes. `None` when the traces carry no information (dark pixel) or the iteration leaves
+/// the plausible range.
+///
+/// With `tables` the specular traces and their derivatives are looked up
+/// ([`TraceModel::specular_alpha_slopes`]: the lobe's position moved with the normal, its
+/// shape held), one lookup pass per step; without, they are integrated and differenced.
 pub fn fit_normal(passes: &[PassTrace], n0: V3, alpha: f64, tables: Option<&LobeTables>) -> Option<V3> {
     if n0[2] <= 0.0 {
         return None;
     }
-    let normal = |g: [f64; 2]| normalize([-g[0], -g[1], 1.0]);
-    // Model traces (D, S) of every pass for slopes g, concatenated.
-    let model = |g: [f64; 2]| -> (Vec<f64>, Vec<f64>) {
-        let n = normal(g);
-        let d = passes.iter().flat_map(|pt| pt.model.diffuse(n)).collect();
-        let s = passes
-            .iter()
-            .flat_map(|pt| match tables {
-                Some(t) => pt.model.specular_tabled(n, alpha, t),
-                None => pt.model.specular(n, alpha),
-            })
-            .collect();
-        (d, s)
+    let mut lobes = tables.and_then(|t| AlphaLobes::new(t, alpha));
+    let frames: usize = passes.iter().map(|pt| pt.model.len()).sum();
+    // Model traces (D, S) of every pass for slopes g, concatenated, and their derivatives in
+    // the two slopes.
+    let mut model = |g: [f64; 2]| -> Traces {
+        let (n, dn) = (slope_normal(g), slope_normal_derivatives(g));
+        let mut t = Traces {
+            d: vec![0.0; frames],
+            s: vec![0.0; frames],
+            jd: [vec![0.0; frames], vec![0.0; frames]],
+            js: [vec![0.0; frames], vec![0.0; frames]],
+        };
+        let mut at = 0;
+        for pt in passes {
+            let r = at..at + pt.model.len();
+            let d = pt.model.diffuse(n);
+            for (i, jd) in t.jd.iter_mut().enumerate() {
+                let lin = pt.model.diffuse_linear(dn[i]);
+                for ((j, l), d) in jd[r.clone()].iter_mut().zip(lin).zip(&d) {
+                    *j = if *d > 0.0 { l } else { 0.0 };
+                }
+            }
+            t.d[r.clone()].copy_from_slice(&d);
+            let [jx, jy] = &mut t.js;
+            match lobes.as_mut() {
+                Some(l) => pt.model.specular_alpha_slopes(
+                    n,
+                    dn,
+                    l,
+                    &mut t.s[r.clone()],
+                    [&mut jx[r.clone()], &mut jy[r.clone()]],
+                ),
+                None => {
+                    const H: f64 = 1e-5;
+                    t.s[r.clone()].copy_from_slice(&pt.model.specular(n, alpha));
+                    for (i, j) in [jx, jy].into_iter().enumerate() {
+                        let step = |h: f64| {
+                            pt.model.specular(
+                                slope_normal(std::array::from_fn(|q| g[q] + if q == i { h } else { 0.0 })),
+                                alpha,
+                            )
+                        };
+                        let (up, down) = (step(H), step(-H));
+                        for ((j, u), w) in j[r.clone()].iter_mut().zip(up).zip(down) {
+                            *j = (u - w) / (2.0 * H);
+                        }
+                    }
+                }
+            }
+            at = r.end;
+        }
+        t
     };
     let obs: [Vec<f64>; 3] =
         std::array::from_fn(|c| passes.iter().flat_map(|pt| pt.obs[c].iter().copied()).collect());
     let valid: [Vec<bool>; 3] =
         std::array::from_fn(|c| passes.iter().flat_map(|pt| pt.valid[c].iter().copied()).collect());
     // Per channel albedos and the residual.
-    let predict = |d: &[f64], s: &[f64]| -> ([(f64, f64); 3], f64) {
+    let predict = |t: &Traces| -> ([(f64, f64); 3], f64) {
         let mut ab = [(0.0, 0.0); 3];
         let mut total = 0.0;
         for c in 0..3 {
-            let (a, b, r) = two_lobes(&obs[c], d, s, &valid[c]);
+            let (a, b, r) = two_lobes(&obs[c], &t.d, &t.s, &valid[c]);
             ab[c] = (a, b);
             total += r;
         }
         (ab, total)
     };
-    const EPS: f64 = 0.005;
     let mut g = [-n0[0] / n0[2], -n0[1] / n0[2]];
-    let (mut d, mut s) = model(g);
-    let (mut ab, mut cost) = predict(&d, &s);
+    let mut cur = model(g);
+    let (mut ab, mut cost) = predict(&cur);
     if ab.iter().all(|&(a, b)| a == 0.0 && b == 0.0) {
         return None;
     }
-    for _ in 0..4 {
-        // The Jacobian of the model with its albedos re-solved at each trial (variable
-        // projection): the albedos and the slopes trade off, and ignoring that makes the
-        // iteration crawl.
-        let (dx, sx) = model([g[0] + EPS, g[1]]);
-        let (dy, sy) = model([g[0], g[1] + EPS]);
-        let (abx, _) = predict(&dx, &sx);
-        let (aby, _) = predict(&dy, &sy);
-        // Normal equations of Σ (o − m − Jx·δx − Jy·δy)² over valid samples.
-        let (mut a11, mut a12, mut a22, mut b1, mut b2) = (0.0, 0.0, 0.0, 0.0, 0.0);
-        for c in 0..3 {
-            let (a, b) = ab[c];
-            let ((ax, bx), (ay, by)) = (abx[c], aby[c]);
-            for k in 0..d.len() {
-                if !valid[c][k] {
-                    continue;
-                }
-                let m = a * d[k] + b * s[k];
-                let jx = (ax * dx[k] + bx * sx[k] - m) / EPS;
-                let jy = (ay * dy[k] + by * sy[k] - m) / EPS;
-                let r = obs[c][k] - m;
-                a11 += jx * jx;
-                a12 += jx * jy;
-                a22 += jy * jy;
-                b1 += jx * r;
-                b2 += jy * r;
-            }
-        }
-        let det = a11 * a22 - a12 * a12;
-        if det <= 1e-30 * (a11 * a22).max(1e-300) {
-            return None;
-        }
-        let mut step = [(b1 * a22 - b2 * a12) / det, (b2 * a11 - b1 * a12) / det];
+    // Each step costs one lookup pass (the trial, whose derivatives serve the next step);
+    // the position-only Jacobian converges about tenfold a step, so a few more steps than
+    // the differenced one needed are allowed.
+    for _ in 0..6 {
+        let Some(mut step) = gauss_newton_step(&obs, &valid, &cur, &ab) else { break };
         // At most 0.05 in slope (3°) per step, halved until the cost falls.
         let len = step[0].hypot(step[1]);
         if len > 0.05 {
@@ -521,22 +536,116 @@ pub fn fit_normal(passes: &[PassTrace], n0: V3, alpha: f64, tables: Option<&Lobe
         let mut accepted = false;
         for _ in 0..4 {
             let trial = [g[0] + step[0], g[1] + step[1]];
-            let (td, ts) = model(trial);
-            let (tab, tcost) = predict(&td, &ts);
+            let t = model(trial);
+            let (tab, tcost) = predict(&t);
             if tcost <= cost {
-                (g, d, s, ab, cost, accepted) = (trial, td, ts, tab, tcost, true);
+                (g, cur, ab, cost, accepted) = (trial, t, tab, tcost, true);
                 break;
             }
             step = [step[0] / 2.0, step[1] / 2.0];
         }
-        // Converged (the last step under 1e-3 in slope, 0.06°, far below the normals' noise:
-        // against 1e-4, the quick demo's median errors stay 0.1933° (blended) and 0.1942°
-        // (diagonal passes alone) with a fifth fewer model evaluations), or no step helps.
+        // Converged (the last step under 1e-3 in slope, 0.06°, far below the normals' noise),
+        // or no step helps.
         if !accepted || step[0].hypot(step[1]) < 1e-3 {
             break;
         }
     }
-    (g[0].hypot(g[1]) < 1.0).then(|| normal(g))
+    (g[0].hypot(g[1]) < 1.0).then(|| slope_normal(g))
+}
+
+/// A pixel's model traces over the diagonal passes and their derivatives in the slopes.
+struct Traces {
+    d: Vec<f64>,
+    s: Vec<f64>,
+    jd: [Vec<f64>; 2],
+    js: [Vec<f64>; 2],
+}
+
+/// The unit normal of slopes `g`: `(−gx, −gy, 1)` normalised.
+fn slope_normal(g: [f64; 2]) -> V3 {
+    normalize([-g[0], -g[1], 1.0])
+}
+
+/// `∂n/∂gx`, `∂n/∂gy` of [`slope_normal`].
+fn slope_normal_derivatives(g: [f64; 2]) -> [V3; 2] {
+    let l2 = 1.0 + g[0] * g[0] + g[1] * g[1];
+    let (l, l3) = (l2.sqrt(), l2 * l2.sqrt());
+    let v = [-g[0], -g[1], 1.0];
+    std::array::from_fn(|i| std::array::from_fn(|q| if q == i { -1.0 / l } else { 0.0 } - v[q] * g[i] / l3))
+}
+
+/// The Gauss–Newton step in the slopes for the traces `t` and the albedos `ab` solved for
+/// them: per channel the Jacobian `J = a·∂D + b·∂S` projected off the lobes the albedos use
+/// (Kaufman's approximation of the variable projection's Jacobian), then the normal
+/// equations `JᵀJ δ = Jᵀr`. `None` where they are singular.
+fn gauss_newton_step(
+    obs: &[Vec<f64>; 3],
+    valid: &[Vec<bool>; 3],
+    t: &Traces,
+    ab: &[(f64, f64); 3],
+) -> Option<[f64; 2]> {
+    let (mut a11, mut a12, mut a22, mut b1, mut b2) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for c in 0..3 {
+        let (a, b) = ab[c];
+        if a == 0.0 && b == 0.0 {
+            continue;
+        }
+        // Σ over the valid frames: J·J (3), J·r (2), the lobes against J (2 × 2) and r, the
+        // lobes' Gram matrix.
+        let (mut jj, mut jr) = ([0.0; 3], [0.0; 2]);
+        let (mut dj, mut sj, mut dr, mut sr) = ([0.0; 2], [0.0; 2], 0.0, 0.0);
+        let (mut dd, mut ds, mut ss) = (0.0, 0.0, 0.0);
+        for k in 0..t.d.len() {
+            if !valid[c][k] {
+                continue;
+            }
+            let (d, s) = (t.d[k], t.s[k]);
+            let r = obs[c][k] - a * d - b * s;
+            let j = [a * t.jd[0][k] + b * t.js[0][k], a * t.jd[1][k] + b * t.js[1][k]];
+            jj[0] += j[0] * j[0];
+            jj[1] += j[0] * j[1];
+            jj[2] += j[1] * j[1];
+            jr[0] += j[0] * r;
+            jr[1] += j[1] * r;
+            for i in 0..2 {
+                dj[i] += d * j[i];
+                sj[i] += s * j[i];
+            }
+            dr += d * r;
+            sr += s * r;
+            dd += d * d;
+            ds += d * s;
+            ss += s * s;
+        }
+        // The projection onto the lobes in use: P·x = B·G⁻¹·Bᵀx, so ⟨P·x, P·y⟩ = pxᵀG⁻¹py
+        // with px = Bᵀx.
+        let inner = |p: [f64; 2], q: [f64; 2]| -> f64 {
+            match (a > 0.0, b > 0.0) {
+                (true, true) => {
+                    let det = dd * ss - ds * ds;
+                    if det > 1e-30 * (dd * ss).max(1e-300) {
+                        (p[0] * (ss * q[0] - ds * q[1]) + p[1] * (dd * q[1] - ds * q[0])) / det
+                    } else {
+                        0.0
+                    }
+                }
+                (true, false) if dd > 0.0 => p[0] * q[0] / dd,
+                (false, true) if ss > 0.0 => p[1] * q[1] / ss,
+                _ => 0.0,
+            }
+        };
+        let (p1, p2, pr) = ([dj[0], sj[0]], [dj[1], sj[1]], [dr, sr]);
+        a11 += jj[0] - inner(p1, p1);
+        a12 += jj[1] - inner(p1, p2);
+        a22 += jj[2] - inner(p2, p2);
+        b1 += jr[0] - inner(p1, pr);
+        b2 += jr[1] - inner(p2, pr);
+    }
+    let det = a11 * a22 - a12 * a12;
+    if det <= 1e-30 * (a11 * a22).max(1e-300) {
+        return None;
+    }
+    Some([(b1 * a22 - b2 * a12) / det, (b2 * a11 - b1 * a12) / det])
 }
 
 /// Gardner et al.'s blend: the normals' fine detail from the reflectance passes (`photo`),

@@ -25,7 +25,7 @@ mod model;
 mod table;
 
 pub use model::{TabledTraces, TraceModel};
-pub use table::{lobe_geometry, LobeGeometry, LobeTables, PixelLobes, TableLobe};
+pub use table::{lobe_geometry, AlphaLobes, LobeGeometry, LobeTables, PixelLobes, TableLobe};
 
 pub use fit::{
     blend_normals, fit_normal, fit_trace, fit_trace_tabled, normals_from_points, point_on_sheet, strip_ratio,

@@ -132,7 +132,13 @@ impl Integrand {
             return 0.0;
         }
         let c2 = c * c;
-        self.k * (-(1.0 - c2) / (c2 * self.alpha * self.alpha)).exp() * ci.sqrt() * cu
+        let exponent = -(1.0 - c2) / (c2 * self.alpha * self.alpha);
+        // Below e⁻⁶⁰ of the peak (the tables' far corners, most of their area): zero, as
+        // far below the f32 cut-off tables' resolution as the lobe's own cut-off at R.
+        if exponent < -60.0 {
+            return 0.0;
+        }
+        self.k * exponent.exp() * ci.sqrt() * cu
     }
 }
 
@@ -222,7 +228,8 @@ fn build_cut(tilt: [f64; 2], um: f64, alpha: f64) -> Cut {
     let stride = (HC / (HT / 2.0)).round() as usize;
     let nh = stride * (NC - 1) + 1;
     let mut cum = vec![[0.0f64; NC]; nh];
-    for (k, row) in cum.iter_mut().enumerate() {
+    // Simpson below reads the ends and middles of steps of HC only: every (stride/2)-th row.
+    for (k, row) in cum.iter_mut().enumerate().step_by((stride / 2).max(1)) {
         let Some((st, ct)) = t_half(&f, k) else { continue };
         let mut acc = 0.0;
         for j in 0..NC - 1 {
@@ -317,7 +324,9 @@ impl std::hash::Hasher for KeyHasher {
     }
 }
 
-type KeyMap<V> = HashMap<[i32; 3], V, std::hash::BuildHasherDefault<KeyHasher>>;
+/// A geometry node's key: its tilt along `θ` and `u` and its mirror elevation, in steps.
+type GeoKey = [i32; 3];
+type KeyMap<V> = HashMap<GeoKey, V, std::hash::BuildHasherDefault<KeyHasher>>;
 
 /// The `α` nodes of one geometry node `(tilt, tilt, elevation)`, each built on first use. A
 /// pixel finds its geometry nodes once (a map lookup each) and then reaches their `α` nodes
@@ -414,34 +423,11 @@ pub struct PixelLobes<'a> {
 impl<'a> PixelLobes<'a> {
     /// The geometry's stencil.
     pub fn new(tables: &'a LobeTables, geo: LobeGeometry) -> Self {
-        let (jt, lt) = stencil(geo.tilt[0] / D_TILT_T, ORDER_T);
-        let (ju, lu) = stencil(geo.tilt[1] / D_TILT_U, ORDER_U);
-        let (jm, lm) = stencil(geo.u / D_UM, 2);
-        // The nodes' tilts stay inside MAX_TILT: the stencil's farthest node is at most two
-        // steps out along each axis. (A bound on |t| + |u| instead sent pixels at 38°
-        // incidence, a ±15° mount's tilt split over both axes, to the direct integration.)
-        let reach = (geo.tilt[0].abs() + 2.0 * D_TILT_T).hypot(geo.tilt[1].abs() + 2.0 * D_TILT_U);
-        let mut nodes = Vec::new();
-        if reach <= MAX_TILT && geo.u.abs() <= MAX_UM {
-            for (it, wt) in lt.iter().enumerate().take(ORDER_T) {
-                for (iu, wu) in lu.iter().enumerate().take(ORDER_U) {
-                    for (im, wm) in lm.iter().enumerate().take(2) {
-                        let w = wt * wu * wm;
-                        if w != 0.0 {
-                            nodes
-                                .push((tables.geometry([jt + it as i32, ju + iu as i32, jm + im as i32]), w));
-                        }
-                    }
-                }
-            }
-        }
-        let near = (!nodes.is_empty()).then(|| {
-            tables.geometry([
-                (geo.tilt[0] / D_TILT_T).round() as i32,
-                (geo.tilt[1] / D_TILT_U).round() as i32,
-                (geo.u / D_UM).round() as i32,
-            ])
-        });
+        let stencil = geometry_stencil(geo);
+        let nodes: Vec<(Arc<GeoNodes>, f64)> = stencil
+            .as_ref()
+            .map_or(Vec::new(), |(keys, _)| keys.iter().map(|&(k, w)| (tables.geometry(k), w)).collect());
+        let near = stencil.map(|(_, near)| tables.geometry(near));
         PixelLobes {
             tables: std::marker::PhantomData,
             geo,
@@ -485,12 +471,9 @@ impl<'a> PixelLobes<'a> {
 
     /// The lobe at roughness `alpha`; `None` outside the tables' range.
     pub fn lobe(&mut self, alpha: f64) -> Option<TableLobe> {
-        let a = (alpha / ALPHA0).ln() / ALPHA_RATIO.ln();
-        // On a node (to rounding): that node alone (the other weights exactly zero).
-        let a = if (a - a.round()).abs() < 1e-9 { a.round() } else { a };
-        let (ja, la) = stencil(a, 4);
+        let (ja, la) = alpha_stencil(alpha)?;
         let near = self.near.clone()?;
-        if self.nodes.is_empty() || ja < 0 || ja + 3 >= N_ALPHA {
+        if self.nodes.is_empty() {
             return None;
         }
         let mut m = [0.0; NT];
@@ -502,37 +485,148 @@ impl<'a> PixelLobes<'a> {
                 g[i] += wa * ng[i];
             }
         }
-        // The cut-off masses (a small correction) from the nearest geometry node.
-        let cut = std::array::from_fn(|ia| {
-            let (k, ja) = (near.key, ja + ia as i32);
-            (near.node(ja).clone(), [k[0], k[1], k[2], ja], la[ia])
-        });
-        // Where the lobe has mass: outside [t_first, t_last] both M and M' are within
-        // REACH_EPS of the total of 0 and of the total, so a band there (or a cut at t' there)
-        // is within 2·REACH_EPS of the total of zero or of the whole lobe. One node of margin
-        // either way for the Hermite cubics between nodes.
-        let eps = REACH_EPS * m[NT - 1].abs();
-        let first = m.iter().zip(&g).position(|(m, g)| m.abs() > eps || g.abs() > eps).unwrap_or(0);
-        let last = m.iter().zip(&g).rposition(|(mi, g)| (m[NT - 1] - mi).abs() > eps || g.abs() > eps);
-        let node_t = |i: usize| -R + i as f64 * HT;
-        let reach = (node_t(first.saturating_sub(1)), node_t((last.unwrap_or(NT - 1) + 1).min(NT - 1)));
-        // Each cell's Hermite cubic in the power basis: three products a lookup.
-        let cells = std::array::from_fn(|i| {
-            let (m0, m1, g0, g1) = (m[i], m[i + 1], g[i], g[i + 1]);
-            [m0, g0, 3.0 * (m1 - m0) - 2.0 * g0 - g1, 2.0 * (m0 - m1) + g0 + g1]
-        });
-        let geo = self.geo;
-        Some(TableLobe {
-            theta: geo.theta,
-            u: geo.u,
-            scale: geo.u.cos() / alpha,
-            inv_alpha: 1.0 / alpha,
-            reach,
-            total: m[NT - 1],
-            cells,
-            cut,
-            columns: [Columns::default(), Columns::default()],
-        })
+        Some(finish(self.geo, alpha, (&m, &g), &near, (ja, la)))
+    }
+}
+
+/// The geometry nodes `(tilt, tilt, elevation)` around `geo` with their interpolation
+/// weights, and the nearest one (for the cut-off masses); `None` outside the tables.
+fn geometry_stencil(geo: LobeGeometry) -> Option<(Vec<(GeoKey, f64)>, GeoKey)> {
+    let (jt, lt) = stencil(geo.tilt[0] / D_TILT_T, ORDER_T);
+    let (ju, lu) = stencil(geo.tilt[1] / D_TILT_U, ORDER_U);
+    let (jm, lm) = stencil(geo.u / D_UM, 2);
+    // The nodes' tilts stay inside MAX_TILT: the stencil's farthest node is at most two
+    // steps out along each axis. (A bound on |t| + |u| instead sent pixels at 38°
+    // incidence, a ±15° mount's tilt split over both axes, to the direct integration.)
+    let reach = (geo.tilt[0].abs() + 2.0 * D_TILT_T).hypot(geo.tilt[1].abs() + 2.0 * D_TILT_U);
+    if reach > MAX_TILT || geo.u.abs() > MAX_UM {
+        return None;
+    }
+    let mut nodes = Vec::with_capacity(ORDER_T * ORDER_U * 2);
+    for (it, wt) in lt.iter().enumerate().take(ORDER_T) {
+        for (iu, wu) in lu.iter().enumerate().take(ORDER_U) {
+            for (im, wm) in lm.iter().enumerate().take(2) {
+                let w = wt * wu * wm;
+                if w != 0.0 {
+                    nodes.push(([jt + it as i32, ju + iu as i32, jm + im as i32], w));
+                }
+            }
+        }
+    }
+    let near = [
+        (geo.tilt[0] / D_TILT_T).round() as i32,
+        (geo.tilt[1] / D_TILT_U).round() as i32,
+        (geo.u / D_UM).round() as i32,
+    ];
+    (!nodes.is_empty()).then_some((nodes, near))
+}
+
+/// The first of the four `α` nodes around `alpha` and their weights (cubic in `log α`);
+/// `None` outside the tables' range.
+fn alpha_stencil(alpha: f64) -> Option<(i32, [f64; 4])> {
+    let a = (alpha / ALPHA0).ln() / ALPHA_RATIO.ln();
+    // On a node (to rounding): that node alone (the other weights exactly zero).
+    let a = if (a - a.round()).abs() < 1e-9 { a.round() } else { a };
+    let (ja, la) = stencil(a, 4);
+    (ja >= 0 && ja + 3 < N_ALPHA).then_some((ja, la))
+}
+
+/// The lookup-ready lobe of geometry `geo` at `alpha` from its combined `M` and `M'·HT`, the
+/// nearest geometry node and the `α` stencil (for the cut-off masses).
+fn finish(
+    geo: LobeGeometry,
+    alpha: f64,
+    (m, g): (&[f64; NT], &[f64; NT]),
+    near: &GeoNodes,
+    (ja, la): (i32, [f64; 4]),
+) -> TableLobe {
+    // The cut-off masses (a small correction) from the nearest geometry node.
+    let cut = std::array::from_fn(|ia| {
+        let (k, ja) = (near.key, ja + ia as i32);
+        (near.node(ja).clone(), [k[0], k[1], k[2], ja], la[ia])
+    });
+    // Where the lobe has mass: outside [t_first, t_last] both M and M' are within
+    // REACH_EPS of the total of 0 and of the total, so a band there (or a cut at t' there)
+    // is within 2·REACH_EPS of the total of zero or of the whole lobe. One node of margin
+    // either way for the Hermite cubics between nodes.
+    let eps = REACH_EPS * m[NT - 1].abs();
+    let first = m.iter().zip(g).position(|(m, g)| m.abs() > eps || g.abs() > eps).unwrap_or(0);
+    let last = m.iter().zip(g).rposition(|(mi, g)| (m[NT - 1] - mi).abs() > eps || g.abs() > eps);
+    let node_t = |i: usize| -R + i as f64 * HT;
+    let reach = (node_t(first.saturating_sub(1)), node_t((last.unwrap_or(NT - 1) + 1).min(NT - 1)));
+    // Each cell's Hermite cubic in the power basis: three products a lookup.
+    let cells = std::array::from_fn(|i| {
+        let (m0, m1, g0, g1) = (m[i], m[i + 1], g[i], g[i + 1]);
+        [m0, g0, 3.0 * (m1 - m0) - 2.0 * g0 - g1, 2.0 * (m0 - m1) + g0 + g1]
+    });
+    TableLobe {
+        theta: geo.theta,
+        u: geo.u,
+        scale: geo.u.cos() / alpha,
+        inv_alpha: 1.0 / alpha,
+        reach,
+        total: m[NT - 1],
+        cells,
+        cut,
+        columns: [Columns::default(), Columns::default()],
+    }
+}
+
+/// One roughness against many geometries: the normal search's lookups (`α` fixed by the
+/// straight pass, a new geometry at every step). Each geometry node's four `α` nodes are
+/// combined once and kept, so a new geometry combines its geometry nodes' kept tables: a
+/// quarter of what [`PixelLobes`] does for it, and no lock on the tables' map for the nodes
+/// already seen (the search's steps share most of their nodes).
+pub struct AlphaLobes<'a> {
+    tables: &'a LobeTables,
+    alpha: f64,
+    stencil: (i32, [f64; 4]),
+    /// Per geometry node: its nodes and `M`, `M'·HT` at `alpha`.
+    combined: KeyMap<(Arc<GeoNodes>, Box<Combined>)>,
+}
+
+impl<'a> AlphaLobes<'a> {
+    /// `None` where `alpha` is outside the tables' range.
+    pub fn new(tables: &'a LobeTables, alpha: f64) -> Option<Self> {
+        let stencil = alpha_stencil(alpha)?;
+        Some(AlphaLobes { tables, alpha, stencil, combined: KeyMap::default() })
+    }
+
+    /// The roughness.
+    pub fn alpha(&self) -> f64 {
+        self.alpha
+    }
+
+    /// The lobe of geometry `geo`; `None` outside the tables.
+    pub fn lobe(&mut self, geo: LobeGeometry) -> Option<TableLobe> {
+        let (nodes, near) = geometry_stencil(geo)?;
+        let (ja, la) = self.stencil;
+        let mut m = [0.0; NT];
+        let mut g = [0.0; NT];
+        for (key, w) in nodes {
+            let tables = self.tables;
+            let (_, c) = self.combined.entry(key).or_insert_with(|| {
+                let geo = tables.geometry(key);
+                let mut c = Box::new(([0.0; NT], [0.0; NT]));
+                for (ia, &wa) in la.iter().enumerate().filter(|(_, &wa)| wa != 0.0) {
+                    let node = geo.node(ja + ia as i32);
+                    for i in 0..NT {
+                        c.0[i] += wa * node.m[i];
+                        c.1[i] += wa * node.g[i] * HT;
+                    }
+                }
+                (geo, c)
+            });
+            for i in 0..NT {
+                m[i] += w * c.0[i];
+                g[i] += w * c.1[i];
+            }
+        }
+        let near = match self.combined.get(&near) {
+            Some((geo, _)) => geo.clone(),
+            None => self.tables.geometry(near),
+        };
+        Some(finish(geo, self.alpha, (&m, &g), &near, self.stencil))
     }
 }
 
@@ -675,6 +769,85 @@ impl TableLobe {
         }
         v.max(0.0)
     }
+
+    /// `M(t)` and `dM/dt`.
+    fn mass_slope(&self, t: f64) -> (f64, f64) {
+        if t <= -R {
+            return (0.0, 0.0);
+        }
+        if t >= R {
+            return (self.total, 0.0);
+        }
+        let x = ((t + R) / HT).min((NT - 1) as f64);
+        let i = (x as usize).min(NT - 2);
+        let f = x - i as f64;
+        let c = &self.cells[i];
+        (c[0] + f * (c[1] + f * (c[2] + f * c[3])), (c[1] + f * (2.0 * c[2] + f * 3.0 * c[3])) / HT)
+    }
+
+    /// [`TableLobe::cut`] and its derivatives in `t0`, `t1` and `s` (of the bilinear
+    /// interpolation; zero where it is clamped).
+    fn cut_slopes(&mut self, t0: f64, t1: f64, s: f64, upper: bool) -> [f64; 4] {
+        let y = (s + R) / HC;
+        let dy = if y > 0.0 && y < (NC - 1) as f64 { 1.0 / HC } else { 0.0 };
+        let y = y.clamp(0.0, (NC - 1) as f64);
+        let j = (y as usize).min(NC - 2);
+        let fy = y - j as f64;
+        self.column(upper, j);
+        self.column(upper, j + 1);
+        let cols = &self.columns[usize::from(upper)];
+        if cols.total[j].abs().max(cols.total[j + 1].abs()) < 1e-12 {
+            return [0.0; 4];
+        }
+        let (c0, c1) = (&cols.values[usize::from(cols.slot[j])], &cols.values[usize::from(cols.slot[j + 1])]);
+        // (value, d/dt, d/ds) at t.
+        let at = |t: f64| -> [f64; 3] {
+            let x = (t + R) / HC;
+            let dx = if x > 0.0 && x < (NC - 1) as f64 { 1.0 / HC } else { 0.0 };
+            let x = x.clamp(0.0, (NC - 1) as f64);
+            let i = (x as usize).min(NC - 2);
+            let fx = x - i as f64;
+            let (a0, a1) = ((1.0 - fy) * c0[i] + fy * c1[i], (1.0 - fy) * c0[i + 1] + fy * c1[i + 1]);
+            let (b0, b1) = (c1[i] - c0[i], c1[i + 1] - c0[i + 1]);
+            [(1.0 - fx) * a0 + fx * a1, (a1 - a0) * dx, ((1.0 - fx) * b0 + fx * b1) * dy]
+        };
+        let (p0, p1) = (at(t0), at(t1));
+        [p1[0] - p0[0], -p0[1], p1[1], p1[2] - p0[2]]
+    }
+
+    /// [`TableLobe::band`] and its derivatives in the lobe's position, `θ_m` and `u_m` (its
+    /// shape held: the normal search's Jacobian, where the position moves twice as fast as
+    /// the normal and the shape changes slowly with it).
+    pub fn band_slopes(&mut self, lo: f64, hi: f64, u0: f64, u1: f64) -> [f64; 3] {
+        let (t0, t1) = ((lo - self.theta) * self.scale, (hi - self.theta) * self.scale);
+        if t1 <= self.reach.0 || t0 >= self.reach.1 || hi <= lo {
+            return [0.0; 3];
+        }
+        let (s0, s1) = ((u0 - self.u) * self.inv_alpha, (u1 - self.u) * self.inv_alpha);
+        if s1 <= -R || s0 >= R || s1 <= s0 {
+            return [0.0; 3];
+        }
+        // d/dθ_m: every t moves by −scale; d/du_m: t by −t·tan u_m (the scale's cos u_m), s
+        // by −1/α.
+        let tan_u = self.u.tan();
+        let (m0, g0) = self.mass_slope(t0);
+        let (m1, g1) = self.mass_slope(t1);
+        let (mut v, mut dt0, mut dt1, mut ds) = (m1 - m0, -g0, g1, 0.0);
+        if s1 < R {
+            let c = self.cut_slopes(t0, t1, s1, true);
+            (v, dt0, dt1, ds) = (v - c[0], dt0 - c[1], dt1 - c[2], ds - c[3]);
+        }
+        if s0 > -R {
+            let c = self.cut_slopes(t0, t1, s0, false);
+            (v, dt0, dt1, ds) = (v - c[0], dt0 - c[1], dt1 - c[2], ds - c[3]);
+        }
+        if v <= 0.0 {
+            return [0.0; 3];
+        }
+        let d_theta = -self.scale * (dt0 + dt1);
+        let d_u = -tan_u * (t0 * dt0 + t1 * dt1) - self.inv_alpha * ds;
+        [v, d_theta, d_u]
+    }
 }
 
 #[cfg(test)]
@@ -780,6 +953,69 @@ pub(crate) mod tests {
         // Measured: 16.5–17 of the tables' 20 at α ≤ 0.04 (the half-vector turns by half as
         // much as the direction, so the lobe falls as exp(−t²/4)).
         assert!(widest < 2.0 * R, "{widest}");
+    }
+
+    #[test]
+    fn alpha_lobes_match_the_pixel_lobes() {
+        // The same tables combined in the other order (α first, kept per geometry node): the
+        // same lobes to rounding, over the rig's geometries and a step's worth of new ones.
+        let tables = LobeTables::new();
+        for alpha in [0.04, 0.0448, 0.13, 0.3] {
+            let mut fixed = AlphaLobes::new(&tables, alpha).unwrap();
+            for (p, n, v, yaw) in rig_cases().into_iter().step_by(5) {
+                let turn = |a: V3| crate::linear_light::turn(a, -yaw);
+                let _ = p;
+                let Some(geo) = lobe_geometry(turn(n), turn(v)) else { continue };
+                let (Some(mut want), Some(mut got)) = (tables.lobe(&geo, alpha), fixed.lobe(geo)) else {
+                    continue;
+                };
+                assert_eq!(want.reach, got.reach);
+                for k in 0..60 {
+                    let lo = geo.theta - 0.6 + 0.02 * k as f64;
+                    let (hi, u0, u1) = (lo + 0.03, geo.u - 0.3 - alpha * (k % 7) as f64, geo.u + 0.3);
+                    let (a, b) = (want.band(lo, hi, u0, u1), got.band(lo, hi, u0, u1));
+                    assert!((a - b).abs() <= 1e-12 * want.total.abs().max(1e-300), "α {alpha}: {a} vs {b}");
+                }
+            }
+        }
+        assert!(AlphaLobes::new(&tables, 0.005).is_none() && AlphaLobes::new(&tables, 0.9).is_none());
+    }
+
+    #[test]
+    fn band_slopes_are_the_derivatives_in_the_lobe_s_position() {
+        // The lobe's shape held and its position moved by ±h: central differences of the
+        // bands against the slopes, for narrow and broad lobes (the latter cut by the tube's
+        // ends: the u limits inside ±R of the mirror elevation).
+        let tables = LobeTables::new();
+        let geo = lobe_geometry(normalize([0.05, -0.03, 1.0]), normalize([-0.5, 0.02, 0.866])).unwrap();
+        for alpha in [0.04, 0.13, 0.3] {
+            let lobe = |dt: f64, du: f64| {
+                let mut l = tables.lobe(&geo, alpha).unwrap();
+                l.theta += dt;
+                l.u += du;
+                l.scale = l.u.cos() / alpha;
+                l
+            };
+            let (mut base, h) = (lobe(0.0, 0.0), 1e-6);
+            let (mut worst, mut largest) = (0f64, 0f64);
+            for k in 0..80 {
+                let lo = geo.theta - 8.03 * alpha + 0.2 * alpha * k as f64;
+                // The limits off the cut-off grid's nodes (where its bilinear interpolation kinks).
+                let (hi, u0, u1) = (lo + 0.15 * alpha, geo.u - 3.1 * alpha, geo.u + 2.2 * alpha);
+                let [v, d_theta, d_u] = base.band_slopes(lo, hi, u0, u1);
+                assert_eq!(v, base.band(lo, hi, u0, u1));
+                let diff = |a: &mut TableLobe, b: &mut TableLobe| {
+                    (a.band(lo, hi, u0, u1) - b.band(lo, hi, u0, u1)) / (2.0 * h)
+                };
+                let want_theta = diff(&mut lobe(h, 0.0), &mut lobe(-h, 0.0));
+                let want_u = diff(&mut lobe(0.0, h), &mut lobe(0.0, -h));
+                worst = worst.max((d_theta - want_theta).abs()).max((d_u - want_u).abs());
+                largest = largest.max(want_theta.abs()).max(want_u.abs());
+            }
+            // The interpolations are piecewise (a cell's edge between ±h): differences and
+            // slopes agree to 1e-4 of the largest slope.
+            assert!(largest > 0.0 && worst < 1e-4 * largest, "α {alpha}: {worst:e} of {largest:e}");
+        }
     }
 
     #[test]
