@@ -427,13 +427,14 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
     let _ = writeln!(
         report,
         "Fit: {} frames of the streamed passes read (decoded, brackets merged, written block-major; one \
-         thread) in {:.2} s, then fitted in {:.2} s on {} threads, {:.1}× the read. The per-thread \
-         comparison is in docs/benchmarks.md.\n",
+         thread) in {:.2} s, then fitted in {:.2} s on {} threads, {:.1}× the read ({}). The \
+         per-thread comparison is in docs/benchmarks.md.\n",
         t.frames,
         t.read_s,
         t.fit_s,
         t.threads,
-        t.fit_s / t.read_s.max(1e-9)
+        t.fit_s / t.read_s.max(1e-9),
+        maps.tables_note
     );
     let _ = writeln!(
         report,

@@ -338,6 +338,7 @@ fn main() -> ExitCode {
                     "{} frames read in {:.2} s (one thread), fitted in {:.2} s on {} threads",
                     t.frames, t.read_s, t.fit_s, t.threads
                 );
+                println!("{}", m.tables_note);
                 lightrig_host::lls_fit::write_outputs(&m, &out)
             }))
         }

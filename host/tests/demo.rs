@@ -46,10 +46,30 @@ fn lls_demo_meets_the_accuracy_targets() {
     let streamed = lightrig_host::lls_fit::fit_session_with(
         &out.join("session"),
         Some(&out.join("camera.toml")),
-        lightrig_host::lls_fit::Streaming { scratch: &out.join("streamed"), block_bytes: small },
+        lightrig_host::lls_fit::Streaming {
+            scratch: &out.join("streamed"),
+            block_bytes: small,
+            tables: Some(&out.join("tables.bin")),
+        },
         &|_, _| {},
     )
     .unwrap();
+    // It kept the lobe tables it built; a fit that reads them gives the same maps.
+    assert!(streamed.tables_note.contains("none kept") && streamed.tables_note.contains("now kept"));
+    let from_kept = lightrig_host::lls_fit::fit_session_with(
+        &out.join("session"),
+        Some(&out.join("camera.toml")),
+        lightrig_host::lls_fit::Streaming {
+            scratch: &out.join("streamed"),
+            block_bytes: lightrig_host::lls_fit::BLOCK_BYTES,
+            tables: Some(&out.join("tables.bin")),
+        },
+        &|_, _| {},
+    )
+    .unwrap();
+    assert!(from_kept.tables_note.contains("nodes read from"), "{}", from_kept.tables_note);
+    assert!(!from_kept.tables_note.contains("now kept"), "{}", from_kept.tables_note);
+    assert_same_maps(&from_kept, &again);
     assert!(again.resident_trace_bytes > 10 * small, "{} bytes in one block", again.resident_trace_bytes);
     assert!(streamed.resident_trace_bytes <= small, "{} bytes resident", streamed.resident_trace_bytes);
     assert_same_maps(&streamed, &again);

@@ -379,6 +379,15 @@ impl LobeTables {
             .map_or(0, |m| m.values().map(|g| g.alphas.iter().filter(|a| a.get().is_some()).count()).sum())
     }
 
+    /// Nodes whose cut-off tables have been built.
+    pub fn cuts(&self) -> usize {
+        self.geometries.read().map_or(0, |m| {
+            m.values()
+                .map(|g| g.alphas.iter().filter(|a| a.get().is_some_and(|n| n.cut.get().is_some())).count())
+                .sum()
+        })
+    }
+
     /// Whether no node has been built.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
@@ -401,6 +410,182 @@ impl LobeTables {
     /// [`PixelLobes`] keeps what several `α` of one pixel share.
     pub fn lobe(&self, geo: &LobeGeometry, alpha: f64) -> Option<TableLobe> {
         PixelLobes::new(self, *geo).lobe(alpha)
+    }
+}
+
+/// The table file's first bytes.
+const FILE_MAGIC: &[u8; 8] = b"LRLOBES1";
+
+/// What the tables' contents depend on: the grids, steps and ranges above, the rules they are
+/// integrated with, and a revision for changes of the integration itself (bump it when
+/// `build` or `build_cut` change). A file written with another fingerprint is not read.
+fn fingerprint() -> u64 {
+    const REVISION: u64 = 1;
+    let mut h = Fnv::default();
+    h.word(REVISION);
+    for x in [R, REACH_EPS, HT, HC, ALPHA0, ALPHA_RATIO, D_TILT_T, D_TILT_U, D_UM, MAX_TILT, MAX_UM] {
+        h.word(x.to_bits());
+    }
+    for x in S_EDGES {
+        h.word(x.to_bits());
+    }
+    for n in [NT, NC, SQ, ORDER_T, ORDER_U, N_ALPHA as usize] {
+        h.word(n as u64);
+    }
+    h.0
+}
+
+/// FNV-1a (64 bits), a byte at a time: the table file's checksum against truncation and
+/// damage (not against a chosen collision: the file is ours).
+struct Fnv(u64);
+
+impl Default for Fnv {
+    fn default() -> Self {
+        Fnv(0xcbf2_9ce4_8422_2325)
+    }
+}
+
+impl Fnv {
+    fn bytes(&mut self, b: &[u8]) {
+        for &x in b {
+            self.0 = (self.0 ^ u64::from(x)).wrapping_mul(0x0000_0100_0000_01b3);
+        }
+    }
+    fn word(&mut self, w: u64) {
+        self.bytes(&w.to_le_bytes());
+    }
+}
+
+/// Reads the table file's fields in order, little-endian.
+struct Reader<'a>(&'a [u8]);
+
+impl Reader<'_> {
+    fn take(&mut self, n: usize) -> Result<&[u8], String> {
+        if self.0.len() < n {
+            return Err("the file ends early".into());
+        }
+        let (a, b) = self.0.split_at(n);
+        self.0 = b;
+        Ok(a)
+    }
+    fn u32(&mut self) -> Result<u32, String> {
+        let b = self.take(4)?;
+        Ok(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+    }
+    fn u64(&mut self) -> Result<u64, String> {
+        let b = self.take(8)?;
+        Ok(u64::from_le_bytes(std::array::from_fn(|i| b[i])))
+    }
+    fn f64s<const K: usize>(&mut self) -> Result<[f64; K], String> {
+        let b = self.take(8 * K)?;
+        Ok(std::array::from_fn(|i| f64::from_le_bytes(std::array::from_fn(|j| b[8 * i + j]))))
+    }
+    fn f32s(&mut self, n: usize) -> Result<Vec<f32>, String> {
+        let b = self.take(4 * n)?;
+        Ok(b.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
+    }
+}
+
+impl LobeTables {
+    /// Writes every node built so far to `path` (through a temporary file beside it, renamed
+    /// over it: a reader never sees half a file). The nodes are the same in every process
+    /// (they depend on nothing but the constants of this module), so a later fit can start
+    /// from them ([`LobeTables::load`]) instead of building them again.
+    ///
+    /// Format, little-endian: `LRLOBES1`; the fingerprint of the constants (u64); the node
+    /// count (u32); per node its key (4 × i32: tilt steps along `θ` and `u`, elevation step,
+    /// `α` node), whether its cut-off tables follow (u32, 0 or 1), `M` and `M'` (2 × 81
+    /// f64), and if so the cut-off tables (2 × 41² f32, then 2 × 41 f64 totals); then the
+    /// FNV-1a checksum of all that (u64).
+    pub fn save(&self, path: &std::path::Path) -> std::io::Result<()> {
+        let mut out = Vec::new();
+        out.extend_from_slice(FILE_MAGIC);
+        out.extend_from_slice(&fingerprint().to_le_bytes());
+        let mut nodes = Vec::new();
+        if let Ok(map) = self.geometries.read() {
+            for geo in map.values() {
+                for (ja, node) in geo.alphas.iter().enumerate() {
+                    if let Some(node) = node.get() {
+                        nodes.push((geo.key, ja as i32, node.clone()));
+                    }
+                }
+            }
+        }
+        // A stable order: the same tables give the same file.
+        nodes.sort_by_key(|(key, ja, _)| (*key, *ja));
+        out.extend_from_slice(&(nodes.len() as u32).to_le_bytes());
+        for (key, ja, node) in &nodes {
+            for k in [key[0], key[1], key[2], *ja] {
+                out.extend_from_slice(&k.to_le_bytes());
+            }
+            let cut = node.cut.get();
+            out.extend_from_slice(&u32::from(cut.is_some()).to_le_bytes());
+            for x in node.m.iter().chain(&node.g) {
+                out.extend_from_slice(&x.to_le_bytes());
+            }
+            if let Some(c) = cut {
+                for x in c.low.iter().chain(&c.high) {
+                    out.extend_from_slice(&x.to_le_bytes());
+                }
+                for x in c.low_total.iter().chain(&c.high_total) {
+                    out.extend_from_slice(&x.to_le_bytes());
+                }
+            }
+        }
+        let mut h = Fnv::default();
+        h.bytes(&out);
+        out.extend_from_slice(&h.0.to_le_bytes());
+        let tmp = path.with_extension(format!("tmp{}", std::process::id()));
+        std::fs::write(&tmp, &out)?;
+        std::fs::rename(&tmp, path).inspect_err(|_| {
+            let _ = std::fs::remove_file(&tmp);
+        })
+    }
+
+    /// The tables [`LobeTables::save`] wrote to `path`. An error says why the file cannot be
+    /// used (missing, damaged, or written for other constants); the caller then starts from
+    /// empty tables, which give the same lookups, built as they are needed.
+    pub fn load(path: &std::path::Path) -> Result<LobeTables, String> {
+        let bytes = std::fs::read(path).map_err(|e| e.to_string())?;
+        if bytes.len() < FILE_MAGIC.len() + 8 + 4 + 8 || &bytes[..8] != FILE_MAGIC {
+            return Err("not a lightrig lobe-table file".into());
+        }
+        let (body, sum) = bytes.split_at(bytes.len() - 8);
+        let mut h = Fnv::default();
+        h.bytes(body);
+        if h.0.to_le_bytes() != sum {
+            return Err("the checksum does not match: the file is damaged".into());
+        }
+        let mut r = Reader(&body[8..]);
+        if r.u64()? != fingerprint() {
+            return Err("written for other table constants (another version of lightrig)".into());
+        }
+        let count = r.u32()?;
+        let tables = LobeTables::new();
+        for _ in 0..count {
+            let k = [r.u32()?, r.u32()?, r.u32()?, r.u32()?].map(|x| x as i32);
+            let has_cut = match r.u32()? {
+                0 => false,
+                1 => true,
+                x => return Err(format!("a node's cut-off flag is {x}")),
+            };
+            let (m, g) = (r.f64s::<NT>()?, r.f64s::<NT>()?);
+            let cut = OnceLock::new();
+            if has_cut {
+                let (low, high) = (r.f32s(NC * NC)?, r.f32s(NC * NC)?);
+                let (low_total, high_total) = (r.f64s::<NC>()?, r.f64s::<NC>()?);
+                let _ = cut.set(Cut { low, high, low_total, high_total });
+            }
+            if !(0..N_ALPHA).contains(&k[3]) {
+                return Err(format!("a node's α index is {}", k[3]));
+            }
+            let geo = tables.geometry([k[0], k[1], k[2]]);
+            let _ = geo.alphas[k[3] as usize].set(Arc::new(Node { m, g, cut }));
+        }
+        if !r.0.is_empty() {
+            return Err("bytes after the last node".into());
+        }
+        Ok(tables)
     }
 }
 
@@ -953,6 +1138,58 @@ pub(crate) mod tests {
         // Measured: 16.5–17 of the tables' 20 at α ≤ 0.04 (the half-vector turns by half as
         // much as the direction, so the lobe falls as exp(−t²/4)).
         assert!(widest < 2.0 * R, "{widest}");
+    }
+
+    #[test]
+    fn saved_tables_load_with_the_same_lookups_and_damage_is_refused() {
+        let tables = LobeTables::new();
+        let geo = lobe_geometry(normalize([0.05, -0.03, 1.0]), normalize([-0.5, 0.02, 0.866])).unwrap();
+        // Bands of a broad lobe cut by the tube's ends (the cut-off tables get built too).
+        let bands: Vec<[f64; 4]> = (0..40)
+            .map(|k| {
+                let lo = geo.theta - 2.0 + 0.1 * k as f64;
+                [lo, lo + 0.07, geo.u - 0.4, geo.u + 0.25]
+            })
+            .collect();
+        let looked = |t: &LobeTables, alpha: f64| -> Vec<f64> {
+            let mut lobe = t.lobe(&geo, alpha).unwrap();
+            bands.iter().map(|b| lobe.band(b[0], b[1], b[2], b[3])).collect()
+        };
+        let want: Vec<Vec<f64>> = [0.05, 0.3].iter().map(|&a| looked(&tables, a)).collect();
+        assert!(!tables.is_empty() && tables.cuts() > 0);
+        let dir = std::env::temp_dir().join(format!("lightrig-lobe-tables-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("tables.bin");
+        tables.save(&path).unwrap();
+        let loaded = LobeTables::load(&path).unwrap();
+        assert_eq!((loaded.len(), loaded.cuts()), (tables.len(), tables.cuts()));
+        // Bit for bit the same lookups, and nothing built for them.
+        let got: Vec<Vec<f64>> = [0.05, 0.3].iter().map(|&a| looked(&loaded, a)).collect();
+        assert_eq!(got, want);
+        assert_eq!((loaded.len(), loaded.cuts()), (tables.len(), tables.cuts()));
+        // The same tables write the same file.
+        let again = dir.join("again.bin");
+        loaded.save(&again).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!(std::fs::read(&again).unwrap(), bytes);
+        // Damaged, truncated, foreign or written for other constants: refused, saying why.
+        let refused = |b: &[u8]| {
+            std::fs::write(&again, b).unwrap();
+            LobeTables::load(&again).err().unwrap()
+        };
+        let mut flipped = bytes.clone();
+        flipped[bytes.len() / 2] ^= 1;
+        assert!(refused(&flipped).contains("checksum"));
+        assert!(refused(&bytes[..bytes.len() - 100]).contains("checksum"));
+        assert!(refused(b"not a table file at all, just text").contains("not a lightrig"));
+        let mut other = bytes[..bytes.len() - 8].to_vec();
+        other[8] ^= 1;
+        let mut h = Fnv::default();
+        h.bytes(&other);
+        other.extend_from_slice(&h.0.to_le_bytes());
+        assert!(refused(&other).contains("other table constants"));
+        assert!(LobeTables::load(&dir.join("missing.bin")).is_err());
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]
