@@ -913,19 +913,28 @@ impl TableLobe {
         cols.total[j] = total;
     }
 
-    /// The mass cut off at `t' ∈ [t0, t1]` below `s` (`upper` false) or above it.
-    fn cut(&mut self, t0: f64, t1: f64, s: f64, upper: bool) -> f64 {
+    /// The combined cut-off columns either side of `s` (`upper`: above it) and the fraction
+    /// of the way from the first to the second; `None` where both are empty (nothing to look
+    /// up).
+    fn column_pair(&mut self, s: f64, upper: bool) -> Option<(f64, &[f64; NC], &[f64; NC])> {
         let y = ((s + R) / HC).clamp(0.0, (NC - 1) as f64);
         let j = (y as usize).min(NC - 2);
-        let fy = y - j as f64;
         self.column(upper, j);
         self.column(upper, j + 1);
         let cols = &self.columns[usize::from(upper)];
-        // Nothing there: skip the lookups.
         if cols.total[j].abs().max(cols.total[j + 1].abs()) < 1e-12 {
-            return 0.0;
+            return None;
         }
-        let (c0, c1) = (&cols.values[usize::from(cols.slot[j])], &cols.values[usize::from(cols.slot[j + 1])]);
+        Some((
+            y - j as f64,
+            &cols.values[usize::from(cols.slot[j])],
+            &cols.values[usize::from(cols.slot[j + 1])],
+        ))
+    }
+
+    /// The mass cut off at `t' ∈ [t0, t1]` below `s` (`upper` false) or above it.
+    fn cut(&mut self, t0: f64, t1: f64, s: f64, upper: bool) -> f64 {
+        let Some((fy, c0, c1)) = self.column_pair(s, upper) else { return 0.0 };
         let at = |t: f64| -> f64 {
             let x = ((t + R) / HC).clamp(0.0, (NC - 1) as f64);
             let i = (x as usize).min(NC - 2);
@@ -975,16 +984,7 @@ impl TableLobe {
     fn cut_slopes(&mut self, t0: f64, t1: f64, s: f64, upper: bool) -> [f64; 4] {
         let y = (s + R) / HC;
         let dy = if y > 0.0 && y < (NC - 1) as f64 { 1.0 / HC } else { 0.0 };
-        let y = y.clamp(0.0, (NC - 1) as f64);
-        let j = (y as usize).min(NC - 2);
-        let fy = y - j as f64;
-        self.column(upper, j);
-        self.column(upper, j + 1);
-        let cols = &self.columns[usize::from(upper)];
-        if cols.total[j].abs().max(cols.total[j + 1].abs()) < 1e-12 {
-            return [0.0; 4];
-        }
-        let (c0, c1) = (&cols.values[usize::from(cols.slot[j])], &cols.values[usize::from(cols.slot[j + 1])]);
+        let Some((fy, c0, c1)) = self.column_pair(s, upper) else { return [0.0; 4] };
         // (value, d/dt, d/ds) at t.
         let at = |t: f64| -> [f64; 3] {
             let x = (t + R) / HC;
