@@ -363,7 +363,8 @@ pub struct Streaming<'a> {
     /// The specular lobe's tables kept between fits (`lls::LobeTables::save`): read before
     /// the fit where the file is usable, written after it where the fit built more. The
     /// tables are the same in every fit (they depend on no session), so this only saves
-    /// building them: about a sixth of the fit's CPU time on the demo's session.
+    /// building them: about a fifth of the command's CPU time on the demo's session
+    /// (docs/benchmarks.md).
     pub tables: Option<&'a Path>,
 }
 

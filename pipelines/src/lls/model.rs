@@ -419,14 +419,14 @@ fn interpolated<const K: usize>(
             o[k] = v;
         }
     };
-    // Samples at a + (j − 1)·stride inside the segment, one either side of a..b where there
-    // is room.
     if stride <= 1 || b <= a {
         for k in a..b {
             put(&mut out, k, look(k));
         }
         return;
     }
+    // Samples at a + (j − 1)·stride inside the segment, one either side of a..b where there
+    // is room.
     let first = usize::from(a >= stride);
     let last = (len - 1 - a) / stride + 1; // j of the last frame in the segment, +1
     let want = (b - 1 - a) / stride + 3;
@@ -968,21 +968,32 @@ impl TraceModel {
     fn looked_up(
         &self,
         s: &Segment,
-        mut lobe: TableLobe,
+        lobe: TableLobe,
         samples: &mut Vec<[f64; 1]>,
         o: &mut [f64],
     ) -> (usize, usize) {
+        self.looked_up_with(s, lobe, samples, [o], |l, b| [l.band(b.lo, b.hi, b.u0, b.u1)])
+    }
+
+    /// [`TraceModel::looked_up`] for any values `look` gives per band (the trace first), each
+    /// into its own slice of `out`.
+    fn looked_up_with<const K: usize>(
+        &self,
+        s: &Segment,
+        mut lobe: TableLobe,
+        samples: &mut Vec<[f64; K]>,
+        mut out: [&mut [f64]; K],
+        look: impl Fn(&mut TableLobe, &Band) -> [f64; K],
+    ) -> (usize, usize) {
         let (a, b) = self.frames_meeting(s, lobe.theta_window());
         let b = b.max(a);
-        o[..a].fill(0.0);
-        o[b..].fill(0.0);
+        for o in out.iter_mut() {
+            o[..a].fill(0.0);
+            o[b..].fill(0.0);
+        }
         let bands = &self.bands[s.start..s.end];
         let stride = sample_stride(s, &lobe, b > a);
-        let look = |k: usize| {
-            let band = &bands[k];
-            [lobe.band(band.lo, band.hi, band.u0, band.u1)]
-        };
-        interpolated(look, bands.len(), (a, b), stride, samples, [o]);
+        interpolated(|k| look(&mut lobe, &bands[k]), bands.len(), (a, b), stride, samples, out);
         (a, b)
     }
 
@@ -1005,8 +1016,7 @@ impl TraceModel {
             let range = s.start..s.end;
             let (o, dx, dy) = (&mut out[range.clone()], &mut dx_out[range.clone()], &mut dy_out[range]);
             let geo_of = |n: V3| lobe_geometry(turn(n, -s.yaw), s.v);
-            let lobe = geo_of(n).and_then(|g| lobes.lobe(g).map(|l| (g, l)));
-            let Some((geo, mut lobe)) = lobe else {
+            let Some(lobe) = geo_of(n).and_then(|g| lobes.lobe(g)) else {
                 o.fill(0.0);
                 self.specular_segment(s, n, lobes.alpha(), o);
                 const H: f64 = 1e-4;
@@ -1029,18 +1039,10 @@ impl TraceModel {
                 let wrap = |x: f64| (x + PI).rem_euclid(2.0 * PI) - PI;
                 *dp = [wrap(up.theta - down.theta) / (2.0 * H), (up.u - down.u) / (2.0 * H)];
             }
-            let _ = geo;
-            let (a, b) = self.frames_meeting(s, lobe.theta_window());
-            let b = b.max(a);
             let (mut d_theta, mut d_u) = (vec![0.0; o.len()], vec![0.0; o.len()]);
-            o.fill(0.0);
-            let bands = &self.bands[s.start..s.end];
-            let stride = sample_stride(s, &lobe, b > a);
-            let look = |k: usize| {
-                let band = &bands[k];
-                lobe.band_slopes(band.lo, band.hi, band.u0, band.u1)
-            };
-            interpolated(look, bands.len(), (a, b), stride, &mut samples, [o, &mut d_theta, &mut d_u]);
+            self.looked_up_with(s, lobe, &mut samples, [o, &mut d_theta, &mut d_u], |l, b| {
+                l.band_slopes(b.lo, b.hi, b.u0, b.u1)
+            });
             for (i, d) in [dx, dy].into_iter().enumerate() {
                 let [pt, pu] = dpos[i];
                 for ((d, t), u) in d.iter_mut().zip(&d_theta).zip(&d_u) {

@@ -1199,9 +1199,8 @@ pub(crate) mod tests {
         let tables = LobeTables::new();
         for alpha in [0.04, 0.0448, 0.13, 0.3] {
             let mut fixed = AlphaLobes::new(&tables, alpha).unwrap();
-            for (p, n, v, yaw) in rig_cases().into_iter().step_by(5) {
+            for (_, n, v, yaw) in rig_cases().into_iter().step_by(5) {
                 let turn = |a: V3| crate::linear_light::turn(a, -yaw);
-                let _ = p;
                 let Some(geo) = lobe_geometry(turn(n), turn(v)) else { continue };
                 let (Some(mut want), Some(mut got)) = (tables.lobe(&geo, alpha), fixed.lobe(geo)) else {
                     continue;
