@@ -460,25 +460,27 @@ fn interpolated<const K: usize>(
     for k in end..b {
         put(&mut out, k, look(k));
     }
-    for k in a..end {
-        let off = k - a;
-        let (j, f) = (off / stride + 1, off % stride);
-        if f == 0 {
-            put(&mut out, k, samples[j - j0]);
-            continue;
-        }
+    // Interval by interval (sample j at frame a + (j − 1)·stride and the stride − 1 frames
+    // after it): no division per frame (two integer divisions had cost more than the cubic).
+    let (mut k, mut j) = (a, 1);
+    while k < end {
+        put(&mut out, k, samples[j - j0]);
+        let stop = (k + stride).min(end);
         // The four samples around, shifted inwards at the ends.
         let base = (j - 1).max(j0).min(j1 - 3);
-        let w = if base + 1 == j {
-            inner[f]
-        } else {
-            cubic((off as f64 * inv + 1.0) - base as f64) // in sample units from `base`
-        };
         let v = &samples[base - j0..base - j0 + 4];
-        for (q, o) in out.iter_mut().enumerate() {
-            let x = w[0] * v[0][q] + w[1] * v[1][q] + w[2] * v[2][q] + w[3] * v[3][q];
-            o[k] = if q == 0 { x.max(0.0) } else { x };
+        for (f, kf) in (k + 1..stop).enumerate() {
+            let w = if base + 1 == j {
+                inner[f + 1]
+            } else {
+                cubic(((kf - a) as f64 * inv + 1.0) - base as f64) // in sample units from `base`
+            };
+            for (q, o) in out.iter_mut().enumerate() {
+                let x = w[0] * v[0][q] + w[1] * v[1][q] + w[2] * v[2][q] + w[3] * v[3][q];
+                o[kf] = if q == 0 { x.max(0.0) } else { x };
+            }
         }
+        (k, j) = (stop, j + 1);
     }
 }
 
@@ -746,31 +748,49 @@ impl TraceModel {
     }
 
     fn diffuse_with(&self, n: V3, clip: bool) -> Vec<f64> {
-        let floor = if clip { 0.0 } else { f64::MIN };
         let mut out = vec![0.0; self.bands.len()];
+        self.diffuse_into([n], [&mut out]);
+        if clip {
+            out.iter_mut().for_each(|o| *o = o.max(0.0));
+        }
+        out
+    }
+
+    /// `n·E_k` for each of the vectors `ns` into its slice of `out` (`len()` values each, not
+    /// clipped): several at once share the interpolation's weights and loop.
+    pub fn diffuse_into<const K: usize>(&self, ns: [V3; K], mut out: [&mut [f64]; K]) {
         for s in &self.segments {
-            let (frames, es, out) = (s.end - s.start, &self.es[s.e_start..], &mut out[s.start..s.end]);
+            let (frames, es) = (s.end - s.start, &self.es[s.e_start..]);
             if s.e_stride == 1 {
-                for (o, e) in out.iter_mut().zip(es) {
-                    *o = dot(n, *e).max(floor);
+                for (k, e) in es[..frames].iter().enumerate() {
+                    for (o, n) in out.iter_mut().zip(&ns) {
+                        o[s.start + k] = dot(*n, *e);
+                    }
                 }
                 continue;
             }
             // The computed frames' traces, then the same quintics as the bands'.
             let stride = s.e_stride;
-            let d: Vec<f64> = es[..(frames - 1) / stride + 6].iter().map(|e| dot(n, *e)).collect();
+            let d: Vec<[f64; K]> =
+                es[..(frames - 1) / stride + 6].iter().map(|e| ns.map(|n| dot(n, *e))).collect();
             let weights = quintic_weights(stride);
             // Interval j: frame j·stride (computed: its weights pick it exactly) and the next
             // stride − 1.
-            for (j, chunk) in out.chunks_mut(stride).enumerate() {
+            for j in 0..frames.div_ceil(stride) {
                 let d = &d[j..j + 6];
-                for (o, w) in chunk.iter_mut().zip(&weights) {
-                    let v = w[0] * d[0] + w[1] * d[1] + w[2] * d[2] + w[3] * d[3] + w[4] * d[4] + w[5] * d[5];
-                    *o = v.max(floor);
+                let k0 = j * stride;
+                for (f, w) in weights.iter().enumerate().take(stride.min(frames - k0)) {
+                    for (q, o) in out.iter_mut().enumerate() {
+                        o[s.start + k0 + f] = w[0] * d[0][q]
+                            + w[1] * d[1][q]
+                            + w[2] * d[2][q]
+                            + w[3] * d[3][q]
+                            + w[4] * d[4][q]
+                            + w[5] * d[5][q];
+                    }
                 }
             }
         }
-        out
     }
 
     /// `S_k(α)` for unit normal `n`: the specular lobe for `ρs = 1`.

@@ -749,6 +749,7 @@ fn finish(
         u: geo.u,
         scale: geo.u.cos() / alpha,
         inv_alpha: 1.0 / alpha,
+        tan_u: geo.u.tan(),
         reach,
         total: m[NT - 1],
         cells,
@@ -844,6 +845,8 @@ pub struct TableLobe {
     /// `t` per radian of `θ`, `s` per radian of `u`.
     scale: f64,
     inv_alpha: f64,
+    /// `tan u_m`: how the `t` scale changes with the lobe's elevation.
+    tan_u: f64,
     /// The `t` range where the lobe has mass (to [`REACH_EPS`]).
     reach: (f64, f64),
     /// `M` over all `t`.
@@ -884,12 +887,17 @@ impl TableLobe {
         (self.theta + self.reach.0 / self.scale, self.theta + self.reach.1 / self.scale)
     }
 
-    /// Combines column `j` of the cut-off tables (`upper`: above `s_j`).
+    /// Combines column `j` of the cut-off tables (`upper`: above `s_j`), where not yet done.
+    #[inline]
     fn column(&mut self, upper: bool, j: usize) {
-        let cols = &mut self.columns[usize::from(upper)];
-        if cols.slot[j] != Columns::NONE {
-            return;
+        if self.columns[usize::from(upper)].slot[j] == Columns::NONE {
+            self.combine_column(upper, j);
         }
+    }
+
+    #[inline(never)]
+    fn combine_column(&mut self, upper: bool, j: usize) {
+        let cols = &mut self.columns[usize::from(upper)];
         let mut col = [0.0; NC];
         let mut total = 0.0;
         for (node, key, w) in &self.cut {
@@ -906,6 +914,11 @@ impl TableLobe {
                 *v += w * f64::from(x);
             }
             total += w * totals[j];
+        }
+        // Room for the columns a broad lobe's trace uses at once (growing the vector one by
+        // one had cost a tenth of such a trace).
+        if cols.values.is_empty() {
+            cols.values.reserve(16);
         }
         // At most NC (41) columns: the slot fits a u8 below NONE.
         cols.slot[j] = cols.values.len() as u8;
@@ -1014,7 +1027,7 @@ impl TableLobe {
         }
         // d/dθ_m: every t moves by −scale; d/du_m: t by −t·tan u_m (the scale's cos u_m), s
         // by −1/α.
-        let tan_u = self.u.tan();
+        let tan_u = self.tan_u;
         let (m0, g0) = self.mass_slope(t0);
         let (m1, g1) = self.mass_slope(t1);
         let (mut v, mut dt0, mut dt1, mut ds) = (m1 - m0, -g0, g1, 0.0);
