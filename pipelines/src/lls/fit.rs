@@ -108,24 +108,8 @@ pub struct TraceFit {
     pub residual: f64,
 }
 
-/// Least squares of `o ≈ a·D + b·S` with `a, b ≥ 0`; returns `(a, b, squared residual)`.
-fn two_lobes(o: &[f64], d: &[f64], s: &[f64], valid: &[bool]) -> (f64, f64, f64) {
-    let (mut dd, mut ds, mut ss, mut od, mut os, mut oo) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-    for k in 0..o.len() {
-        if !valid[k] {
-            continue;
-        }
-        dd += d[k] * d[k];
-        ds += d[k] * s[k];
-        ss += s[k] * s[k];
-        od += o[k] * d[k];
-        os += o[k] * s[k];
-        oo += o[k] * o[k];
-    }
-    two_lobe_solve(dd, ds, ss, od, os, oo)
-}
-
-/// [`two_lobes`] from its sums `ΣD², ΣDS, ΣS², ΣoD, ΣoS, Σo²`.
+/// Least squares of `o ≈ a·D + b·S` with `a, b ≥ 0` from the sums `ΣD², ΣDS, ΣS², ΣoD,
+/// ΣoS, Σo²`; returns `(a, b, squared residual)`.
 fn two_lobe_solve(dd: f64, ds: f64, ss: f64, od: f64, os: f64, oo: f64) -> (f64, f64, f64) {
     let det = dd * ss - ds * ds;
     let (mut a, mut b) =
@@ -591,20 +575,23 @@ pub fn fit_normal(passes: &[PassTrace], n0: V3, alpha: f64, tables: Option<&Lobe
         std::array::from_fn(|c| passes.iter().flat_map(|pt| pt.obs[c].iter().copied()).collect());
     let valid: [Vec<bool>; 3] =
         std::array::from_fn(|c| passes.iter().flat_map(|pt| pt.valid[c].iter().copied()).collect());
-    // Per channel albedos and the residual.
-    let predict = |t: &Traces| -> ([(f64, f64); 3], f64) {
+    // The channels share their valid frames but where one clipped: then their sums share
+    // the traces' products.
+    let shared = valid[1] == valid[0] && valid[2] == valid[0];
+    // Per channel albedos and the residual, from the traces' sums (which the step reuses).
+    let predict = |t: &Traces| -> ([Sums; 3], [(f64, f64); 3], f64) {
+        let sums = Sums::of(&obs, &valid, t, shared);
         let mut ab = [(0.0, 0.0); 3];
         let mut total = 0.0;
-        for c in 0..3 {
-            let (a, b, r) = two_lobes(&obs[c], &t.d, &t.s, &valid[c]);
+        for (c, s) in sums.iter().enumerate() {
+            let (a, b, r) = two_lobe_solve(s.g[0][0], s.g[0][1], s.g[1][1], s.o[0], s.o[1], s.oo);
             ab[c] = (a, b);
             total += r;
         }
-        (ab, total)
+        (sums, ab, total)
     };
     let mut g = [-n0[0] / n0[2], -n0[1] / n0[2]];
-    let mut cur = model(g);
-    let (mut ab, mut cost) = predict(&cur);
+    let (mut cur, mut ab, mut cost) = predict(&model(g));
     if ab.iter().all(|&(a, b)| a == 0.0 && b == 0.0) {
         return None;
     }
@@ -613,7 +600,7 @@ pub fn fit_normal(passes: &[PassTrace], n0: V3, alpha: f64, tables: Option<&Lobe
     // the differenced one needed are allowed.
     for _ in 0..6 {
         // Singular normal equations: the traces say nothing about the slopes.
-        let mut step = gauss_newton_step(&obs, &valid, &cur, &ab)?;
+        let mut step = gauss_newton_step(&cur, &ab)?;
         let len = step[0].hypot(step[1]);
         // Converged: a step under 1e-3 in slope (0.06°, far below the normals' noise), whose
         // own error is of the order of its square. Taken without evaluating the traces there
@@ -629,10 +616,9 @@ pub fn fit_normal(passes: &[PassTrace], n0: V3, alpha: f64, tables: Option<&Lobe
         let mut accepted = false;
         for _ in 0..4 {
             let trial = [g[0] + step[0], g[1] + step[1]];
-            let t = model(trial);
-            let (tab, tcost) = predict(&t);
+            let (tsums, tab, tcost) = predict(&model(trial));
             if tcost <= cost {
-                (g, cur, ab, cost, accepted) = (trial, t, tab, tcost, true);
+                (g, cur, ab, cost, accepted) = (trial, tsums, tab, tcost, true);
                 break;
             }
             step = [step[0] / 2.0, step[1] / 2.0];
@@ -654,6 +640,61 @@ struct Traces {
     js: [Vec<f64>; 2],
 }
 
+/// One channel's sums over its valid frames for the albedos and the Gauss–Newton step: the
+/// products of the traces `[D, S, ∂D/∂gx, ∂D/∂gy, ∂S/∂gx, ∂S/∂gy]` with each other (`g`,
+/// upper triangle) and with the observations (`o`), and `Σo²`. One pass over the frames for
+/// both (they had been two per channel).
+#[derive(Debug, Clone, Copy, Default)]
+struct Sums {
+    g: [[f64; 6]; 6],
+    o: [f64; 6],
+    oo: f64,
+}
+
+impl Sums {
+    /// Per channel; `shared`: every channel has the same valid frames, so the traces'
+    /// products are summed once.
+    fn of(obs: &[Vec<f64>; 3], valid: &[Vec<bool>; 3], t: &Traces, shared: bool) -> [Sums; 3] {
+        let n = t.d.len();
+        // Sliced to one length: no bounds checks in the loops.
+        let v = [&t.d[..n], &t.s[..n], &t.jd[0][..n], &t.jd[1][..n], &t.js[0][..n], &t.js[1][..n]];
+        let at = |k: usize| [v[0][k], v[1][k], v[2][k], v[3][k], v[4][k], v[5][k]];
+        let mut out = [Sums::default(); 3];
+        // The traces' products over channel c's valid frames.
+        let gram = |c: usize| {
+            let (m, mut g) = (&valid[c][..n], [[0.0; 6]; 6]);
+            for k in (0..n).filter(|&k| m[k]) {
+                let x = at(k);
+                for i in 0..6 {
+                    for l in i..6 {
+                        g[i][l] += x[i] * x[l];
+                    }
+                }
+            }
+            g
+        };
+        for c in 0..3 {
+            out[c].g = if c > 0 && shared { out[0].g } else { gram(c) };
+            let (m, o) = (&valid[c][..n], &obs[c][..n]);
+            let (mut ox, mut oo) = ([0.0; 6], 0.0);
+            for k in (0..n).filter(|&k| m[k]) {
+                let (x, ok) = (at(k), o[k]);
+                for i in 0..6 {
+                    ox[i] += ok * x[i];
+                }
+                oo += ok * ok;
+            }
+            (out[c].o, out[c].oo) = (ox, oo);
+        }
+        out
+    }
+
+    /// `Σ x_i·x_l` (either order).
+    fn at(&self, i: usize, l: usize) -> f64 {
+        self.g[i.min(l)][i.max(l)]
+    }
+}
+
 /// The unit normal of slopes `g`: `(−gx, −gy, 1)` normalised.
 fn slope_normal(g: [f64; 2]) -> V3 {
     normalize([-g[0], -g[1], 1.0])
@@ -667,49 +708,32 @@ fn slope_normal_derivatives(g: [f64; 2]) -> [V3; 2] {
     std::array::from_fn(|i| std::array::from_fn(|q| if q == i { -1.0 / l } else { 0.0 } - v[q] * g[i] / l3))
 }
 
-/// The Gauss–Newton step in the slopes for the traces `t` and the albedos `ab` solved for
+/// The Gauss–Newton step in the slopes for the traces' sums and the albedos `ab` solved for
 /// them: per channel the Jacobian `J = a·∂D + b·∂S` projected off the lobes the albedos use
 /// (Kaufman's approximation of the variable projection's Jacobian), then the normal
-/// equations `JᵀJ δ = Jᵀr`. `None` where they are singular.
-fn gauss_newton_step(
-    obs: &[Vec<f64>; 3],
-    valid: &[Vec<bool>; 3],
-    t: &Traces,
-    ab: &[(f64, f64); 3],
-) -> Option<[f64; 2]> {
+/// equations `JᵀJ δ = Jᵀr`. `None` where they are singular. The sums over frames follow from
+/// [`Sums`] by expanding `J` and the residual `r = o − a·D − b·S`.
+fn gauss_newton_step(sums: &[Sums; 3], ab: &[(f64, f64); 3]) -> Option<[f64; 2]> {
     let (mut a11, mut a12, mut a22, mut b1, mut b2) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for c in 0..3 {
-        let (a, b) = ab[c];
+    for (sm, &(a, b)) in sums.iter().zip(ab) {
         if a == 0.0 && b == 0.0 {
             continue;
         }
-        // Σ over the valid frames: J·J (3), J·r (2), the lobes against J (2 × 2) and r, the
-        // lobes' Gram matrix.
-        let (mut jj, mut jr) = ([0.0; 3], [0.0; 2]);
-        let (mut dj, mut sj, mut dr, mut sr) = ([0.0; 2], [0.0; 2], 0.0, 0.0);
-        let (mut dd, mut ds, mut ss) = (0.0, 0.0, 0.0);
-        for k in 0..t.d.len() {
-            if !valid[c][k] {
-                continue;
-            }
-            let (d, s) = (t.d[k], t.s[k]);
-            let r = obs[c][k] - a * d - b * s;
-            let j = [a * t.jd[0][k] + b * t.js[0][k], a * t.jd[1][k] + b * t.js[1][k]];
-            jj[0] += j[0] * j[0];
-            jj[1] += j[0] * j[1];
-            jj[2] += j[1] * j[1];
-            jr[0] += j[0] * r;
-            jr[1] += j[1] * r;
-            for i in 0..2 {
-                dj[i] += d * j[i];
-                sj[i] += s * j[i];
-            }
-            dr += d * r;
-            sr += s * r;
-            dd += d * d;
-            ds += d * s;
-            ss += s * s;
-        }
+        // Indices into the sums: D, S, ∂D/∂g_i (2 + i), ∂S/∂g_i (4 + i).
+        let at = |i: usize, l: usize| sm.at(i, l);
+        let (dd, ds, ss) = (at(0, 0), at(0, 1), at(1, 1));
+        let jj = |i: usize, l: usize| {
+            a * a * at(2 + i, 2 + l)
+                + a * b * (at(2 + i, 4 + l) + at(4 + i, 2 + l))
+                + b * b * at(4 + i, 4 + l)
+        };
+        // Σ J_i·x for x = D, S and the observations.
+        let jx = |i: usize, x: usize| a * at(2 + i, x) + b * at(4 + i, x);
+        let jo = |i: usize| a * sm.o[2 + i] + b * sm.o[4 + i];
+        let jr = |i: usize| jo(i) - a * jx(i, 0) - b * jx(i, 1);
+        let (dj, sj) = ([jx(0, 0), jx(1, 0)], [jx(0, 1), jx(1, 1)]);
+        let (dr, sr) = (sm.o[0] - a * dd - b * ds, sm.o[1] - a * ds - b * ss);
+        let (jj, jr) = ([jj(0, 0), jj(0, 1), jj(1, 1)], [jr(0), jr(1)]);
         // The projection onto the lobes in use: P·x = B·G⁻¹·Bᵀx, so ⟨P·x, P·y⟩ = pxᵀG⁻¹py
         // with px = Bᵀx.
         let inner = |p: [f64; 2], q: [f64; 2]| -> f64 {
