@@ -769,24 +769,20 @@ impl TraceModel {
                 }
                 continue;
             }
-            // The computed frames' traces, then the same quintics as the bands'.
+            // The computed frames' traces, then the same quintics as the bands', trace by
+            // trace (contiguous, no bounds checks in the loop).
             let stride = s.e_stride;
-            let d: Vec<[f64; K]> =
-                es[..(frames - 1) / stride + 6].iter().map(|e| ns.map(|n| dot(n, *e))).collect();
             let weights = quintic_weights(stride);
-            // Interval j: frame j·stride (computed: its weights pick it exactly) and the next
-            // stride − 1.
-            for j in 0..frames.div_ceil(stride) {
-                let d = &d[j..j + 6];
-                let k0 = j * stride;
-                for (f, w) in weights.iter().enumerate().take(stride.min(frames - k0)) {
-                    for (q, o) in out.iter_mut().enumerate() {
-                        o[s.start + k0 + f] = w[0] * d[0][q]
-                            + w[1] * d[1][q]
-                            + w[2] * d[2][q]
-                            + w[3] * d[3][q]
-                            + w[4] * d[4][q]
-                            + w[5] * d[5][q];
+            let computed = &es[..(frames - 1) / stride + 6];
+            for (o, n) in out.iter_mut().zip(&ns) {
+                let d: Vec<f64> = computed.iter().map(|e| dot(*n, *e)).collect();
+                // Interval j: frame j·stride (computed: its weights pick it exactly) and the
+                // next stride − 1.
+                for (j, chunk) in o[s.start..s.end].chunks_mut(stride).enumerate() {
+                    let d = &d[j..j + 6];
+                    for (x, w) in chunk.iter_mut().zip(&weights) {
+                        *x =
+                            w[0] * d[0] + w[1] * d[1] + w[2] * d[2] + w[3] * d[3] + w[4] * d[4] + w[5] * d[5];
                     }
                 }
             }
