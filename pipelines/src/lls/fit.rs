@@ -179,8 +179,8 @@ const FIRST_STEP: f64 = 1.08;
 /// settles α (±0.5 % had left the minimum outside more often: 4.7 trials a pixel on the
 /// demo session against 4.45).
 const REFIT_SPREAD: f64 = 0.02;
-/// Where the parabola's minimum falls on the best trial and the other two lie within this of it
-/// (in `log α`), the search stops: the parabola is accurate there.
+/// A step below 1e-3 (in `log α`) off the best trial settles α where the parabola it came
+/// from was built on trials within this of the best: it was accurate there.
 const NARROW: f64 = 0.01;
 /// Where three trials lie within this of the best (in `log α`) and the parabola's minimum
 /// among them, α is the vertex (within 0.2 % of the minimum on the tests' noiseless traces;
@@ -943,10 +943,12 @@ mod tests {
             let direct = fit_trace(&obs, &valid, &model, n, None);
             let tabled = fit_trace_tabled(&obs, &valid, &model, n, None, &tables);
             // Direct: the model traces are within 1e-4 of the render's. Tabled: within 3e-4 of
-            // the direct ones up to α 0.22 and 1.5e-3 at 0.3 (`lls::table` tests); measured
-            // α within 5.1e-5 up to α 0.22 and 2.9e-4 at 0.3, ρs within 7.4e-5 and 4.5e-4
-            // (relative) of the truth (before the Brent bracket and its stops: 4.5e-5 and
-            // 2.0e-4, ρs 7.4e-5 and 3.3e-4; 7, 7 and 8 trials against 8, 12 and 8).
+            // the direct ones up to α 0.22 and 1.5e-3 at 0.3 (`lls::table` tests). Measured,
+            // direct and tabled alike since the search stops at the parabola's vertex of three
+            // trials within VERTEX_SPAN: α within 1.7e-3 at α 0.04 (the vertex), 5.1e-5 at
+            // 0.22 and 2.9e-4 at 0.3, ρs within 5.2e-4 (relative), ρd within 2.2e-5 (ending on
+            // a trial, α had been within 5.1e-5 up to α 0.22 in 7, 7 and 8 trials; now 4, 6
+            // and 7).
             for (f, ta, ts) in [(direct, 2.5e-3, 3e-3), (tabled, 2.5e-3, 1.5e-3)] {
                 assert!((f.alpha / alpha - 1.0).abs() < ta, "α {} vs {alpha}", f.alpha);
                 for c in 0..3 {
