@@ -29,7 +29,7 @@ fn fit(c: &mut Criterion) {
     let mut g = c.benchmark_group("lls_fit");
     g.throughput(Throughput::Elements(1));
     g.sample_size(20);
-    // Its parts: the pixel's bands, and one trial of (n, α) (the search makes about 20).
+    // Its parts: the pixel's bands, and one trial of (n, α) (a fit makes 4 to 7).
     g.bench_function(format!("model of {FRAMES} frames"), |b| b.iter(|| TraceModel::new(p, v, &tubes)));
     let model = TraceModel::new(p, v, &tubes);
     g.bench_function("diffuse trace", |b| b.iter(|| model.diffuse(n)));
