@@ -737,27 +737,16 @@ impl TraceModel {
 
     /// `D_k` for unit normal `n` (world frame): the diffuse lobe for `ρd = 1`.
     pub fn diffuse(&self, n: V3) -> Vec<f64> {
-        self.diffuse_with(n, true)
-    }
-
-    /// `n·E_k` for any vector `n`, not clipped at zero: linear in `n`, so that for a tangent
-    /// `dn` of the normal it is the derivative of [`TraceModel::diffuse`] where that is
-    /// positive.
-    pub fn diffuse_linear(&self, n: V3) -> Vec<f64> {
-        self.diffuse_with(n, false)
-    }
-
-    fn diffuse_with(&self, n: V3, clip: bool) -> Vec<f64> {
         let mut out = vec![0.0; self.bands.len()];
         self.diffuse_into([n], [&mut out]);
-        if clip {
-            out.iter_mut().for_each(|o| *o = o.max(0.0));
-        }
+        out.iter_mut().for_each(|o| *o = o.max(0.0));
         out
     }
 
     /// `n·E_k` for each of the vectors `ns` into its slice of `out` (`len()` values each, not
-    /// clipped): several at once share the interpolation's weights and loop.
+    /// clipped at zero: linear in `n`, so that for a tangent `dn` of the normal it is the
+    /// derivative of [`TraceModel::diffuse`] where that is positive). Several at once share
+    /// the interpolation's weights and loop.
     pub fn diffuse_into<const K: usize>(&self, ns: [V3; K], mut out: [&mut [f64]; K]) {
         for s in &self.segments {
             let (frames, es) = (s.end - s.start, &self.es[s.e_start..]);
