@@ -19,7 +19,7 @@ use lightrig_imaging::calib::Intrinsics;
 use lightrig_imaging::io::{
     read_with, write_exr_layers, write_png, BitDepth, Encoding, ExrPrecision, Image, Layer, ReadOptions,
 };
-use lightrig_pipelines::linear_light::{hides, response, Quadrature, Tube};
+use lightrig_pipelines::linear_light::{hidden_by, response, Quadrature, Tube};
 use lightrig_pipelines::lls::{
     blend_normals, fit_normal, fit_trace_tabled, normals_from_points, point_on_sheet, register, strip_ratio,
     strip_scale_of, stripe_peak, BoardGeometry, Light, LobeTables, PassTrace, Registration, Setup, Sheet,
@@ -588,12 +588,10 @@ pub fn fit_session_with(
         })
         .collect();
     let trace_in = |pass: &Block, tubes: &[Tube], i: usize, p: V3, v: V3, scale: [f64; 3]| {
-        let mut obs: [Vec<f64>; 3] = Default::default();
-        let mut valid: [Vec<bool>; 3] = Default::default();
-        for (k, t) in tubes.iter().enumerate() {
-            // Leave a millimetre's margin around the tube's silhouette.
-            let wide = Tube { radius: t.radius + 1.0, ..*t };
-            let hidden = hides(p, v, &wide);
+        let mut obs: [Vec<f64>; 3] = std::array::from_fn(|_| Vec::with_capacity(tubes.len()));
+        let mut valid: [Vec<bool>; 3] = std::array::from_fn(|_| Vec::with_capacity(tubes.len()));
+        // Leave a millimetre's margin around the tube's silhouette.
+        for (k, &hidden) in hidden_by(p, v, tubes, 1.0).iter().enumerate() {
             for c in 0..3 {
                 let r = f64::from(pass.rate(i, k, c));
                 valid[c].push(!hidden && r.is_finite());
@@ -790,8 +788,10 @@ pub fn fit_session_with(
     // A frame near the middle of the pass as captured and as the maps predict it.
     // The rule built once (its nodes are found by Newton's method), the pixels on the pool:
     // one thread, building the rule per pixel, this frame had taken an eighth of the fit.
+    // The preview's rule, not the render's: the frame is only shown (relit.png, 8 bits), and
+    // the render's rule took 8 % of the fit's time.
     let k = reflect_pos.len() / 2;
-    let rule = Quadrature::render();
+    let rule = Quadrature::preview();
     let predicted: Vec<f32> = (0..w * h)
         .into_par_iter()
         .map(|i| {
