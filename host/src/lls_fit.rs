@@ -736,7 +736,7 @@ pub fn fit_session_with(
                             let v = normalize(sub(reg.rays[i].0, p));
                             let (obs, valid) = trace_in(blk, &tubes, i, p, v, scale);
                             let model = TraceModel::new(p, v, &tubes);
-                            Some(fit_trace_tabled(&obs, &valid, &model, n, Some(fit[i].alpha), &tables))
+                            Some(fit_trace_tabled(&obs, &valid, &model, n, Some(&fit[i]), &tables))
                         }
                         _ => None,
                     };
