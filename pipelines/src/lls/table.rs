@@ -632,24 +632,7 @@ impl<'a> PixelLobes<'a> {
                 let node = geo.node(ja);
                 *r = (&node.m, &node.g, *w);
             }
-            let resolved = &resolved[..nodes.len()];
-            // A few grid points at a time over all the nodes: the sums stay in registers
-            // (node by node, every node's pass loaded and stored the whole sum).
-            const CHUNK: usize = 8;
-            for start in (0..NT).step_by(CHUNK) {
-                let end = (start + CHUNK).min(NT);
-                let (mut m, mut g) = ([0.0; CHUNK], [0.0; CHUNK]);
-                for &(nm, ng, w) in resolved {
-                    for (k, i) in (start..end).enumerate() {
-                        m[k] += w * nm[i];
-                        g[k] += w * ng[i];
-                    }
-                }
-                for (k, i) in (start..end).enumerate() {
-                    out.0[i] = m[k];
-                    out.1[i] = g[k] * HT;
-                }
-            }
+            weighted_sum(&resolved[..nodes.len()], HT, &mut out);
             out
         })
     }
@@ -661,16 +644,44 @@ impl<'a> PixelLobes<'a> {
         if self.nodes.is_empty() {
             return None;
         }
-        let mut m = [0.0; NT];
-        let mut g = [0.0; NT];
-        for (ia, wa) in la.iter().enumerate().filter(|(_, &wa)| wa != 0.0) {
-            let (nm, ng) = self.at_node(ja + ia as i32);
-            for i in 0..NT {
-                m[i] += wa * nm[i];
-                g[i] += wa * ng[i];
+        for (ia, &wa) in la.iter().enumerate() {
+            if wa != 0.0 {
+                self.at_node(ja + ia as i32);
             }
         }
-        Some(finish(self.geo, alpha, (&m, &g), &near, (ja, la)))
+        let mut terms = [(&[0.0; NT], &[0.0; NT], 0.0); 4];
+        let mut count = 0;
+        for (ia, &wa) in la.iter().enumerate().filter(|(_, &wa)| wa != 0.0) {
+            if let Some(c) = &self.combined[(ja + ia as i32) as usize] {
+                terms[count] = (&c.0, &c.1, wa);
+                count += 1;
+            }
+        }
+        let mut sum = ([0.0; NT], [0.0; NT]);
+        weighted_sum(&terms[..count], 1.0, &mut sum);
+        Some(finish(self.geo, alpha, (&sum.0, &sum.1), &near, (ja, la)))
+    }
+}
+
+/// `Σ w·m` and `Σ w·g·scale` over `terms` `(m, g, w)`, summed in their order, into `out`. A few
+/// grid points at a time over all the terms: the sums stay in registers (term by term, every
+/// term's pass loaded and stored the whole sum: the normal search's combination had spent
+/// most of its time so).
+fn weighted_sum(terms: &[(&[f64; NT], &[f64; NT], f64)], scale: f64, out: &mut Combined) {
+    const CHUNK: usize = 8;
+    for start in (0..NT).step_by(CHUNK) {
+        let end = (start + CHUNK).min(NT);
+        let (mut m, mut g) = ([0.0; CHUNK], [0.0; CHUNK]);
+        for &(nm, ng, w) in terms {
+            for (k, i) in (start..end).enumerate() {
+                m[k] += w * nm[i];
+                g[k] += w * ng[i];
+            }
+        }
+        for (k, i) in (start..end).enumerate() {
+            out.0[i] = m[k];
+            out.1[i] = g[k] * scale;
+        }
     }
 }
 
@@ -787,32 +798,37 @@ impl<'a> AlphaLobes<'a> {
     pub fn lobe(&mut self, geo: LobeGeometry) -> Option<TableLobe> {
         let (nodes, near) = geometry_stencil(geo)?;
         let (ja, la) = self.stencil;
-        let mut m = [0.0; NT];
-        let mut g = [0.0; NT];
-        for (key, w) in nodes {
+        for &(key, _) in &nodes {
             let tables = self.tables;
-            let (_, c) = self.combined.entry(key).or_insert_with(|| {
+            self.combined.entry(key).or_insert_with(|| {
                 let geo = tables.geometry(key);
                 let mut c = Box::new(([0.0; NT], [0.0; NT]));
+                let mut terms = [(&[0.0; NT], &[0.0; NT], 0.0); 4];
+                let mut count = 0;
                 for (ia, &wa) in la.iter().enumerate().filter(|(_, &wa)| wa != 0.0) {
                     let node = geo.node(ja + ia as i32);
-                    for i in 0..NT {
-                        c.0[i] += wa * node.m[i];
-                        c.1[i] += wa * node.g[i] * HT;
-                    }
+                    terms[count] = (&node.m, &node.g, wa);
+                    count += 1;
                 }
+                weighted_sum(&terms[..count], HT, &mut c);
                 (geo, c)
             });
-            for i in 0..NT {
-                m[i] += w * c.0[i];
-                g[i] += w * c.1[i];
+        }
+        let mut terms = [(&[0.0; NT], &[0.0; NT], 0.0); ORDER_T * ORDER_U * 2];
+        let mut count = 0;
+        for (key, w) in nodes {
+            if let Some((_, c)) = self.combined.get(&key) {
+                terms[count] = (&c.0, &c.1, w);
+                count += 1;
             }
         }
+        let mut sum = ([0.0; NT], [0.0; NT]);
+        weighted_sum(&terms[..count], 1.0, &mut sum);
         let near = match self.combined.get(&near) {
             Some((geo, _)) => geo.clone(),
             None => self.tables.geometry(near),
         };
-        Some(finish(geo, self.alpha, (&m, &g), &near, self.stencil))
+        Some(finish(geo, self.alpha, (&sum.0, &sum.1), &near, self.stencil))
     }
 }
 
