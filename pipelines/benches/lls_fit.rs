@@ -4,7 +4,8 @@
 //! - `lls_fit`: one pixel's trace fitted (its [`TraceModel`] built, then ρd, ρs, α), each
 //!   trial integrating the lobe for the pixel (`fit_trace`) or looking it up in the shared
 //!   tables (`fit_trace_tabled`; warm: the nodes this pixel needs already built, as for all
-//!   but the first pixels of an image; cold: built in the iteration, an upper bound).
+//!   but the first pixels of an image; cold: built in the iteration, an upper bound), and
+//!   refitted from that fit with α 1 % off (a session's refit with the blended normals).
 //! - `lls_read`: a stack of 400 16-bit RGB PNG frames (what the virtual camera writes) read
 //!   from disk into memory, per pixel of the frame: the rate at which traces arrive.
 //!
@@ -14,7 +15,7 @@
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use lightrig_imaging::io::{read_with, write_png, BitDepth, Encoding, Image, ReadOptions};
 use lightrig_pipelines::linear_light::{response, Quadrature, Tube};
-use lightrig_pipelines::lls::{fit_trace, fit_trace_tabled, LobeTables, TraceModel};
+use lightrig_pipelines::lls::{fit_trace, fit_trace_tabled, LobeTables, TraceFit, TraceModel};
 use lightrig_pipelines::vec3::normalize;
 
 const FRAMES: usize = 400;
@@ -56,6 +57,15 @@ fn fit(c: &mut Criterion) {
         let _ = fit_trace_tabled(&obs, &valid, &model, n, None, &tables);
         g.bench_function(format!("tabled trace of {FRAMES} frames, alpha {alpha}"), |b| {
             b.iter(|| fit_trace_tabled(&obs, &valid, &TraceModel::new(p, v, &tubes), n, None, &tables))
+        });
+        // The session's refit: the same trace from its first fit with α 1 % off (the
+        // blended normal moves α a little): two trials where the minimum is within 2.5 %.
+        let first = fit_trace_tabled(&obs, &valid, &model, n, None, &tables);
+        let prior = TraceFit { alpha: first.alpha * 1.01, ..first };
+        g.bench_function(format!("tabled refit of {FRAMES} frames, alpha {alpha}, 1 % off"), |b| {
+            b.iter(|| {
+                fit_trace_tabled(&obs, &valid, &TraceModel::new(p, v, &tubes), n, Some(&prior), &tables)
+            })
         });
         g.bench_function(format!("tabled trace of {FRAMES} frames, alpha {alpha}, cold tables"), |b| {
             b.iter(|| {
