@@ -789,7 +789,7 @@ pub fn fit_session_with(
     // The rule built once (its nodes are found by Newton's method), the pixels on the pool:
     // one thread, building the rule per pixel, this frame had taken an eighth of the fit.
     // The preview's rule, not the render's: the frame is only shown (relit.png, 8 bits), and
-    // the render's rule took 8 % of the fit's time.
+    // the render's rule took 8 % of the command's time.
     let k = reflect_pos.len() / 2;
     let rule = Quadrature::preview();
     let predicted: Vec<f32> = (0..w * h)

@@ -137,8 +137,9 @@ fn two_lobe_solve(dd: f64, ds: f64, ss: f64, od: f64, os: f64, oo: f64) -> (f64,
 /// (clipped, the tube in the way); `model` the pixel's view of the pass ([`TraceModel`]); `n`
 /// its normal. `prior`, when known (the refit with new normals, where `α` moves little),
 /// starts the roughness search at its `α`, with two trials 2 % either side whose parabola
-/// (with the prior's [`TraceFit::curvature`]) settles `α` where its vertex lies between them. Every trial integrates
-/// the lobe for this pixel ([`TraceModel::specular`]); [`fit_trace_tabled`] looks it up.
+/// (with the prior's [`TraceFit::curvature`]) settles `α` where its vertex lies between
+/// them. Every trial integrates the lobe for this pixel ([`TraceModel::specular`]);
+/// [`fit_trace_tabled`] looks it up.
 pub fn fit_trace(
     obs: &[Vec<f64>; 3],
     valid: &[Vec<bool>; 3],
@@ -309,23 +310,23 @@ fn fit_trace_by(
         (x, r, d, sp)
     };
     let (min_x, max_x) = (ALPHA_RANGE.0.ln(), ALPHA_RANGE.1.ln());
-    let count_oo: f64 = oo.iter().sum();
+    // Σo² over the channels: the residual's scale.
+    let energy: f64 = oo.iter().sum();
     let finish = |x: f64, r: f64, diffuse: [f64; 3], specular: [f64; 3], curvature: f64| {
-        let residual = if count_oo > 0.0 && count > 0 { (r / count_oo).sqrt() } else { 0.0 };
+        let residual = if energy > 0.0 && count > 0 { (r / energy).sqrt() } else { 0.0 };
         TraceFit { diffuse, specular, alpha: x.exp(), residual, curvature }
     };
     // Whether two residuals differ by rounding only (of the sums, on the scale of Σo²): the
     // same fit, as where ρs is zero or next to it at every α.
-    let energy: f64 = oo.iter().sum();
     let same = |a: f64, b: f64| (a - b).abs() <= 1e-12 * energy;
     // The first trials, and the steps out from the best of them (a factor in α, growing by
     // `grow` each step) where it has no trial on one side.
     let (mut pool, mut step, grow) = match prior {
         Some(prior) if prior.alpha > 0.0 => {
             // The refit: α moves little with the blended normal. Trials close either side of
-            // it (so that where the minimum lies between them the first parabola's vertex
-            // settles α), stepping out from there only where it does not. (A fixed bracket
-            // of a factor 1.5 either side took 7.8 trials a pixel.)
+            // it, which settle α where the minimum lies near them, the search stepping out
+            // from there only where it does not. (A fixed bracket of a factor 1.5 either side
+            // took 7.8 trials a pixel.)
             // Inside the range the tables cover: a trial beyond integrates the lobe directly,
             // twenty times dearer.
             let c = prior.alpha.ln().clamp(min_x + REFIT_SPREAD, max_x - REFIT_SPREAD);
