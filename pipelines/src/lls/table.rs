@@ -664,9 +664,8 @@ impl<'a> PixelLobes<'a> {
 }
 
 /// `Σ w·m` and `Σ w·g·scale` over `terms` `(m, g, w)`, summed in their order, into `out`. A few
-/// grid points at a time over all the terms: the sums stay in registers (term by term, every
-/// term's pass loaded and stored the whole sum: the normal search's combination had spent
-/// most of its time so).
+/// grid points at a time over all the terms, so the sums stay in registers. (Its time is
+/// mostly the first touch of each term's cache lines, not the sums: see docs/benchmarks.md.)
 fn weighted_sum(terms: &[(&[f64; NT], &[f64; NT], f64)], scale: f64, out: &mut Combined) {
     const CHUNK: usize = 8;
     for start in (0..NT).step_by(CHUNK) {
