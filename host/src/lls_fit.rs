@@ -19,11 +19,11 @@ use lightrig_imaging::calib::Intrinsics;
 use lightrig_imaging::io::{
     read_with, write_exr_layers, write_png, BitDepth, Encoding, ExrPrecision, Image, Layer, ReadOptions,
 };
-use lightrig_pipelines::linear_light::{hidden_by, response, Quadrature, Tube};
+use lightrig_pipelines::linear_light::{hidden_by, Tube};
 use lightrig_pipelines::lls::{
-    blend_normals, fit_normal, fit_trace_tabled, normals_from_points, point_on_sheet, register, strip_ratio,
+    blend_normals, fit_normal, fit_tabled_traces, normals_from_points, point_on_sheet, register, strip_ratio,
     strip_scale_of, stripe_peak, BoardGeometry, Light, LobeTables, PassTrace, Registration, Setup, Sheet,
-    Strip, TraceFit, TraceModel,
+    Strip, TabledTraces, TraceFit, TraceModel,
 };
 use lightrig_pipelines::vec3::{normalize, sub, V3};
 use lightrig_pipelines::ward::Ward;
@@ -368,6 +368,24 @@ pub struct Streaming<'a> {
     pub tables: Option<&'a Path>,
 }
 
+/// The lobe tables kept at `path` ([`Streaming::tables`]), or empty ones where there are none
+/// or they cannot be used; and a line for the user saying which.
+fn kept_tables(path: Option<&Path>) -> (LobeTables, String) {
+    match path {
+        Some(path) if !path.exists() => {
+            (LobeTables::new(), format!("lobe tables: none kept at {} yet; built", path.display()))
+        }
+        Some(path) => match LobeTables::load(path) {
+            Ok(t) => {
+                let note = format!("lobe tables: {} nodes read from {}", t.len(), path.display());
+                (t, note)
+            }
+            Err(e) => (LobeTables::new(), format!("lobe tables: {} not used ({e}); built", path.display())),
+        },
+        None => (LobeTables::new(), "lobe tables: built".to_string()),
+    }
+}
+
 /// Where `lightrig fit lls` and the demo keep the lobe tables: `$LIGHTRIG_CACHE_DIR`, else
 /// `$XDG_CACHE_HOME/lightrig`, else `$HOME/.cache/lightrig`; file `lobe-tables.bin`.
 pub fn default_tables_file() -> Option<PathBuf> {
@@ -512,6 +530,10 @@ pub fn fit_session_with(
         .map(|p| p.images.len())
         .sum();
     let t_fit = std::time::Instant::now();
+    // The kept lobe tables (25 MB for the demo's session, some 40 ms to read and check) are
+    // read while the registration and the surface points take the fit's first stages.
+    let tables_file = streaming.tables.map(Path::to_path_buf);
+    let loading_tables = std::thread::spawn(move || kept_tables(tables_file.as_deref()));
     let blocks = reflect.stack.blocks();
     let resident = std::cell::Cell::new(0usize);
     let read = |s: &mut StreamedPass, b: usize, out: &mut Block| {
@@ -602,14 +624,19 @@ pub fn fit_session_with(
     };
     // The light's scale from the diffuse strip (its inner part).
     let mut strip_ratios = Vec::new();
+    let on_strip = |i: usize| points[i].is_some_and(|p| setup.diffuse_strip.contains(p, 1.0));
     for b in 0..blocks {
+        // Only the blocks the strip crosses (it spans a few rows).
+        if !reflect.stack.block_range(b).any(on_strip) {
+            continue;
+        }
         read(&mut reflect, b, &mut block)?;
         let blk = &block;
         let got: Vec<[Option<f64>; 3]> = blk
             .pixels
             .clone()
             .into_par_iter()
-            .filter(|&i| points[i].is_some_and(|p| setup.diffuse_strip.contains(p, 1.0)))
+            .filter(|&i| on_strip(i))
             .map(|i| {
                 let p = points[i].unwrap_or([0.0; 3]);
                 let v = normalize(sub(reg.rays[i].0, p));
@@ -636,26 +663,24 @@ pub fn fit_session_with(
         (0..w * h).map(|i| points[i].is_some() && normals[i].is_some() && !in_strip(i)).collect();
     // The specular lobe's tables, shared by every pixel and pass of this session (built as
     // the pixels need them).
-    let (tables, mut tables_note) = match streaming.tables {
-        Some(path) if !path.exists() => {
-            (LobeTables::new(), format!("lobe tables: none kept at {} yet; built", path.display()))
-        }
-        Some(path) => match LobeTables::load(path) {
-            Ok(t) => {
-                let note = format!("lobe tables: {} nodes read from {}", t.len(), path.display());
-                (t, note)
-            }
-            Err(e) => (LobeTables::new(), format!("lobe tables: {} not used ({e}); built", path.display())),
-        },
-        None => (LobeTables::new(), "lobe tables: built".to_string()),
-    };
+    let (tables, mut tables_note) =
+        loading_tables.join().map_err(|_| fail("reading the kept lobe tables failed unexpectedly"))?;
     let kept = (tables.len(), tables.cuts());
     let want_fit = |i: usize| fitted[i] || points[i].is_some_and(|p| setup.specular_strip.contains(p, 1.0));
+    // The check frame: a frame near the middle of the pass as captured and as the maps
+    // predict it, from the last fit's model of each pixel (one lookup; the tube integrated
+    // with a preview rule had taken 5 % of the command's time).
+    let k_check = reflect_pos.len() / 2;
+    let predict = |traces: &mut TabledTraces, f: &TraceFit| -> [f32; 3] {
+        let (d, s) = traces.frame(k_check, f.alpha).unwrap_or((0.0, 0.0));
+        std::array::from_fn(|c| ((f.diffuse[c] * d + f.specular[c] * s) * scale[c]) as f32)
+    };
+    let mut predicted = vec![[0f32; 3]; w * h];
     let mut fit: Vec<TraceFit> = vec![TraceFit::default(); w * h];
     for b in 0..blocks {
         read(&mut reflect, b, &mut block)?;
         let blk = &block;
-        let got: Vec<TraceFit> = blk
+        let got: Vec<(TraceFit, [f32; 3])> = blk
             .pixels
             .clone()
             .into_par_iter()
@@ -664,15 +689,28 @@ pub fn fit_session_with(
                     (true, Some(p), Some(n)) => {
                         let v = normalize(sub(reg.rays[i].0, p));
                         let (obs, valid) = trace_in(blk, &tubes, i, p, v, scale);
-                        fit_trace_tabled(&obs, &valid, &TraceModel::new(p, v, &tubes), n, None, &tables)
+                        let model = TraceModel::new(p, v, &tubes);
+                        let mut traces = model.tabled(n, &tables);
+                        let f = fit_tabled_traces(&obs, &valid, &mut traces, None);
+                        // The final fit when there is no refit.
+                        let seen = if fitted[i] && diagonal.is_empty() {
+                            predict(&mut traces, &f)
+                        } else {
+                            [0.0; 3]
+                        };
+                        (f, seen)
                     }
-                    _ => TraceFit::default(),
+                    _ => (TraceFit::default(), [0.0; 3]),
                 };
                 tick();
                 out
             })
             .collect();
-        fit[blk.pixels.clone()].copy_from_slice(&got);
+        for ((f, seen), (fi, pi)) in
+            got.into_iter().zip(fit[blk.pixels.clone()].iter_mut().zip(&mut predicted[blk.pixels.clone()]))
+        {
+            (*fi, *pi) = (f, seen);
+        }
     }
     let geometric_normals = normals.clone();
     let mut photometric_normals = vec![None; w * h];
@@ -726,7 +764,7 @@ pub fn fit_session_with(
         for b in 0..blocks {
             read(&mut reflect, b, &mut block)?;
             let blk = &block;
-            let refit: Vec<Option<TraceFit>> = blk
+            let refit: Vec<Option<(TraceFit, [f32; 3])>> = blk
                 .pixels
                 .clone()
                 .into_par_iter()
@@ -736,7 +774,9 @@ pub fn fit_session_with(
                             let v = normalize(sub(reg.rays[i].0, p));
                             let (obs, valid) = trace_in(blk, &tubes, i, p, v, scale);
                             let model = TraceModel::new(p, v, &tubes);
-                            Some(fit_trace_tabled(&obs, &valid, &model, n, Some(&fit[i]), &tables))
+                            let mut traces = model.tabled(n, &tables);
+                            let f = fit_tabled_traces(&obs, &valid, &mut traces, Some(&fit[i]));
+                            Some((f, predict(&mut traces, &f)))
                         }
                         _ => None,
                     };
@@ -744,9 +784,12 @@ pub fn fit_session_with(
                     out
                 })
                 .collect();
-            for (f, r) in fit[blk.pixels.clone()].iter_mut().zip(refit) {
+            let range = blk.pixels.clone();
+            for (r, (f, seen)) in
+                refit.into_iter().zip(fit[range.clone()].iter_mut().zip(&mut predicted[range]))
+            {
                 if let Some(r) = r {
-                    *f = r;
+                    (*f, *seen) = r;
                 }
             }
         }
@@ -785,31 +828,7 @@ pub fn fit_session_with(
         })
         .collect();
 
-    // A frame near the middle of the pass as captured and as the maps predict it.
-    // The rule built once (its nodes are found by Newton's method), the pixels on the pool:
-    // one thread, building the rule per pixel, this frame had taken an eighth of the fit.
-    // The preview's rule, not the render's: the frame is only shown (relit.png, 8 bits), and
-    // the render's rule took 8 % of the command's time.
-    let k = reflect_pos.len() / 2;
-    let rule = Quadrature::preview();
-    let predicted: Vec<f32> = (0..w * h)
-        .into_par_iter()
-        .map(|i| {
-            let mut px = [0f32; 3];
-            if let (true, Some(p), Some(n)) = (fitted[i], points[i], normals[i]) {
-                let v = normalize(sub(reg.rays[i].0, p));
-                let f = &fit[i];
-                let r = response(p, n, v, &tubes[k], Some(f.alpha.max(1e-3)), &rule);
-                for c in 0..3 {
-                    px[c] = ((f.diffuse[c] * r.diffuse + f.specular[c] * r.specular) * scale[c]) as f32;
-                }
-            }
-            px
-        })
-        .collect::<Vec<[f32; 3]>>()
-        .into_iter()
-        .flatten()
-        .collect();
+    let predicted: Vec<f32> = predicted.into_iter().flatten().collect();
     let captured: Vec<f32> = reflect
         .kept
         .take()
@@ -817,7 +836,7 @@ pub fn fit_session_with(
         .iter()
         .map(|v| if v.is_finite() { *v } else { 0.0 })
         .collect();
-    let check_gantry = reflect.gantry[k];
+    let check_gantry = reflect.gantry[k_check];
     drop(reflect);
     drop(diagonal);
     Ok(LlsMaps {

@@ -3,7 +3,7 @@
 use crate::vec3::{add, normalize, scale, V3};
 
 use super::table::alpha_node;
-use super::{AlphaLobes, LobeTables, Sheet, TraceModel};
+use super::{AlphaLobes, LobeTables, Sheet, TabledTraces, TraceModel};
 
 /// The gantry position at which a trace peaks, between samples: a Gaussian through the largest
 /// sample and its two neighbours (exact for a Gaussian profile). `None` when the peak is below
@@ -164,8 +164,19 @@ pub fn fit_trace_tabled(
     prior: Option<&TraceFit>,
     tables: &LobeTables,
 ) -> TraceFit {
-    let mut traces = model.tabled(n, tables);
-    fit_trace_by(obs, valid, &model.diffuse(n), prior, |alpha, s| traces.specular_into(alpha, s))
+    fit_tabled_traces(obs, valid, &mut model.tabled(n, tables), prior)
+}
+
+/// [`fit_trace_tabled`] through the caller's `traces`, which then hold what the fit combined
+/// of the tables: a frame's prediction from the fit ([`TabledTraces::frame`]) costs one lookup.
+pub fn fit_tabled_traces(
+    obs: &[Vec<f64>; 3],
+    valid: &[Vec<bool>; 3],
+    traces: &mut TabledTraces,
+    prior: Option<&TraceFit>,
+) -> TraceFit {
+    let d = traces.model().diffuse(traces.normal());
+    fit_trace_by(obs, valid, &d, prior, |alpha, s| traces.specular_into(alpha, s))
 }
 
 /// The roughness of the two trials that calibrate the moment start, and the range searched.

@@ -778,6 +778,25 @@ impl TraceModel {
         }
     }
 
+    /// `(D_k, S_k(α))` of frame `k` alone for unit normal `n` ([`TabledTraces::frame`]).
+    pub fn frame_tabled(&self, k: usize, n: V3, alpha: f64, tables: &LobeTables) -> Option<(f64, f64)> {
+        self.tabled(n, tables).frame(k, alpha)
+    }
+
+    /// The segment holding frame `k` and `D_k` for unit normal `n` (not clipped at zero;
+    /// [`TraceModel::diffuse_into`]'s `k`-th value, bit for bit); `None` past the last frame.
+    fn diffuse_at(&self, k: usize, n: V3) -> Option<(usize, f64)> {
+        let at = self.segments.iter().position(|s| (s.start..s.end).contains(&k))?;
+        let s = &self.segments[at];
+        let (i, es) = (k - s.start, &self.es[s.e_start..]);
+        if s.e_stride == 1 {
+            return Some((at, dot(n, es[i])));
+        }
+        // As `diffuse_into`: interval `i / stride`, the computed frames from two before.
+        let (j, w) = (i / s.e_stride, quintic_weights(s.e_stride)[i % s.e_stride]);
+        Some((at, w.iter().zip(&es[j..j + 6]).map(|(w, e)| w * dot(n, *e)).sum()))
+    }
+
     /// `S_k(α)` for unit normal `n`: the specular lobe for `ρs = 1`.
     pub fn specular(&self, n: V3, alpha: f64) -> Vec<f64> {
         let mut out = vec![0.0; self.bands.len()];
@@ -924,6 +943,37 @@ pub struct TabledTraces<'a> {
 }
 
 impl TabledTraces<'_> {
+    /// The model the traces are of.
+    pub fn model(&self) -> &TraceModel {
+        self.model
+    }
+
+    /// The normal the traces are for.
+    pub fn normal(&self) -> V3 {
+        self.n
+    }
+
+    /// `(D_k, S_k(α))` of frame `k` alone: one frame's prediction from fitted maps (the fit's
+    /// check frame) without the whole traces, from what a fit through these traces has kept
+    /// (its trials' `α` nodes combined). `D_k` is [`TraceModel::diffuse`]'s `k`-th value;
+    /// `S_k` one lookup, which is [`TabledTraces::specular_into`]'s where that looks up every
+    /// frame (between its lookups it interpolates, within 1e-5 of the pass' peak), or the
+    /// segment integrated where the tables do not reach. `None` past the last frame.
+    pub fn frame(&mut self, k: usize, alpha: f64) -> Option<(f64, f64)> {
+        let m = self.model;
+        let (at, d) = m.diffuse_at(k, self.n)?;
+        let (s, b) = (&m.segments[at], &m.bands[k]);
+        let sp = match self.lobes[at].as_mut().and_then(|l| l.lobe(alpha)) {
+            Some(mut lobe) => lobe.band(b.lo, b.hi, b.u0, b.u1),
+            None => {
+                let mut o = vec![0.0; s.end - s.start];
+                m.specular_segment(s, self.n, alpha, &mut o);
+                o[k - s.start]
+            }
+        };
+        Some((d.max(0.0), sp.max(0.0)))
+    }
+
     /// `S_k(α)` into `out` (`len()` values); returns the range of frames outside which they
     /// are zero (the lobe's reach; a narrow lobe is looked up only in the frames it reaches).
     pub fn specular_into(&mut self, alpha: f64, out: &mut [f64]) -> std::ops::Range<usize> {
@@ -1123,6 +1173,38 @@ mod tests {
                 if ordered && alpha < 0.05 {
                     assert!(reach.len() < tubes.len() / 3, "α {alpha}: {reach:?}");
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn one_frame_is_the_traces_value_there() {
+        // Two passes (turned either way: two segments) over the rig's geometries: every
+        // frame's pair is the traces' (the specular one looked up at every frame), bit for
+        // bit; past the last frame, none.
+        let tables = LobeTables::new();
+        for (p, n, v, yaw) in crate::lls::table::tests::rig_cases().into_iter().step_by(3) {
+            let tubes: Vec<Tube> = [yaw + 0.26, yaw - 0.26]
+                .iter()
+                .flat_map(|&y| {
+                    (0..120).map(move |k| Tube::through([-100.0 + 1.5 * k as f64, 0.0, 50.0], y, 6.0, 300.0))
+                })
+                .collect();
+            let mut model = TraceModel::new(p, v, &tubes);
+            assert_eq!(model.segments.len(), 2);
+            assert!(model.segments.iter().all(|s| s.e_stride > 1), "the diffuse vectors interpolated");
+            model.segments.iter_mut().for_each(|s| s.steps = None);
+            let d = model.diffuse(n);
+            for alpha in [0.04, 0.13, 0.3] {
+                let s = model.specular_tabled(n, alpha, &tables);
+                for k in 0..tubes.len() {
+                    assert_eq!(
+                        model.frame_tabled(k, n, alpha, &tables),
+                        Some((d[k], s[k])),
+                        "frame {k}, α {alpha}"
+                    );
+                }
+                assert_eq!(model.frame_tabled(tubes.len(), n, alpha, &tables), None);
             }
         }
     }
