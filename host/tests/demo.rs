@@ -86,7 +86,8 @@ fn lls_demo_meets_the_accuracy_targets() {
     };
     let fitted = |j: &usize| again.fitted[j / 3];
     let level = median((0..captured.len()).filter(fitted).map(|j| captured[j]).collect());
-    let off = median((0..captured.len()).filter(fitted).map(|j| (captured[j] - predicted[j]).abs()).collect());
+    let off =
+        median((0..captured.len()).filter(fitted).map(|j| (captured[j] - predicted[j]).abs()).collect());
     // Measured 6.2 % (the frame's noise: one frame, where the fit saw the whole trace).
     assert!(level > 0.0 && off < 0.08 * level, "check frame: {off} off a median level of {level}");
     std::fs::remove_dir_all(&out).ok();
