@@ -680,34 +680,50 @@ pub fn fit_session_with(
     for b in 0..blocks {
         read(&mut reflect, b, &mut block)?;
         let blk = &block;
-        let got: Vec<(TraceFit, [f32; 3])> = blk
-            .pixels
-            .clone()
+        // Each row of the block in order: a pixel's search starts from its left neighbour's
+        // fit where that found a lobe (`fit_trace`'s `prior`: two or three trials where the
+        // material is the same, against six from the moments), the row's first pixel and
+        // one after a pixel without a lobe from the moments. A fit depends on its trace and
+        // its left neighbour's fit alone: the same maps whatever the blocks.
+        let px = blk.pixels.clone();
+        let rows: Vec<std::ops::Range<usize>> = (px.start / w..px.end.div_ceil(w))
+            .map(|r| (r * w).max(px.start)..((r + 1) * w).min(px.end))
+            .collect();
+        let got: Vec<Vec<(TraceFit, [f32; 3])>> = rows
             .into_par_iter()
-            .map(|i| {
-                let out = match (want_fit(i), points[i], normals[i]) {
-                    (true, Some(p), Some(n)) => {
-                        let v = normalize(sub(reg.rays[i].0, p));
-                        let (obs, valid) = trace_in(blk, &tubes, i, p, v, scale);
-                        let model = TraceModel::new(p, v, &tubes);
-                        let mut traces = model.tabled(n, &tables);
-                        let f = fit_tabled_traces(&obs, &valid, &mut traces, None);
-                        // The final fit when there is no refit.
-                        let seen = if fitted[i] && diagonal.is_empty() {
-                            predict(&mut traces, &f)
-                        } else {
-                            [0.0; 3]
-                        };
-                        (f, seen)
-                    }
-                    _ => (TraceFit::default(), [0.0; 3]),
-                };
-                tick();
-                out
+            .map(|row| {
+                // At the block's start the neighbour is the last block's (fitted already).
+                let mut left = (row.start % w != 0).then(|| fit[row.start - 1]);
+                row.map(|i| {
+                    let out = match (want_fit(i), points[i], normals[i]) {
+                        (true, Some(p), Some(n)) => {
+                            let v = normalize(sub(reg.rays[i].0, p));
+                            let (obs, valid) = trace_in(blk, &tubes, i, p, v, scale);
+                            let model = TraceModel::new(p, v, &tubes);
+                            let mut traces = model.tabled(n, &tables);
+                            let prior = left.filter(TraceFit::leads);
+                            let f = fit_tabled_traces(&obs, &valid, &mut traces, prior.as_ref());
+                            // The final fit when there is no refit.
+                            let seen = if fitted[i] && diagonal.is_empty() {
+                                predict(&mut traces, &f)
+                            } else {
+                                [0.0; 3]
+                            };
+                            (f, seen)
+                        }
+                        _ => (TraceFit::default(), [0.0; 3]),
+                    };
+                    left = Some(out.0);
+                    tick();
+                    out
+                })
+                .collect()
             })
             .collect();
-        for ((f, seen), (fi, pi)) in
-            got.into_iter().zip(fit[blk.pixels.clone()].iter_mut().zip(&mut predicted[blk.pixels.clone()]))
+        for ((f, seen), (fi, pi)) in got
+            .into_iter()
+            .flatten()
+            .zip(fit[blk.pixels.clone()].iter_mut().zip(&mut predicted[blk.pixels.clone()]))
         {
             (*fi, *pi) = (f, seen);
         }

@@ -112,6 +112,18 @@ pub struct TraceFit {
     pub curvature: f64,
 }
 
+impl TraceFit {
+    /// Whether this fit can start the search of a nearby trace (as [`fit_trace`]'s `prior`):
+    /// it found a specular lobe, its α inside the range searched and the residual's curvature
+    /// there.
+    pub fn leads(&self) -> bool {
+        self.curvature > 0.0
+            && self.specular.iter().any(|&s| s > 0.0)
+            && self.alpha > ALPHA_RANGE.0
+            && self.alpha < ALPHA_RANGE.1
+    }
+}
+
 /// Least squares of `o ≈ a·D + b·S` with `a, b ≥ 0` from the sums `ΣD², ΣDS, ΣS², ΣoD,
 /// ΣoS, Σo²`; returns `(a, b, squared residual)`.
 fn two_lobe_solve(dd: f64, ds: f64, ss: f64, od: f64, os: f64, oo: f64) -> (f64, f64, f64) {
@@ -135,7 +147,8 @@ fn two_lobe_solve(dd: f64, ds: f64, ss: f64, od: f64, os: f64, oo: f64) -> (f64,
 /// Fits one pixel's trace. `obs[c][k]`: channel `c` at frame `k`, in units of the tube's
 /// radiance (exposure and light scale divided out); `valid[c][k]` false for frames to ignore
 /// (clipped, the tube in the way); `model` the pixel's view of the pass ([`TraceModel`]); `n`
-/// its normal. `prior`, when known (the refit with new normals, where `α` moves little),
+/// its normal. `prior`, when known (the refit with new normals, where `α` moves little; or
+/// the left neighbour's fit where it [`TraceFit::leads`], the same material as a rule),
 /// starts the roughness search at its `α`, with two trials 2 % either side whose parabola
 /// (with the prior's [`TraceFit::curvature`]) settles `α` where its vertex lies between
 /// them. Every trial integrates the lobe for this pixel ([`TraceModel::specular`]);
@@ -1119,7 +1132,32 @@ mod tests {
             assert!(f.specular.iter().all(|&s| s < 1e-12), "ρs {:?}", f.specular);
             assert!(f.diffuse.iter().zip(rd).all(|(f, r)| (f - r).abs() < 1e-12), "ρd {:?}", f.diffuse);
             assert!(trials <= 3, "{alpha0:?}: {trials} trials");
+            // No lobe: it cannot start a neighbour's search.
+            assert!(!f.leads(), "{f:?}");
         }
+    }
+
+    #[test]
+    fn a_fit_with_a_lobe_leads_a_neighbour_s_search() {
+        // A fit that found a lobe starts the search of the next pixel's trace (the same
+        // material, 1 % rougher): two or three trials, against the moments' six; the default
+        // (no fit) and one at the range's end do not lead.
+        let (p, n, v) = ([1.0, 2.0, 0.3], normalize([0.02, -0.03, 1.0]), normalize([-0.5, 0.02, 0.866]));
+        let model = TraceModel::new(p, v, &straight_pass());
+        let d = model.diffuse(n);
+        let trace = |alpha: f64| -> [Vec<f64>; 3] {
+            let s = model.specular(n, alpha);
+            std::array::from_fn(|c| {
+                d.iter().zip(&s).map(|(d, s)| [0.3, 0.2, 0.1][c] * d + 0.05 * s).collect()
+            })
+        };
+        let (first, from_moments) = counted_fit(&trace(0.13), None);
+        assert!(first.leads(), "{first:?}");
+        let (next, trials) = counted_fit(&trace(0.13 * 1.01), Some(&first));
+        assert!(trials <= 3 && trials < from_moments, "{trials} trials (from the moments {from_moments})");
+        assert!((next.alpha / (0.13 * 1.01) - 1.0).abs() < 2.5e-3, "α {}", next.alpha);
+        assert!(!TraceFit::default().leads());
+        assert!(!TraceFit { alpha: ALPHA_RANGE.1, ..first }.leads());
     }
 
     #[test]
