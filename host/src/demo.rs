@@ -42,6 +42,8 @@ pub struct DemoOptions {
     /// Pace the virtual rig in real time (as long as the real rig would take) instead of as
     /// fast as the rendering allows.
     pub real_time: bool,
+    /// The gantry's step, mm; `None`: 1 mm (2 mm when `quick`).
+    pub step_mm: Option<f64>,
 }
 
 /// The fit against the truth: median errors over the sample's pixels.
@@ -342,6 +344,7 @@ pub fn roughness_by_material(scene: &LlsScene, m: &LlsMaps) -> Vec<(f64, usize, 
 pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
     let t0 = Instant::now();
     let (w, h, step) = if opts.quick { (80, 60, 2.0) } else { (128, 96, 1.0) };
+    let step = opts.step_mm.unwrap_or(step);
     let out = &opts.out;
     std::fs::create_dir_all(out).map_err(io(out))?;
     let spec = LlsSceneSpec::new(w, h);

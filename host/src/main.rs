@@ -42,6 +42,10 @@ enum Cmd {
         /// simulated time jumps ahead whenever the device waits).
         #[arg(long)]
         real_time: bool,
+        /// The LLS gantry's step, mm (default 1, 2 with --quick): 0.6 gives the 400-frame
+        /// passes of the fit's benchmark (docs/benchmarks.md).
+        #[arg(long)]
+        step_mm: Option<f64>,
     },
     /// Fit a session: `lightrig fit lls SESSION --out DIR [--calibration cam.toml]`, or
     /// `lightrig fit firs-surface|firs-volume SESSION --out DIR`.
@@ -277,7 +281,15 @@ fn main() -> ExitCode {
                 }
             }
         }
-        Cmd::Demo { method, quick, out, seed, check, real_time } => {
+        Cmd::Demo { method, quick, out, seed, check, real_time, step_mm } => {
+            if let Some(step) = step_mm.filter(|_| method == "firs" || method == "fluorescent-immersion") {
+                eprintln!("error: --step-mm {step}: the firs demo has no gantry; it is for `lightrig demo lls`");
+                return ExitCode::from(exit::USAGE);
+            }
+            if let Some(step) = step_mm.filter(|s| !(0.1..=5.0).contains(s)) {
+                eprintln!("error: --step-mm {step}: give a gantry step from 0.1 to 5 mm");
+                return ExitCode::from(exit::USAGE);
+            }
             if method == "firs" || method == "fluorescent-immersion" {
                 return firs_demo(quick, &out, seed, check, real_time);
             }
@@ -291,6 +303,7 @@ fn main() -> ExitCode {
                 seed,
                 progress: true,
                 real_time,
+                step_mm,
             };
             match lightrig_host::demo::run_lls(&opts) {
                 Ok((acc, _)) => {
