@@ -283,7 +283,9 @@ fn main() -> ExitCode {
         }
         Cmd::Demo { method, quick, out, seed, check, real_time, step_mm } => {
             if let Some(step) = step_mm.filter(|_| method == "firs" || method == "fluorescent-immersion") {
-                eprintln!("error: --step-mm {step}: the firs demo has no gantry; it is for `lightrig demo lls`");
+                eprintln!(
+                    "error: --step-mm {step}: the firs demo has no gantry; it is for `lightrig demo lls`"
+                );
                 return ExitCode::from(exit::USAGE);
             }
             if let Some(step) = step_mm.filter(|s| !(0.1..=5.0).contains(s)) {

@@ -10,8 +10,14 @@ use lightrig_host::virtual_rig::sensor::Sensor;
 #[test]
 fn lls_demo_meets_the_accuracy_targets() {
     let out = std::env::temp_dir().join(format!("lightrig-demo-test-{}", std::process::id()));
-    let opts =
-        DemoOptions { quick: true, out: out.clone(), seed: 7, progress: false, real_time: false, step_mm: None };
+    let opts = DemoOptions {
+        quick: true,
+        out: out.clone(),
+        seed: 7,
+        progress: false,
+        real_time: false,
+        step_mm: None,
+    };
     let (acc, report) = run_lls(&opts).unwrap();
     assert!(acc.pixels > 1500, "{} pixels compared", acc.pixels);
     for (name, value, limit, met) in acc.targets() {
