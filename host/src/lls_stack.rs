@@ -178,6 +178,11 @@ fn read_at(file: &File, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
         }
         Ok(())
     }
+    #[cfg(not(any(unix, windows)))]
+    {
+        let _ = (file, buf, offset);
+        Err(std::io::Error::new(std::io::ErrorKind::Unsupported, "positioned reads on this platform"))
+    }
 }
 
 impl Drop for TraceStack {
