@@ -30,7 +30,7 @@ use lightrig_pipelines::ward::Ward;
 use rayon::prelude::*;
 use serde::Deserialize;
 
-use crate::lls_stack::{block_pixels, Block, TraceStack};
+use crate::lls_stack::{block_pixels, Block, Gathered, TraceStack};
 use crate::rigfile::RigFile;
 use crate::session::{trigger_events, Session};
 
@@ -368,6 +368,15 @@ pub struct Streaming<'a> {
     pub tables: Option<&'a Path>,
 }
 
+/// Pixels a trace gather takes at once ([`Block::gather`]): enough that the block's cache
+/// lines (five pixels each) are read once.
+const GATHER: usize = 16;
+
+/// The pixels `px` in runs of [`GATHER`], the fit's batches of traces.
+fn gathers_of(px: std::ops::Range<usize>) -> Vec<std::ops::Range<usize>> {
+    px.clone().step_by(GATHER).map(|s| s..(s + GATHER).min(px.end)).collect()
+}
+
 /// The lobe tables kept at `path` ([`Streaming::tables`]), or empty ones where there are none
 /// or they cannot be used; and a line for the user saying which.
 fn kept_tables(path: Option<&Path>) -> (LobeTables, String) {
@@ -609,13 +618,16 @@ pub fn fit_session_with(
             pass.gantry.iter().map(|&g| setup.light.mounted(g, (*m as f64).to_radians())).collect()
         })
         .collect();
-    let trace_in = |pass: &Block, tubes: &[Tube], i: usize, p: V3, v: V3, scale: [f64; 3]| {
+    // Pixel `i`'s observations from `pass` (the pixels gathered out of a block, a few at a
+    // time: `Block::gather`).
+    let trace_in = |pass: &Gathered, tubes: &[Tube], i: usize, p: V3, v: V3, scale: [f64; 3]| {
         let mut obs: [Vec<f64>; 3] = std::array::from_fn(|_| Vec::with_capacity(tubes.len()));
         let mut valid: [Vec<bool>; 3] = std::array::from_fn(|_| Vec::with_capacity(tubes.len()));
         // Leave a millimetre's margin around the tube's silhouette.
-        for (k, &hidden) in hidden_by(p, v, tubes, 1.0).iter().enumerate() {
+        let hidden = hidden_by(p, v, tubes, 1.0);
+        for (rgb, &hidden) in pass.trace(i).chunks_exact(3).zip(&hidden) {
             for c in 0..3 {
-                let r = f64::from(pass.rate(i, k, c));
+                let r = f64::from(rgb[c]);
                 valid[c].push(!hidden && r.is_finite());
                 obs[c].push(if r.is_finite() { r / scale[c] } else { 0.0 });
             }
@@ -640,7 +652,7 @@ pub fn fit_session_with(
             .map(|i| {
                 let p = points[i].unwrap_or([0.0; 3]);
                 let v = normalize(sub(reg.rays[i].0, p));
-                let (obs, valid) = trace_in(blk, &tubes, i, p, v, [1.0; 3]);
+                let (obs, valid) = trace_in(&blk.gather(i..i + 1), &tubes, i, p, v, [1.0; 3]);
                 let d = TraceModel::new(p, v, &tubes).diffuse([0.0, 0.0, 1.0]);
                 strip_ratio(&(obs, valid, d), setup.diffuse_strip.albedo)
             })
@@ -694,11 +706,16 @@ pub fn fit_session_with(
             .map(|row| {
                 // At the block's start the neighbour is the last block's (fitted already).
                 let mut left = (row.start % w != 0).then(|| fit[row.start - 1]);
+                let mut gathered = blk.gather(row.start..row.start);
+                let end = row.end;
                 row.map(|i| {
+                    if !gathered.holds(i) {
+                        gathered = blk.gather(i..(i + GATHER).min(end));
+                    }
                     let out = match (want_fit(i), points[i], normals[i]) {
                         (true, Some(p), Some(n)) => {
                             let v = normalize(sub(reg.rays[i].0, p));
-                            let (obs, valid) = trace_in(blk, &tubes, i, p, v, scale);
+                            let (obs, valid) = trace_in(&gathered, &tubes, i, p, v, scale);
                             let model = TraceModel::new(p, v, &tubes);
                             let mut traces = model.tabled(n, &tables);
                             let prior = left.filter(TraceFit::leads);
@@ -740,30 +757,36 @@ pub fn fit_session_with(
             let held = block.resident_bytes() + diag_blocks.iter().map(Block::resident_bytes).sum::<usize>();
             resident.set(resident.get().max(held));
             let range = diag_blocks[0].pixels.clone();
-            let got: Vec<Option<V3>> = range
-                .clone()
+            let got: Vec<Option<V3>> = gathers_of(range.clone())
                 .into_par_iter()
-                .map(|i| {
-                    let out = match (fitted[i], points[i], normals[i]) {
-                        (true, Some(p), Some(n)) => {
-                            let v = normalize(sub(reg.rays[i].0, p));
-                            let traces: Vec<_> = diag_blocks
-                                .iter()
-                                .zip(&diagonal_tubes)
-                                .map(|(blk, t)| trace_in(blk, t, i, p, v, scale))
-                                .collect();
-                            let models: Vec<TraceModel> =
-                                diagonal_tubes.iter().map(|t| TraceModel::new(p, v, t)).collect();
-                            let passes: Vec<PassTrace> = traces
-                                .iter()
-                                .zip(&models)
-                                .map(|((obs, valid), model)| PassTrace { obs, valid, model })
-                                .collect();
-                            fit_normal(&passes, n, fit[i].alpha, Some(&tables))
-                        }
-                        _ => None,
-                    };
-                    tick();
+                .flat_map_iter(|batch| {
+                    let gathered: Vec<Gathered> =
+                        diag_blocks.iter().map(|b| b.gather(batch.clone())).collect();
+                    let out: Vec<Option<V3>> = batch
+                        .map(|i| {
+                            let out = match (fitted[i], points[i], normals[i]) {
+                                (true, Some(p), Some(n)) => {
+                                    let v = normalize(sub(reg.rays[i].0, p));
+                                    let traces: Vec<_> = gathered
+                                        .iter()
+                                        .zip(&diagonal_tubes)
+                                        .map(|(g, t)| trace_in(g, t, i, p, v, scale))
+                                        .collect();
+                                    let models: Vec<TraceModel> =
+                                        diagonal_tubes.iter().map(|t| TraceModel::new(p, v, t)).collect();
+                                    let passes: Vec<PassTrace> = traces
+                                        .iter()
+                                        .zip(&models)
+                                        .map(|((obs, valid), model)| PassTrace { obs, valid, model })
+                                        .collect();
+                                    fit_normal(&passes, n, fit[i].alpha, Some(&tables))
+                                }
+                                _ => None,
+                            };
+                            tick();
+                            out
+                        })
+                        .collect();
                     out
                 })
                 .collect();
@@ -780,23 +803,27 @@ pub fn fit_session_with(
         for b in 0..blocks {
             read(&mut reflect, b, &mut block)?;
             let blk = &block;
-            let refit: Vec<Option<(TraceFit, [f32; 3])>> = blk
-                .pixels
-                .clone()
+            let refit: Vec<Option<(TraceFit, [f32; 3])>> = gathers_of(blk.pixels.clone())
                 .into_par_iter()
-                .map(|i| {
-                    let out = match (fitted[i], points[i], normals[i]) {
-                        (true, Some(p), Some(n)) => {
-                            let v = normalize(sub(reg.rays[i].0, p));
-                            let (obs, valid) = trace_in(blk, &tubes, i, p, v, scale);
-                            let model = TraceModel::new(p, v, &tubes);
-                            let mut traces = model.tabled(n, &tables);
-                            let f = fit_tabled_traces(&obs, &valid, &mut traces, Some(&fit[i]));
-                            Some((f, predict(&mut traces, &f)))
-                        }
-                        _ => None,
-                    };
-                    tick();
+                .flat_map_iter(|batch| {
+                    let gathered = blk.gather(batch.clone());
+                    let out: Vec<_> = batch
+                        .map(|i| {
+                            let out = match (fitted[i], points[i], normals[i]) {
+                                (true, Some(p), Some(n)) => {
+                                    let v = normalize(sub(reg.rays[i].0, p));
+                                    let (obs, valid) = trace_in(&gathered, &tubes, i, p, v, scale);
+                                    let model = TraceModel::new(p, v, &tubes);
+                                    let mut traces = model.tabled(n, &tables);
+                                    let f = fit_tabled_traces(&obs, &valid, &mut traces, Some(&fit[i]));
+                                    Some((f, predict(&mut traces, &f)))
+                                }
+                                _ => None,
+                            };
+                            tick();
+                            out
+                        })
+                        .collect();
                     out
                 })
                 .collect();

@@ -61,6 +61,47 @@ impl Block {
     pub fn resident_bytes(&self) -> usize {
         self.data.capacity() * VALUE
     }
+
+    /// The traces of the consecutive pixels `px` (inside [`Block::pixels`]) copied out
+    /// pixel-major: in the block a pixel's trace takes a cache line a position, and the fit
+    /// of one pixel evicts what its neighbours would have shared; a few pixels (a cache line's
+    /// worth, or more) copied at once read each line once.
+    pub fn gather(&self, px: Range<usize>) -> Gathered {
+        let (n, positions) = (self.pixels.len(), self.positions);
+        let off = px.start - self.pixels.start;
+        let mut data = vec![0.0; px.len() * positions * 3];
+        for k in 0..positions {
+            let at = (k * n + off) * 3;
+            for (j, rgb) in self.data[at..at + px.len() * 3].chunks_exact(3).enumerate() {
+                let to = (j * positions + k) * 3;
+                data[to..to + 3].copy_from_slice(rgb);
+            }
+        }
+        Gathered { pixels: px, positions, data }
+    }
+}
+
+/// Some consecutive pixels' traces out of a [`Block`] ([`Block::gather`]).
+#[derive(Debug)]
+pub struct Gathered {
+    pixels: Range<usize>,
+    positions: usize,
+    data: Vec<f32>,
+}
+
+impl Gathered {
+    /// Whether pixel `i` is one of the gathered.
+    pub fn holds(&self, i: usize) -> bool {
+        self.pixels.contains(&i)
+    }
+
+    /// Pixel `i`'s trace (one of the gathered pixels): RGB at every position, position after
+    /// position.
+    pub fn trace(&self, i: usize) -> &[f32] {
+        let n = self.positions * 3;
+        let at = (i - self.pixels.start) * n;
+        &self.data[at..at + n]
+    }
 }
 
 impl TraceStack {
@@ -221,6 +262,18 @@ mod tests {
                         }
                     }
                     seen += 1;
+                }
+                // Gathered a few at a time, from any pixel of the block: the same traces.
+                let px = block.pixels.clone();
+                for start in px.clone() {
+                    let run = start..(start + 3).min(px.end);
+                    let g = block.gather(run.clone());
+                    assert!(!g.holds(run.end) && (start == 0 || !g.holds(start - 1)));
+                    for i in run {
+                        assert!(g.holds(i));
+                        let want: Vec<f32> = (0..positions * 3).map(|j| value(i, j / 3, j % 3)).collect();
+                        assert_eq!(g.trace(i), &want[..]);
+                    }
                 }
             }
             assert_eq!(seen, pixels);
