@@ -95,13 +95,6 @@ impl Quadrature {
         Self::new(16, 24, 8)
     }
 
-    /// For previews (the fit's check frame, an 8-bit image): within 1.5e-4 of the specular
-    /// lobe's peak for α ≥ 0.02 and 1e-5 of the diffuse lobe's (see the tests), with 60 % of
-    /// the nodes of [`Quadrature::render`].
-    pub fn preview() -> Self {
-        Self::new(16, 16, 4)
-    }
-
     /// A cheaper order for the diffuse lobe alone (relative error below 1e-4, see the tests).
     pub fn diffuse() -> Self {
         Self::new(8, 16, 8)
@@ -360,17 +353,6 @@ mod tests {
         {
             let (es, ed) = worst_against_reference(&Quadrature::render(), alpha);
             assert!(es < tol && ed < 1e-9, "α {alpha}: specular off by {es:e}, diffuse by {ed:e}");
-        }
-    }
-
-    #[test]
-    fn the_preview_order_is_within_1e4() {
-        // The check frame's rule, over the fits' α range (the narrowest lobes the worst).
-        // Measured: specular 9.2e-5 of its peak (at α 0.08), diffuse 5.7e-6 (at α 0.02).
-        assert!(Quadrature::preview().nodes() < Quadrature::render().nodes());
-        for alpha in [0.02, 0.04, 0.08, 0.16, 0.3, 0.6] {
-            let (es, ed) = worst_against_reference(&Quadrature::preview(), alpha);
-            assert!(es < 1.5e-4 && ed < 1e-5, "α {alpha}: specular off by {es:e}, diffuse by {ed:e}");
         }
     }
 

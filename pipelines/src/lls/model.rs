@@ -778,11 +778,6 @@ impl TraceModel {
         }
     }
 
-    /// `(D_k, S_k(α))` of frame `k` alone for unit normal `n` ([`TabledTraces::frame`]).
-    pub fn frame_tabled(&self, k: usize, n: V3, alpha: f64, tables: &LobeTables) -> Option<(f64, f64)> {
-        self.tabled(n, tables).frame(k, alpha)
-    }
-
     /// The segment holding frame `k` and `D_k` for unit normal `n` (not clipped at zero;
     /// [`TraceModel::diffuse_into`]'s `k`-th value, bit for bit); `None` past the last frame.
     fn diffuse_at(&self, k: usize, n: V3) -> Option<(usize, f64)> {
@@ -1199,12 +1194,12 @@ mod tests {
                 let s = model.specular_tabled(n, alpha, &tables);
                 for k in 0..tubes.len() {
                     assert_eq!(
-                        model.frame_tabled(k, n, alpha, &tables),
+                        model.tabled(n, &tables).frame(k, alpha),
                         Some((d[k], s[k])),
                         "frame {k}, α {alpha}"
                     );
                 }
-                assert_eq!(model.frame_tabled(tubes.len(), n, alpha, &tables), None);
+                assert_eq!(model.tabled(n, &tables).frame(tubes.len(), alpha), None);
             }
         }
     }
