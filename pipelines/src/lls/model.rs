@@ -492,6 +492,10 @@ fn interpolated<const K: usize>(
 const BAND_SPAN: f64 = 0.1;
 /// The most frames from one computed frame to the next.
 const MAX_BAND_STRIDE: usize = 8;
+/// The least step a frame (radians, the mean between computed frames) for an interpolated
+/// segment's bands to count as ordered: 25 times the quintics' largest error (4e-7, see the
+/// tests), so that the frames between rise or fall with them. The rigs' steps are near 1e-3.
+const ORDERED_STEP: f64 = 1e-5;
 
 /// Where `run` (frames of one yaw, the tube moving by equal steps: [`evenly_spaced`]) stays
 /// clear of the point `pl` (its frame): the frames between computed ones (≥ 2) that [`BAND_SPAN`] allows, and
@@ -561,7 +565,7 @@ fn interpolated_bands(
     (stride, step): (usize, [f64; 5]),
     anchor: usize,
     yaw: (f64, f64),
-    samples: &mut Vec<[f64; 4]>,
+    samples: &mut Vec<Band>,
     (bands, es): (&mut Vec<Band>, &mut Vec<V3>),
 ) {
     let n = run.len();
@@ -589,7 +593,7 @@ fn interpolated_bands(
         let from = carry.as_ref().filter(|_| !i.is_multiple_of(anchor));
         let (b, e, next) = band_of(pl, &t, from);
         carry = next;
-        samples.push([b.lo, b.hi, b.u0, b.u1]);
+        samples.push(b);
         // The diffuse vectors only at the computed frames: a trace `n·e` is interpolated
         // when the normal is known (the same quintics, a quarter of the work).
         es.push(to_world(e, yaw));
@@ -601,10 +605,10 @@ fn interpolated_bands(
     // stride − 1.
     for (j, chunk) in bands[start..].chunks_mut(stride).enumerate() {
         let s = &samples[j..j + 6];
-        for (b, w) in chunk.iter_mut().zip(&weights) {
+        for (b, w) in chunk.iter_mut().zip(weights) {
             let mut acc = [0.0; 4];
             for (w, s) in w.iter().zip(s) {
-                for (a, s) in acc.iter_mut().zip(s) {
+                for (a, s) in acc.iter_mut().zip([s.lo, s.hi, s.u0, s.u1]) {
                     *a += w * s;
                 }
             }
@@ -613,13 +617,141 @@ fn interpolated_bands(
     }
 }
 
-/// The quintics' weights at each frame between two computed ones `stride` apart.
-fn quintic_weights(stride: usize) -> [[f64; 6]; MAX_BAND_STRIDE] {
-    let mut weights = [[0.0; 6]; MAX_BAND_STRIDE];
-    for (f, w) in weights.iter_mut().enumerate().take(stride) {
-        *w = quintic(f as f64 / stride as f64);
+/// The quintics' weights at each frame between two computed ones `stride` apart
+/// (`1 ..= MAX_BAND_STRIDE`), worked out once.
+fn quintic_weights(stride: usize) -> &'static [[f64; 6]; MAX_BAND_STRIDE] {
+    static W: OnceLock<[[[f64; 6]; MAX_BAND_STRIDE]; MAX_BAND_STRIDE + 1]> = OnceLock::new();
+    let all = W.get_or_init(|| {
+        std::array::from_fn(|stride| {
+            let mut weights = [[0.0; 6]; MAX_BAND_STRIDE];
+            for (f, w) in weights.iter_mut().enumerate().take(stride) {
+                *w = quintic(f as f64 / stride as f64);
+            }
+            weights
+        })
+    });
+    &all[stride.min(MAX_BAND_STRIDE)]
+}
+
+/// What [`Segment`] says of its bands `b` (every frame's): their union (`θ`, `u`), whether
+/// their limits rise or fall throughout, and, where every band is non-empty, their largest
+/// steps (`θ`, `u`) from frame to frame.
+#[allow(clippy::type_complexity)]
+fn every_band(b: &[Band]) -> ((f64, f64), (f64, f64), Option<bool>, Option<(f64, f64)>) {
+    // Plain comparisons on scalars: `f64::max`'s NaN handling, and tuples the compiler kept in
+    // memory, made these chains cost as much as the interpolation.
+    let (mut t_lo, mut t_hi, mut u_lo, mut u_hi) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    let (mut nonempty, mut rising, mut falling, mut dt, mut du) = (true, true, true, 0f64, 0f64);
+    for (k, x) in b.iter().enumerate() {
+        // Empty bands left out by selects, not branches (which kept the chains in memory).
+        let some = x.hi > x.lo;
+        nonempty &= some;
+        let pick = |v: f64, none: f64| if some { v } else { none };
+        t_lo = least(t_lo, pick(x.lo, f64::MAX));
+        t_hi = most(t_hi, pick(x.hi, f64::MIN));
+        u_lo = least(u_lo, pick(x.u0, f64::MAX));
+        u_hi = most(u_hi, pick(x.u1, f64::MIN));
+        if k > 0 {
+            let w = &b[k - 1];
+            let (dlo, dhi) = (x.lo - w.lo, x.hi - w.hi);
+            rising &= dlo >= 0.0 && dhi >= 0.0;
+            falling &= dlo <= 0.0 && dhi <= 0.0;
+            dt = most(dt, most(dlo.abs(), dhi.abs()));
+            du = most(du, most((x.u0 - w.u0).abs(), (x.u1 - w.u1).abs()));
+        }
     }
-    weights
+    let order = match (nonempty, rising, falling) {
+        (true, true, _) => Some(true),
+        (true, false, true) => Some(false),
+        _ => None,
+    };
+    ((t_lo, t_hi), (u_lo, u_hi), order, nonempty.then_some((dt, du)))
+}
+
+/// [`every_band`] for an interpolated segment (`b`, every frame's bands) from its `computed`
+/// frames (every `stride`-th, from two strides before the first) and the frames of a few
+/// intervals between them: around the computed frames where each limit is least or most (for
+/// the union), and around the interval where each limit's mean step is largest (for the
+/// largest steps). Where a limit and its step each peak once along the pass (as where the
+/// tube passes over the point) the peaks lie there: the same as every frame's (tested), for
+/// a few dozen frames' work instead of all. Rising or falling where every computed frame
+/// steps the same way by more than [`ORDERED_STEP`] a frame, far above the quintics' error,
+/// so that the frames between are ordered too.
+#[allow(clippy::type_complexity)]
+fn computed_bands(
+    computed: &[Band],
+    b: &[Band],
+    stride: usize,
+) -> ((f64, f64), (f64, f64), Option<bool>, Option<(f64, f64)>) {
+    let n = b.len();
+    let limits = |b: &Band| [b.lo, b.hi, b.u0, b.u1];
+    // The frames between intervals: the computed ones inside the segment, and the last.
+    let intervals = (n - 1).div_ceil(stride);
+    let at = |i: usize| (i * stride).min(n - 1);
+    let least_step = ORDERED_STEP * stride as f64;
+    let rising =
+        computed.windows(2).all(|w| w[1].lo - w[0].lo > least_step && w[1].hi - w[0].hi > least_step);
+    let falling =
+        computed.windows(2).all(|w| w[0].lo - w[1].lo > least_step && w[0].hi - w[1].hi > least_step);
+    // One pass over those frames: the union there, where each limit is least or most, and
+    // the interval where its mean step is largest.
+    let (mut lower, mut upper) = ([f64::MAX; 4], [f64::MIN; 4]);
+    let (mut ext, mut top, mut steepest) = ([0usize; 4], [0usize; 4], [f64::MIN; 4]);
+    let mut nonempty = true;
+    let mut prev = limits(&b[0]);
+    for i in 0..=intervals {
+        let x = limits(&b[at(i)]);
+        nonempty &= x[1] > x[0];
+        for q in 0..4 {
+            // Lower limits least, upper ones most.
+            if (q % 2 == 0 && x[q] < lower[q]) || (q % 2 == 1 && x[q] > upper[q]) {
+                ext[q] = i;
+            }
+            (lower[q], upper[q]) = (least(lower[q], x[q]), most(upper[q], x[q]));
+        }
+        if i > 0 {
+            let inv = 1.0 / (at(i) - at(i - 1)) as f64;
+            for q in 0..4 {
+                let mean = (x[q] - prev[q]).abs() * inv;
+                if mean > steepest[q] {
+                    (steepest[q], top[q]) = (mean, i - 1);
+                }
+            }
+        }
+        prev = x;
+    }
+    let order = match (nonempty, rising, falling) {
+        (true, true, _) => Some(true),
+        (true, false, true) => Some(false),
+        _ => None,
+    };
+    // The intervals to look into frame by frame: either side of each extreme frame, and each
+    // steepest one with its neighbours; merged, then every frame of them.
+    // (As the frames between: intervals `from..to`.)
+    let mut ranges: [(usize, usize); 8] = std::array::from_fn(|r| {
+        let (i, after) = if r < 4 { (ext[r], 1) } else { (top[r - 4], 2) };
+        (i.saturating_sub(1), (i + after).min(intervals))
+    });
+    ranges.sort_unstable();
+    let mut largest = [0f64; 4];
+    let mut done = 0;
+    for &(from, to) in &ranges {
+        let from = from.max(done);
+        if from >= to {
+            continue;
+        }
+        let mut w = limits(&b[at(from)]);
+        for x in b[at(from) + 1..=at(to)].iter().map(limits) {
+            for q in 0..4 {
+                (lower[q], upper[q]) = (least(lower[q], x[q]), most(upper[q], x[q]));
+                largest[q] = most(largest[q], (x[q] - w[q]).abs());
+            }
+            w = x;
+        }
+        done = to;
+    }
+    let steps = (most(largest[0], largest[1]), most(largest[2], largest[3]));
+    ((lower[0], upper[1]), (lower[2], upper[3]), order, nonempty.then_some(steps))
 }
 
 impl TraceModel {
@@ -664,32 +796,8 @@ impl TraceModel {
                 }
             };
             let b = &bands[start..end];
-            // One pass: the union of the bands, whether their limits rise or fall throughout,
-            // and their largest steps (plain comparisons on scalars: `f64::max`'s NaN
-            // handling, and tuples the compiler kept in memory, made these chains cost as
-            // much as the interpolation).
-            let (mut t_lo, mut t_hi, mut u_lo, mut u_hi) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-            let (mut nonempty, mut rising, mut falling, mut dt, mut du) = (true, true, true, 0f64, 0f64);
-            for (k, x) in b.iter().enumerate() {
-                // Empty bands left out by selects, not branches (which kept the chains in
-                // memory).
-                let some = x.hi > x.lo;
-                nonempty &= some;
-                let pick = |v: f64, none: f64| if some { v } else { none };
-                t_lo = least(t_lo, pick(x.lo, f64::MAX));
-                t_hi = most(t_hi, pick(x.hi, f64::MIN));
-                u_lo = least(u_lo, pick(x.u0, f64::MAX));
-                u_hi = most(u_hi, pick(x.u1, f64::MIN));
-                if k > 0 {
-                    let w = &b[k - 1];
-                    let (dlo, dhi) = (x.lo - w.lo, x.hi - w.hi);
-                    rising &= dlo >= 0.0 && dhi >= 0.0;
-                    falling &= dlo <= 0.0 && dhi <= 0.0;
-                    dt = most(dt, most(dlo.abs(), dhi.abs()));
-                    du = most(du, most((x.u0 - w.u0).abs(), (x.u1 - w.u1).abs()));
-                }
-            }
-            let (theta, u) = ((t_lo, t_hi), (u_lo, u_hi));
+            let (theta, u, order, steps) =
+                if e_stride == 1 { every_band(b) } else { computed_bands(&samples, b, e_stride) };
             segments.push(Segment {
                 yaw,
                 start,
@@ -697,12 +805,8 @@ impl TraceModel {
                 v: turn(v, -yaw),
                 theta,
                 u,
-                order: match (nonempty, rising, falling) {
-                    (true, true, _) => Some(true),
-                    (true, false, true) => Some(false),
-                    _ => None,
-                },
-                steps: (nonempty && even).then_some((dt, du)),
+                order,
+                steps: steps.filter(|_| even),
                 e_start,
                 e_stride,
             });
@@ -769,7 +873,7 @@ impl TraceModel {
                 // next stride − 1.
                 for (j, chunk) in o[s.start..s.end].chunks_mut(stride).enumerate() {
                     let d = &d[j..j + 6];
-                    for (x, w) in chunk.iter_mut().zip(&weights) {
+                    for (x, w) in chunk.iter_mut().zip(weights) {
                         *x =
                             w[0] * d[0] + w[1] * d[1] + w[2] * d[2] + w[3] * d[3] + w[4] * d[4] + w[5] * d[5];
                     }
@@ -1387,6 +1491,17 @@ mod tests {
                     let diff = [x.lo - y.lo, x.hi - y.hi, x.u0 - y.u0, x.u1 - y.u1];
                     bands = diff.iter().fold(bands, |w, d| w.max(d.abs()));
                 }
+                // What the segment says of its bands (union, order, largest steps), from the
+                // computed frames and a few intervals' frames, against every frame: the same,
+                // but that where u's steps are flat the quintics' error (below 1e-6 of the
+                // step; measured 3e-8) may decide which frame's is largest.
+                let sa = &a.segments[0];
+                let (theta, u, order, all) = every_band(&a.bands);
+                let case = format!("{p:?}, yaw {yaw}, {frames} frames of {step} mm");
+                assert!(sa.e_stride > 1, "{case}");
+                assert_eq!((sa.theta, sa.u, sa.order), (theta, u, order), "{case}");
+                let ((dt, du), (et, eu)) = (sa.steps.unwrap(), all.unwrap());
+                assert!(dt == et && (du / eu - 1.0).abs() < 1e-6, "{case}: {:?} {all:?}", sa.steps);
                 // The diffuse traces (interpolated from the computed frames' `n·e`).
                 let (got, want) = (a.diffuse(n), b.diffuse(n));
                 let peak = want.iter().fold(0f64, |m, &x| m.max(x));
