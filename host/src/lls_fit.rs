@@ -23,7 +23,7 @@ use lightrig_pipelines::linear_light::{hidden_by, Tube};
 use lightrig_pipelines::lls::{
     blend_normals, fit_normal, fit_tabled_traces, normals_from_points, point_on_sheet, register, strip_ratio,
     strip_scale_of, stripe_peak, BoardGeometry, Light, LobeTables, PassTrace, Registration, Setup, Sheet,
-    Strip, TabledTraces, TraceFit, TraceModel,
+    Strip, Sweep, TabledTraces, TraceFit, TraceModel,
 };
 use lightrig_pipelines::vec3::{normalize, sub, V3};
 use lightrig_pipelines::ward::Ward;
@@ -618,6 +618,9 @@ pub fn fit_session_with(
             pass.gantry.iter().map(|&g| setup.light.mounted(g, (*m as f64).to_radians())).collect()
         })
         .collect();
+    // What every pixel's models share of the passes.
+    let sweep = Sweep::new(&tubes);
+    let diagonal_sweeps: Vec<Sweep> = diagonal_tubes.iter().map(|t| Sweep::new(t)).collect();
     // Pixel `i`'s observations from `pass` (the pixels gathered out of a block, a few at a
     // time: `Block::gather`).
     let trace_in = |pass: &Gathered, tubes: &[Tube], i: usize, p: V3, v: V3, scale: [f64; 3]| {
@@ -653,7 +656,7 @@ pub fn fit_session_with(
                 let p = points[i].unwrap_or([0.0; 3]);
                 let v = normalize(sub(reg.rays[i].0, p));
                 let (obs, valid) = trace_in(&blk.gather(i..i + 1), &tubes, i, p, v, [1.0; 3]);
-                let d = TraceModel::new(p, v, &tubes).diffuse([0.0, 0.0, 1.0]);
+                let d = TraceModel::of(p, v, &sweep).diffuse([0.0, 0.0, 1.0]);
                 strip_ratio(&(obs, valid, d), setup.diffuse_strip.albedo)
             })
             .collect();
@@ -716,7 +719,7 @@ pub fn fit_session_with(
                         (true, Some(p), Some(n)) => {
                             let v = normalize(sub(reg.rays[i].0, p));
                             let (obs, valid) = trace_in(&gathered, &tubes, i, p, v, scale);
-                            let model = TraceModel::new(p, v, &tubes);
+                            let model = TraceModel::of(p, v, &sweep);
                             let mut traces = model.tabled(n, &tables);
                             let prior = left.filter(TraceFit::leads);
                             let f = fit_tabled_traces(&obs, &valid, &mut traces, prior.as_ref());
@@ -773,7 +776,7 @@ pub fn fit_session_with(
                                         .map(|(g, t)| trace_in(g, t, i, p, v, scale))
                                         .collect();
                                     let models: Vec<TraceModel> =
-                                        diagonal_tubes.iter().map(|t| TraceModel::new(p, v, t)).collect();
+                                        diagonal_sweeps.iter().map(|t| TraceModel::of(p, v, t)).collect();
                                     let passes: Vec<PassTrace> = traces
                                         .iter()
                                         .zip(&models)
@@ -813,7 +816,7 @@ pub fn fit_session_with(
                                 (true, Some(p), Some(n)) => {
                                     let v = normalize(sub(reg.rays[i].0, p));
                                     let (obs, valid) = trace_in(&gathered, &tubes, i, p, v, scale);
-                                    let model = TraceModel::new(p, v, &tubes);
+                                    let model = TraceModel::of(p, v, &sweep);
                                     let mut traces = model.tabled(n, &tables);
                                     let f = fit_tabled_traces(&obs, &valid, &mut traces, Some(&fit[i]));
                                     Some((f, predict(&mut traces, &f)))

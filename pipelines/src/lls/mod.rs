@@ -24,7 +24,7 @@ mod fit;
 mod model;
 mod table;
 
-pub use model::{TabledTraces, TraceModel};
+pub use model::{Sweep, TabledTraces, TraceModel};
 pub use table::{lobe_geometry, AlphaLobes, LobeGeometry, LobeTables, PixelLobes, TableLobe};
 
 pub use fit::{

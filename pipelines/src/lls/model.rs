@@ -754,28 +754,61 @@ fn computed_bands(
     ((lower[0], upper[1]), (lower[2], upper[3]), order, nonempty.then_some(steps))
 }
 
-impl TraceModel {
-    /// The model for point `p` seen from unit direction `v` (towards the camera) under the
-    /// frames' `tubes`.
-    pub fn new(p: V3, v: V3, tubes: &[Tube]) -> Self {
-        Self::built(p, v, tubes, ANCHOR, BAND_SPAN)
+/// The frames' tubes of one pass (or several) as [`TraceModel`] takes them: split into runs of
+/// one yaw, each run's spacing checked, once for every pixel of the pass (the checks had
+/// taken a sixth of each pixel's model).
+#[derive(Debug, Clone)]
+pub struct Sweep {
+    tubes: Vec<Tube>,
+    /// `(start, end, evenly spaced)` of each run of frames with one yaw.
+    runs: Vec<(usize, usize, bool)>,
+}
+
+impl Sweep {
+    /// The sweep of the frames' `tubes`.
+    pub fn new(tubes: &[Tube]) -> Self {
+        let mut runs = Vec::new();
+        let mut start = 0;
+        while start < tubes.len() {
+            let yaw = tubes[start].yaw;
+            let end = tubes[start..].iter().position(|t| t.yaw != yaw).map_or(tubes.len(), |n| start + n);
+            runs.push((start, end, evenly_spaced(&tubes[start..end])));
+            start = end;
+        }
+        Sweep { tubes: tubes.to_vec(), runs }
     }
 
-    /// [`TraceModel::new`] with exact angles every `anchor` computed frames (1: every one),
+    /// The frames' tubes.
+    pub fn tubes(&self) -> &[Tube] {
+        &self.tubes
+    }
+}
+
+impl TraceModel {
+    /// The model for point `p` seen from unit direction `v` (towards the camera) under the
+    /// frames' `tubes` ([`TraceModel::of`] a [`Sweep`] made for it alone).
+    pub fn new(p: V3, v: V3, tubes: &[Tube]) -> Self {
+        Self::of(p, v, &Sweep::new(tubes))
+    }
+
+    /// The model for point `p` seen from unit direction `v` (towards the camera) under the
+    /// `sweep`'s tubes.
+    pub fn of(p: V3, v: V3, sweep: &Sweep) -> Self {
+        Self::built(p, v, sweep, ANCHOR, BAND_SPAN)
+    }
+
+    /// [`TraceModel::of`] with exact angles every `anchor` computed frames (1: every one),
     /// and evenly stepped passes computed every few frames as `span` allows (0: every frame).
-    fn built(p: V3, v: V3, tubes: &[Tube], anchor: usize, span: f64) -> Self {
+    fn built(p: V3, v: V3, sweep: &Sweep, anchor: usize, span: f64) -> Self {
+        let tubes = &sweep.tubes;
         let mut bands = Vec::with_capacity(tubes.len());
         let mut segments: Vec<Segment> = Vec::new();
         let mut samples = Vec::new();
         let mut es = Vec::with_capacity(tubes.len());
-        let mut start = 0;
-        while start < tubes.len() {
-            // A run of frames with one yaw.
-            let yaw = tubes[start].yaw;
-            let end = tubes[start..].iter().position(|t| t.yaw != yaw).map_or(tubes.len(), |n| start + n);
+        for &(start, end, even) in &sweep.runs {
             let run = &tubes[start..end];
+            let yaw = run[0].yaw;
             let pl = turn(p, -yaw);
-            let even = evenly_spaced(run);
             let e_start = es.len();
             let e_stride = match band_stride(pl, run, span).filter(|_| even) {
                 Some(stride) => {
@@ -810,7 +843,6 @@ impl TraceModel {
                 e_start,
                 e_stride,
             });
-            start = end;
         }
         TraceModel { bands, segments, es }
     }
@@ -1397,8 +1429,10 @@ mod tests {
                 let tubes: Vec<Tube> = (0..300)
                     .map(|k| Tube::through([-140.0 + step * k as f64, 0.0, 50.0], yaw, 6.0, 300.0))
                     .collect();
-                let (a, b) =
-                    (TraceModel::built(p, v, &tubes, ANCHOR, 0.0), TraceModel::built(p, v, &tubes, 1, 0.0));
+                let (a, b) = (
+                    TraceModel::built(p, v, &Sweep::new(&tubes), ANCHOR, 0.0),
+                    TraceModel::built(p, v, &Sweep::new(&tubes), 1, 0.0),
+                );
                 assert_eq!((a.es.len(), b.es.len()), (tubes.len(), tubes.len()));
                 for ((x, y), (ex, ey)) in a.bands.iter().zip(&b.bands).zip(a.es.iter().zip(&b.es)) {
                     let diff = [x.lo - y.lo, x.hi - y.hi, x.u0 - y.u0, x.u1 - y.u1];
@@ -1483,7 +1517,10 @@ mod tests {
                 let tubes: Vec<Tube> = (0..frames)
                     .map(|k| Tube::through([-140.0 + step * k as f64, 0.0, height], yaw, 6.0, 300.0))
                     .collect();
-                let (a, b) = (TraceModel::new(p, v, &tubes), TraceModel::built(p, v, &tubes, ANCHOR, 0.0));
+                let (a, b) = (
+                    TraceModel::new(p, v, &tubes),
+                    TraceModel::built(p, v, &Sweep::new(&tubes), ANCHOR, 0.0),
+                );
                 strided += usize::from(a.bands != b.bands);
                 assert_eq!((a.segments.len(), b.segments.len()), (1, 1));
                 assert_eq!(a.segments[0].order, b.segments[0].order);
