@@ -611,15 +611,15 @@ pub fn fit_normal(passes: &[PassTrace], n0: V3, alpha: f64, tables: Option<&Lobe
     let mut lobes = tables.and_then(|t| AlphaLobes::new(t, alpha));
     let frames: usize = passes.iter().map(|pt| pt.model.len()).sum();
     // Model traces (D, S) of every pass for slopes g, concatenated, and their derivatives in
-    // the two slopes.
-    let mut model = |g: [f64; 2]| -> Traces {
+    // the two slopes, into `t` (every value written: one buffer serves every evaluation).
+    let mut t = Traces {
+        d: vec![0.0; frames],
+        s: vec![0.0; frames],
+        jd: [vec![0.0; frames], vec![0.0; frames]],
+        js: [vec![0.0; frames], vec![0.0; frames]],
+    };
+    let mut model = |g: [f64; 2], t: &mut Traces| {
         let (n, dn) = (slope_normal(g), slope_normal_derivatives(g));
-        let mut t = Traces {
-            d: vec![0.0; frames],
-            s: vec![0.0; frames],
-            jd: [vec![0.0; frames], vec![0.0; frames]],
-            js: [vec![0.0; frames], vec![0.0; frames]],
-        };
         let mut at = 0;
         for pt in passes {
             let r = at..at + pt.model.len();
@@ -660,7 +660,6 @@ pub fn fit_normal(passes: &[PassTrace], n0: V3, alpha: f64, tables: Option<&Lobe
             }
             at = r.end;
         }
-        t
     };
     let obs: [Vec<f64>; 3] =
         std::array::from_fn(|c| passes.iter().flat_map(|pt| pt.obs[c].iter().copied()).collect());
@@ -682,7 +681,8 @@ pub fn fit_normal(passes: &[PassTrace], n0: V3, alpha: f64, tables: Option<&Lobe
         (sums, ab, total)
     };
     let mut g = [-n0[0] / n0[2], -n0[1] / n0[2]];
-    let (mut cur, mut ab, mut cost) = predict(&model(g));
+    model(g, &mut t);
+    let (mut cur, mut ab, mut cost) = predict(&t);
     if ab.iter().all(|&(a, b)| a == 0.0 && b == 0.0) {
         return None;
     }
@@ -709,7 +709,8 @@ pub fn fit_normal(passes: &[PassTrace], n0: V3, alpha: f64, tables: Option<&Lobe
         let mut accepted = false;
         for _ in 0..4 {
             let trial = [g[0] + step[0], g[1] + step[1]];
-            let (tsums, tab, tcost) = predict(&model(trial));
+            model(trial, &mut t);
+            let (tsums, tab, tcost) = predict(&t);
             if tcost <= cost {
                 (g, cur, ab, cost, accepted) = (trial, tsums, tab, tcost, true);
                 break;

@@ -1225,15 +1225,15 @@ impl TraceModel {
                 let wrap = |x: f64| (x + PI).rem_euclid(2.0 * PI) - PI;
                 *dp = [wrap(up.theta - down.theta) / (2.0 * H), (up.u - down.u) / (2.0 * H)];
             }
-            let (mut d_theta, mut d_u) = (vec![0.0; o.len()], vec![0.0; o.len()]);
-            self.looked_up_with(s, lobe, &mut samples, [o, &mut d_theta, &mut d_u], |l, b| {
+            // The derivatives in the lobe's position (θ, u) into dx and dy, then turned into
+            // the normal's two directions in place.
+            self.looked_up_with(s, lobe, &mut samples, [o, &mut *dx, &mut *dy], |l, b| {
                 l.band_slopes(b.lo, b.hi, b.u0, b.u1)
             });
-            for (i, d) in [dx, dy].into_iter().enumerate() {
-                let [pt, pu] = dpos[i];
-                for ((d, t), u) in d.iter_mut().zip(&d_theta).zip(&d_u) {
-                    *d = t * pt + u * pu;
-                }
+            let ([xt, xu], [yt, yu]) = (dpos[0], dpos[1]);
+            for (x, y) in dx.iter_mut().zip(dy.iter_mut()) {
+                let (t, u) = (*x, *y);
+                (*x, *y) = (t * xt + u * xu, t * yt + u * yu);
             }
         }
     }
