@@ -377,6 +377,18 @@ fn gathers_of(px: std::ops::Range<usize>) -> Vec<std::ops::Range<usize>> {
     px.clone().step_by(GATHER).map(|s| s..(s + GATHER).min(px.end)).collect()
 }
 
+/// The pixels `px` split at the image's rows (`w` pixels wide): the fit's rows, each taken in
+/// order so that a pixel's search can start from its left neighbour's result.
+fn rows_of(px: std::ops::Range<usize>, w: usize) -> Vec<std::ops::Range<usize>> {
+    (px.start / w..px.end.div_ceil(w)).map(|r| (r * w).max(px.start)..((r + 1) * w).min(px.end)).collect()
+}
+
+/// How far apart two upward normals are in slope (`(−nx/nz, −ny/nz)`), the normal search's
+/// variable.
+fn slope_distance(a: V3, b: V3) -> f64 {
+    (a[0] / a[2] - b[0] / b[2]).hypot(a[1] / a[2] - b[1] / b[2])
+}
+
 /// The lobe tables kept at `path` ([`Streaming::tables`]), or empty ones where there are none
 /// or they cannot be used; and a line for the user saying which.
 fn kept_tables(path: Option<&Path>) -> (LobeTables, String) {
@@ -703,11 +715,7 @@ pub fn fit_session_with(
         // material is the same, against six from the moments), the row's first pixel and
         // one after a pixel without a lobe from the moments. A fit depends on its trace and
         // its left neighbour's fit alone: the same maps whatever the blocks.
-        let px = blk.pixels.clone();
-        let rows: Vec<std::ops::Range<usize>> = (px.start / w..px.end.div_ceil(w))
-            .map(|r| (r * w).max(px.start)..((r + 1) * w).min(px.end))
-            .collect();
-        let got: Vec<Vec<(TraceFit, [f32; 3])>> = rows
+        let got: Vec<Vec<(TraceFit, [f32; 3])>> = rows_of(blk.pixels.clone(), w)
             .into_par_iter()
             .map(|row| {
                 // At the block's start the neighbour is the last block's (fitted already).
@@ -763,39 +771,51 @@ pub fn fit_session_with(
             let held = block.resident_bytes() + diag_blocks.iter().map(Block::resident_bytes).sum::<usize>();
             resident.set(resident.get().max(held));
             let range = diag_blocks[0].pixels.clone();
-            let got: Vec<Option<V3>> = gathers_of(range.clone())
+            // Each row of the block in order, as the first fit: a pixel's search starts from
+            // its left neighbour's normal where that is within one step of the search (0.05
+            // in slope) of the pixel's own from the displacement map (across an edge it is
+            // not), else from that. 1.39 evaluations a pixel against 1.65 on the
+            // `--step-mm 0.6` demo session; the same normals whatever the blocks.
+            let photometric = &photometric_normals;
+            let got: Vec<Vec<Option<V3>>> = rows_of(range.clone(), w)
                 .into_par_iter()
-                .flat_map_iter(|batch| {
-                    let gathered: Vec<Gathered> =
-                        diag_blocks.iter().map(|b| b.gather(batch.clone())).collect();
-                    let out: Vec<Option<V3>> = batch
-                        .map(|i| {
-                            let out = match (fitted[i], points[i], normals[i]) {
-                                (true, Some(p), Some(n)) => {
-                                    let v = normalize(sub(reg.rays[i].0, p));
-                                    let traces: Vec<_> = gathered
-                                        .iter()
-                                        .zip(&diagonal_tubes)
-                                        .map(|(g, t)| trace_in(g, t, i, p, v, scale))
-                                        .collect();
-                                    let models: Vec<TraceModel> =
-                                        diagonal_sweeps.iter().map(|t| TraceModel::of(p, v, t)).collect();
-                                    let passes: Vec<PassTrace> = traces
-                                        .iter()
-                                        .zip(&models)
-                                        .map(|((obs, valid), model)| PassTrace { obs, valid, model })
-                                        .collect();
-                                    fit_normal(&passes, n, fit[i].alpha, Some(&tables))
-                                }
-                                _ => None,
-                            };
-                            tick();
-                            out
-                        })
-                        .collect();
-                    out
+                .map(|row| {
+                    let mut left = if row.start % w != 0 { photometric[row.start - 1] } else { None };
+                    let mut gathered: Vec<Gathered> = Vec::new();
+                    let end = row.end;
+                    row.map(|i| {
+                        if !gathered.first().is_some_and(|g| g.holds(i)) {
+                            gathered =
+                                diag_blocks.iter().map(|b| b.gather(i..(i + GATHER).min(end))).collect();
+                        }
+                        let out = match (fitted[i], points[i], normals[i]) {
+                            (true, Some(p), Some(n)) => {
+                                let v = normalize(sub(reg.rays[i].0, p));
+                                let traces: Vec<_> = gathered
+                                    .iter()
+                                    .zip(&diagonal_tubes)
+                                    .map(|(g, t)| trace_in(g, t, i, p, v, scale))
+                                    .collect();
+                                let models: Vec<TraceModel> =
+                                    diagonal_sweeps.iter().map(|t| TraceModel::of(p, v, t)).collect();
+                                let passes: Vec<PassTrace> = traces
+                                    .iter()
+                                    .zip(&models)
+                                    .map(|((obs, valid), model)| PassTrace { obs, valid, model })
+                                    .collect();
+                                let start = left.filter(|&l| slope_distance(l, n) < 0.05).unwrap_or(n);
+                                fit_normal(&passes, start, fit[i].alpha, Some(&tables))
+                            }
+                            _ => None,
+                        };
+                        left = out;
+                        tick();
+                        out
+                    })
+                    .collect()
                 })
                 .collect();
+            let got: Vec<Option<V3>> = got.into_iter().flatten().collect();
             photometric_normals[range].copy_from_slice(&got);
         }
         drop(diag_blocks);
