@@ -225,12 +225,16 @@ fn limit_terms(u: f64, q: f64, iq: f64, delta: f64) -> (f64, f64) {
 }
 
 /// `atan x` by its series for `|x| ≤` [`SMALL_TURN`] (the next term is below 1e-19 of `x`).
+/// The series in `y = x²` summed by Estrin's scheme (pairs, then pairs of pairs): the terms'
+/// chains of products are a few deep instead of ten, and a model's frames wait on them.
 fn atan_small(x: f64) -> f64 {
-    let x2 = x * x;
-    let tail = 1.0 / 13.0 - x2 * (1.0 / 15.0 - x2 * (1.0 / 17.0 - x2 * (1.0 / 19.0 - x2 * (1.0 / 21.0))));
-    x * (1.0
-        - x2 * (1.0 / 3.0
-            - x2 * (1.0 / 5.0 - x2 * (1.0 / 7.0 - x2 * (1.0 / 9.0 - x2 * (1.0 / 11.0 - x2 * tail))))))
+    let y = x * x;
+    let (y2, c) = (y * y, |k: f64| 1.0 / (2.0 * k + 1.0));
+    let y4 = y2 * y2;
+    let pair = |k: f64| c(k) - y * c(k + 1.0); // the terms 2k and 2k + 1 over y^2k
+    let (a0, a1, a2, a3, a4) = (pair(0.0), pair(2.0), pair(4.0), pair(6.0), pair(8.0));
+    let (b0, b1, b2) = (a0 + y2 * a1, a2 + y2 * a3, a4 + y2 * c(10.0));
+    x * (b0 + y4 * (b1 + y4 * b2))
 }
 
 /// The largest `tan` of an angle step taken by [`atan_small`] (large enough for the steps
