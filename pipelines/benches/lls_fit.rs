@@ -15,7 +15,7 @@
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use lightrig_imaging::io::{read_with, write_png, BitDepth, Encoding, Image, ReadOptions};
 use lightrig_pipelines::linear_light::{response, Quadrature, Tube};
-use lightrig_pipelines::lls::{fit_trace, fit_trace_tabled, LobeTables, TraceFit, TraceModel};
+use lightrig_pipelines::lls::{fit_trace, fit_trace_tabled, LobeTables, Sweep, TraceFit, TraceModel};
 use lightrig_pipelines::vec3::normalize;
 
 const FRAMES: usize = 400;
@@ -30,9 +30,11 @@ fn fit(c: &mut Criterion) {
     let mut g = c.benchmark_group("lls_fit");
     g.throughput(Throughput::Elements(1));
     g.sample_size(20);
-    // Its parts: the pixel's bands, and one trial of (n, α) (a fit makes 4 to 7).
-    g.bench_function(format!("model of {FRAMES} frames"), |b| b.iter(|| TraceModel::new(p, v, &tubes)));
-    let model = TraceModel::new(p, v, &tubes);
+    // Its parts: the pixel's bands, and one trial of (n, α) (a fit makes 4 to 7). The pass'
+    // sweep is made once for every pixel, as the session's fit does.
+    let sweep = Sweep::new(&tubes);
+    g.bench_function(format!("model of {FRAMES} frames"), |b| b.iter(|| TraceModel::of(p, v, &sweep)));
+    let model = TraceModel::of(p, v, &sweep);
     g.bench_function("diffuse trace", |b| b.iter(|| model.diffuse(n)));
     let tables = LobeTables::new();
     for alpha in [0.04, 0.3] {
@@ -52,24 +54,22 @@ fn fit(c: &mut Criterion) {
             }
         }
         g.bench_function(format!("trace of {FRAMES} frames, alpha {alpha}"), |b| {
-            b.iter(|| fit_trace(&obs, &valid, &TraceModel::new(p, v, &tubes), n, None))
+            b.iter(|| fit_trace(&obs, &valid, &TraceModel::of(p, v, &sweep), n, None))
         });
         let _ = fit_trace_tabled(&obs, &valid, &model, n, None, &tables);
         g.bench_function(format!("tabled trace of {FRAMES} frames, alpha {alpha}"), |b| {
-            b.iter(|| fit_trace_tabled(&obs, &valid, &TraceModel::new(p, v, &tubes), n, None, &tables))
+            b.iter(|| fit_trace_tabled(&obs, &valid, &TraceModel::of(p, v, &sweep), n, None, &tables))
         });
         // The session's refit: the same trace from its first fit with α 1 % off (the
         // blended normal moves α a little): two trials where the minimum is within 2.5 %.
         let first = fit_trace_tabled(&obs, &valid, &model, n, None, &tables);
         let prior = TraceFit { alpha: first.alpha * 1.01, ..first };
         g.bench_function(format!("tabled refit of {FRAMES} frames, alpha {alpha}, 1 % off"), |b| {
-            b.iter(|| {
-                fit_trace_tabled(&obs, &valid, &TraceModel::new(p, v, &tubes), n, Some(&prior), &tables)
-            })
+            b.iter(|| fit_trace_tabled(&obs, &valid, &TraceModel::of(p, v, &sweep), n, Some(&prior), &tables))
         });
         g.bench_function(format!("tabled trace of {FRAMES} frames, alpha {alpha}, cold tables"), |b| {
             b.iter(|| {
-                fit_trace_tabled(&obs, &valid, &TraceModel::new(p, v, &tubes), n, None, &LobeTables::new())
+                fit_trace_tabled(&obs, &valid, &TraceModel::of(p, v, &sweep), n, None, &LobeTables::new())
             })
         });
     }
