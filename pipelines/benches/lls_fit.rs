@@ -5,7 +5,9 @@
 //!   trial integrating the lobe for the pixel (`fit_trace`) or looking it up in the shared
 //!   tables (`fit_trace_tabled`; warm: the nodes this pixel needs already built, as for all
 //!   but the first pixels of an image; cold: built in the iteration, an upper bound), and
-//!   refitted from that fit with α 1 % off (a session's refit with the blended normals).
+//!   refitted from that fit with α 1 % off (a session's refit with the blended normals);
+//!   and the normal search on one pixel's two diagonal passes (`fit_normal`), half of a
+//!   session's fit on one thread.
 //! - `lls_read`: a stack of 400 16-bit RGB PNG frames (what the virtual camera writes) read
 //!   from disk into memory, per pixel of the frame: the rate at which traces arrive.
 //!
@@ -15,7 +17,9 @@
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use lightrig_imaging::io::{read_with, write_png, BitDepth, Encoding, Image, ReadOptions};
 use lightrig_pipelines::linear_light::{response, Quadrature, Tube};
-use lightrig_pipelines::lls::{fit_trace, fit_trace_tabled, LobeTables, Sweep, TraceFit, TraceModel};
+use lightrig_pipelines::lls::{
+    fit_normal, fit_trace, fit_trace_tabled, LobeTables, PassTrace, Sweep, TraceFit, TraceModel,
+};
 use lightrig_pipelines::vec3::normalize;
 
 const FRAMES: usize = 400;
@@ -72,6 +76,42 @@ fn fit(c: &mut Criterion) {
                 fit_trace_tabled(&obs, &valid, &TraceModel::of(p, v, &sweep), n, None, &LobeTables::new())
             })
         });
+    }
+    // The session's normal search: the two diagonal passes (±15° mounts, 400 frames each) of
+    // one pixel, α known from the straight pass, from a start 0.3° off (a neighbour's normal)
+    // and 2° off; the passes' models built outside (`model of 400 frames` above).
+    let truth = normalize([0.03, -0.02, 1.0]);
+    for alpha in [0.04, 0.3] {
+        let passes: Vec<_> = [15f64, -15.0]
+            .iter()
+            .map(|yaw| {
+                let tubes: Vec<Tube> = (0..FRAMES)
+                    .map(|k| {
+                        Tube::through([-140.0 + 0.6 * k as f64, 0.0, 50.0], yaw.to_radians(), 6.0, 300.0)
+                    })
+                    .collect();
+                let mut obs: [Vec<f64>; 3] = Default::default();
+                for t in &tubes {
+                    let r = response(p, truth, v, t, Some(alpha), &q);
+                    for (c, o) in obs.iter_mut().enumerate() {
+                        o.push(0.3 / (c + 1) as f64 * r.diffuse + 0.06 * r.specular);
+                    }
+                }
+                let valid: [Vec<bool>; 3] = std::array::from_fn(|_| vec![true; tubes.len()]);
+                (obs, valid, TraceModel::of(p, v, &Sweep::new(&tubes)))
+            })
+            .collect();
+        let passes: Vec<PassTrace> =
+            passes.iter().map(|(obs, valid, model)| PassTrace { obs, valid, model }).collect();
+        for off_deg in [0.3f64, 2.0] {
+            let t = off_deg.to_radians().tan();
+            let n0 = normalize([truth[0] / truth[2] + t, truth[1] / truth[2], 1.0]);
+            let _ = fit_normal(&passes, n0, alpha, Some(&tables));
+            g.bench_function(
+                format!("normal search, 2 x {FRAMES} frames, alpha {alpha}, {off_deg} deg off"),
+                |b| b.iter(|| fit_normal(&passes, n0, alpha, Some(&tables))),
+            );
+        }
     }
     g.finish();
 }
