@@ -19,7 +19,7 @@ use lightrig_imaging::calib::Intrinsics;
 use lightrig_imaging::io::{
     read_with, write_exr_layers, write_png, BitDepth, Encoding, ExrPrecision, Image, Layer, ReadOptions,
 };
-use lightrig_pipelines::linear_light::{hidden_by, Tube};
+use lightrig_pipelines::linear_light::hidden_by;
 use lightrig_pipelines::lls::{
     blend_normals, fit_normal, fit_tabled_traces, normals_from_points, point_on_sheet, register, strip_ratio,
     strip_scale_of, stripe_peak, BoardGeometry, Light, LobeTables, PassTrace, Registration, Setup, Sheet,
@@ -623,31 +623,31 @@ pub fn fit_session_with(
             *n = Some([0.0, 0.0, 1.0]);
         }
     }
-    let tubes: Vec<Tube> = reflect.gantry.iter().map(|&g| setup.light.at(g)).collect();
-    let diagonal_tubes: Vec<Vec<Tube>> = diagonal
+    // The passes' tubes at every frame, as every pixel's models take them (`Sweep`: what they
+    // share, once).
+    let sweep = Sweep::new(&reflect.gantry.iter().map(|&g| setup.light.at(g)).collect::<Vec<_>>());
+    let diagonal_sweeps: Vec<Sweep> = diagonal
         .iter()
         .map(|(m, pass)| {
-            pass.gantry.iter().map(|&g| setup.light.mounted(g, (*m as f64).to_radians())).collect()
+            let mount = (*m as f64).to_radians();
+            Sweep::new(&pass.gantry.iter().map(|&g| setup.light.mounted(g, mount)).collect::<Vec<_>>())
         })
         .collect();
-    // What every pixel's models share of the passes.
-    let sweep = Sweep::new(&tubes);
-    let diagonal_sweeps: Vec<Sweep> = diagonal_tubes.iter().map(|t| Sweep::new(t)).collect();
     // Pixel `i`'s observations from `pass` (the pixels gathered out of a block, a few at a
-    // time: `Block::gather`).
-    let trace_in = |pass: &Gathered, tubes: &[Tube], i: usize, p: V3, v: V3, scale: [f64; 3]| {
-        let n = tubes.len();
-        // Written by index (pushes cost a capacity check each: a third of this).
+    // time: `Block::gather`) under the tubes of `sweep`.
+    let trace_in = |pass: &Gathered, sweep: &Sweep, i: usize, p: V3, v: V3, scale: [f64; 3]| {
+        let n = sweep.tubes().len();
+        // Written in place (pushes cost a capacity check each: a third of this).
         let mut obs: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; n]);
         let mut valid: [Vec<bool>; 3] = std::array::from_fn(|_| vec![false; n]);
         // Leave a millimetre's margin around the tube's silhouette.
-        let hidden = hidden_by(p, v, tubes, 1.0);
+        let hidden = hidden_by(p, v, sweep.tubes(), 1.0);
         for c in 0..3 {
-            let (o, ok) = (&mut obs[c][..n], &mut valid[c][..n]);
-            for (k, (rgb, &hidden)) in pass.trace(i).chunks_exact(3).zip(&hidden[..n]).enumerate().take(n) {
+            let frames = pass.trace(i).chunks_exact(3).zip(&hidden);
+            for ((o, ok), (rgb, &hidden)) in obs[c].iter_mut().zip(valid[c].iter_mut()).zip(frames) {
                 let r = f64::from(rgb[c]);
-                ok[k] = !hidden && r.is_finite();
-                o[k] = if r.is_finite() { r / scale[c] } else { 0.0 };
+                *ok = !hidden && r.is_finite();
+                *o = if r.is_finite() { r / scale[c] } else { 0.0 };
             }
         }
         (obs, valid)
@@ -670,7 +670,7 @@ pub fn fit_session_with(
             .map(|i| {
                 let p = points[i].unwrap_or([0.0; 3]);
                 let v = normalize(sub(reg.rays[i].0, p));
-                let (obs, valid) = trace_in(&blk.gather(i..i + 1), &tubes, i, p, v, [1.0; 3]);
+                let (obs, valid) = trace_in(&blk.gather(i..i + 1), &sweep, i, p, v, [1.0; 3]);
                 let d = TraceModel::of(p, v, &sweep).diffuse([0.0, 0.0, 1.0]);
                 strip_ratio(&(obs, valid, d), setup.diffuse_strip.albedo)
             })
@@ -729,7 +729,7 @@ pub fn fit_session_with(
                     let out = match (want_fit(i), points[i], normals[i]) {
                         (true, Some(p), Some(n)) => {
                             let v = normalize(sub(reg.rays[i].0, p));
-                            let (obs, valid) = trace_in(&gathered, &tubes, i, p, v, scale);
+                            let (obs, valid) = trace_in(&gathered, &sweep, i, p, v, scale);
                             let model = TraceModel::of(p, v, &sweep);
                             let mut traces = model.tabled(n, &tables);
                             let prior = left.filter(TraceFit::leads);
@@ -793,7 +793,7 @@ pub fn fit_session_with(
                                 let v = normalize(sub(reg.rays[i].0, p));
                                 let traces: Vec<_> = gathered
                                     .iter()
-                                    .zip(&diagonal_tubes)
+                                    .zip(&diagonal_sweeps)
                                     .map(|(g, t)| trace_in(g, t, i, p, v, scale))
                                     .collect();
                                 let models: Vec<TraceModel> =
@@ -838,7 +838,7 @@ pub fn fit_session_with(
                             let out = match (fitted[i], points[i], normals[i]) {
                                 (true, Some(p), Some(n)) => {
                                     let v = normalize(sub(reg.rays[i].0, p));
-                                    let (obs, valid) = trace_in(&gathered, &tubes, i, p, v, scale);
+                                    let (obs, valid) = trace_in(&gathered, &sweep, i, p, v, scale);
                                     let model = TraceModel::of(p, v, &sweep);
                                     let mut traces = model.tabled(n, &tables);
                                     let f = fit_tabled_traces(&obs, &valid, &mut traces, Some(&fit[i]));
