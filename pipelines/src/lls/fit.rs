@@ -661,10 +661,16 @@ pub fn fit_normal(passes: &[PassTrace], n0: V3, alpha: f64, tables: Option<&Lobe
             at = r.end;
         }
     };
-    let obs: [Vec<f64>; 3] =
-        std::array::from_fn(|c| passes.iter().flat_map(|pt| pt.obs[c].iter().copied()).collect());
+    // The passes' observations joined (copied into vectors of their final size: collecting a
+    // flat map grows them step by step).
+    fn joined<'a, T: Copy + 'a>(parts: impl Iterator<Item = &'a [T]>, len: usize) -> Vec<T> {
+        let mut out = Vec::with_capacity(len);
+        parts.for_each(|p| out.extend_from_slice(p));
+        out
+    }
+    let obs: [Vec<f64>; 3] = std::array::from_fn(|c| joined(passes.iter().map(|pt| &pt.obs[c][..]), frames));
     let valid: [Vec<bool>; 3] =
-        std::array::from_fn(|c| passes.iter().flat_map(|pt| pt.valid[c].iter().copied()).collect());
+        std::array::from_fn(|c| joined(passes.iter().map(|pt| &pt.valid[c][..]), frames));
     // The channels share their valid frames but where one clipped: then their sums share
     // the traces' products.
     let shared = valid[1] == valid[0] && valid[2] == valid[0];

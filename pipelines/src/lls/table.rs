@@ -783,14 +783,17 @@ pub struct AlphaLobes<'a> {
     alpha: f64,
     stencil: (i32, [f64; 4]),
     /// Per geometry node: its nodes and `M`, `M'·HT` at `alpha`.
-    combined: KeyMap<(Arc<GeoNodes>, Box<Combined>)>,
+    combined: KeyMap<(Arc<GeoNodes>, Combined)>,
 }
 
 impl<'a> AlphaLobes<'a> {
     /// `None` where `alpha` is outside the tables' range.
     pub fn new(tables: &'a LobeTables, alpha: f64) -> Option<Self> {
         let stencil = alpha_stencil(alpha)?;
-        Some(AlphaLobes { tables, alpha, stencil, combined: KeyMap::default() })
+        // Room for a search's geometry nodes (18 a lobe, most shared from step to step; two
+        // passes): the map is not grown and rehashed while the first lobes are combined.
+        let combined = KeyMap::with_capacity_and_hasher(2 * ORDER_T * ORDER_U * 2 * 2, Default::default());
+        Some(AlphaLobes { tables, alpha, stencil, combined })
     }
 
     /// The roughness.
@@ -806,7 +809,7 @@ impl<'a> AlphaLobes<'a> {
             let tables = self.tables;
             self.combined.entry(key).or_insert_with(|| {
                 let geo = tables.geometry(key);
-                let mut c = Box::new(([0.0; NT], [0.0; NT]));
+                let mut c = ([0.0; NT], [0.0; NT]);
                 let mut terms = [(&[0.0; NT], &[0.0; NT], 0.0); 4];
                 let mut count = 0;
                 for (ia, &wa) in la.iter().enumerate().filter(|(_, &wa)| wa != 0.0) {
