@@ -26,7 +26,7 @@
 
 use std::collections::HashMap;
 use std::f64::consts::PI;
-use std::sync::{Arc, OnceLock, RwLock};
+use std::sync::{Arc, OnceLock};
 
 use crate::linear_light::mirror;
 use crate::quad::gauss_legendre;
@@ -348,10 +348,28 @@ impl GeoNodes {
     }
 }
 
+/// How far the geometry keys reach either side of zero: every node a stencil inside
+/// [`MAX_TILT`] and [`MAX_UM`] asks for (two nodes beyond the nearest, see
+/// [`geometry_stencil`]), with a node to spare.
+const KEY_REACH: [i32; 3] =
+    [(MAX_TILT / D_TILT_T) as i32 + 3, (MAX_TILT / D_TILT_U) as i32 + 3, (MAX_UM / D_UM) as i32 + 3];
+/// Slots of the tables' index: one per key in reach (some 33 000, of which a camera uses a
+/// few hundred).
+const KEY_SLOTS: usize =
+    ((2 * KEY_REACH[0] + 1) * (2 * KEY_REACH[1] + 1) * (2 * KEY_REACH[2] + 1)) as usize;
+
 /// The node tables, built on first use and shared by every pixel (and thread).
-#[derive(Default)]
 pub struct LobeTables {
-    geometries: RwLock<KeyMap<Arc<GeoNodes>>>,
+    /// The geometry nodes by key ([`LobeTables::geometry`]): an index, not a map, so that
+    /// finding a node takes neither a lock nor a hash (a pixel asks for some 70), and the
+    /// nodes, never removed, are lent for as long as the tables live.
+    geometries: Box<[OnceLock<Box<GeoNodes>>]>,
+}
+
+impl Default for LobeTables {
+    fn default() -> Self {
+        LobeTables { geometries: (0..KEY_SLOTS).map(|_| OnceLock::new()).collect() }
+    }
 }
 
 impl std::fmt::Debug for LobeTables {
@@ -372,20 +390,21 @@ impl LobeTables {
         T.get_or_init(LobeTables::new)
     }
 
+    /// The geometry nodes made so far.
+    fn made(&self) -> impl Iterator<Item = &GeoNodes> {
+        self.geometries.iter().filter_map(|g| g.get().map(|g| &**g))
+    }
+
     /// Nodes built so far.
     pub fn len(&self) -> usize {
-        self.geometries
-            .read()
-            .map_or(0, |m| m.values().map(|g| g.alphas.iter().filter(|a| a.get().is_some()).count()).sum())
+        self.made().map(|g| g.alphas.iter().filter(|a| a.get().is_some()).count()).sum()
     }
 
     /// Nodes whose cut-off tables have been built.
     pub fn cuts(&self) -> usize {
-        self.geometries.read().map_or(0, |m| {
-            m.values()
-                .map(|g| g.alphas.iter().filter(|a| a.get().is_some_and(|n| n.cut.get().is_some())).count())
-                .sum()
-        })
+        self.made()
+            .map(|g| g.alphas.iter().filter(|a| a.get().is_some_and(|n| n.cut.get().is_some())).count())
+            .sum()
     }
 
     /// Whether no node has been built.
@@ -393,16 +412,17 @@ impl LobeTables {
         self.len() == 0
     }
 
-    /// Geometry node `key`, its `α` nodes not built yet.
-    fn geometry(&self, key: [i32; 3]) -> Arc<GeoNodes> {
-        if let Some(g) = self.geometries.read().ok().and_then(|m| m.get(&key).cloned()) {
-            return g;
+    /// Geometry node `key`, its `α` nodes not built yet; `None` beyond [`KEY_REACH`] (no
+    /// stencil inside the tables' range reaches there).
+    fn geometry(&self, key: [i32; 3]) -> Option<&GeoNodes> {
+        let mut slot = 0;
+        for (k, reach) in key.into_iter().zip(KEY_REACH) {
+            if k.abs() > reach {
+                return None;
+            }
+            slot = slot * (2 * reach + 1) as usize + (k + reach) as usize;
         }
-        let fresh = || Arc::new(GeoNodes { key, ..GeoNodes::default() });
-        match self.geometries.write() {
-            Ok(mut m) => m.entry(key).or_insert_with(fresh).clone(),
-            Err(_) => fresh(),
-        }
+        Some(self.geometries[slot].get_or_init(|| Box::new(GeoNodes { key, ..GeoNodes::default() })))
     }
 
     /// The lobe of geometry `geo` at roughness `alpha`, ready for band lookups; `None`
@@ -507,12 +527,10 @@ impl LobeTables {
         out.extend_from_slice(FILE_MAGIC);
         out.extend_from_slice(&fingerprint().to_le_bytes());
         let mut nodes = Vec::new();
-        if let Ok(map) = self.geometries.read() {
-            for geo in map.values() {
-                for (ja, node) in geo.alphas.iter().enumerate() {
-                    if let Some(node) = node.get() {
-                        nodes.push((geo.key, ja as i32, node.clone()));
-                    }
+        for geo in self.made() {
+            for (ja, node) in geo.alphas.iter().enumerate() {
+                if let Some(node) = node.get() {
+                    nodes.push((geo.key, ja as i32, node.clone()));
                 }
             }
         }
@@ -584,7 +602,9 @@ impl LobeTables {
             if !(0..N_ALPHA).contains(&k[3]) {
                 return Err(format!("a node's α index is {}", k[3]));
             }
-            let geo = tables.geometry([k[0], k[1], k[2]]);
+            let Some(geo) = tables.geometry([k[0], k[1], k[2]]) else {
+                return Err(format!("a node's key {k:?} is outside the tables' range"));
+            };
             let _ = geo.alphas[k[3] as usize].set(Arc::new(Node { m, g, cut }));
         }
         if !r.0.is_empty() {
@@ -600,13 +620,12 @@ type Combined = ([f64; NT], [f64; NT]);
 /// One pixel's geometry against the tables: the geometry's nodes and weights fixed, their
 /// combination at each `α` node kept for the next trial (a fit's trials share most of them).
 pub struct PixelLobes<'a> {
-    /// The nodes are the tables' (held by `Arc`, so that the map's lock is not held).
-    tables: std::marker::PhantomData<&'a LobeTables>,
     geo: LobeGeometry,
-    /// Geometry nodes `(tilt, tilt, elevation)` and weights; empty outside the tables.
-    nodes: Vec<(Arc<GeoNodes>, f64)>,
+    /// Geometry nodes `(tilt, tilt, elevation)` and weights (the tables'); empty outside the
+    /// tables.
+    nodes: Vec<(&'a GeoNodes, f64)>,
     /// The nearest geometry node (for the cut-off masses); `None` outside the tables.
-    near: Option<Arc<GeoNodes>>,
+    near: Option<&'a GeoNodes>,
     combined: Vec<Option<Box<Combined>>>,
 }
 
@@ -614,12 +633,12 @@ impl<'a> PixelLobes<'a> {
     /// The geometry's stencil.
     pub fn new(tables: &'a LobeTables, geo: LobeGeometry) -> Self {
         let stencil = geometry_stencil(geo);
-        let nodes: Vec<(Arc<GeoNodes>, f64)> = stencil
+        let nodes: Vec<(&GeoNodes, f64)> = stencil
             .as_ref()
-            .map_or(Vec::new(), |(keys, _)| keys.iter().map(|&(k, w)| (tables.geometry(k), w)).collect());
-        let near = stencil.map(|(_, near)| tables.geometry(near));
+            .and_then(|(keys, _)| keys.iter().map(|&(k, w)| Some((tables.geometry(k)?, w))).collect())
+            .unwrap_or_default();
+        let near = stencil.and_then(|(_, near)| tables.geometry(near));
         PixelLobes {
-            tables: std::marker::PhantomData,
             geo,
             nodes,
             near,
@@ -645,7 +664,7 @@ impl<'a> PixelLobes<'a> {
     /// The lobe at roughness `alpha`; `None` outside the tables' range.
     pub fn lobe(&mut self, alpha: f64) -> Option<TableLobe> {
         let (ja, la) = alpha_stencil(alpha)?;
-        let near = self.near.clone()?;
+        let near = self.near?;
         if self.nodes.is_empty() {
             return None;
         }
@@ -664,7 +683,7 @@ impl<'a> PixelLobes<'a> {
         }
         let mut sum = ([0.0; NT], [0.0; NT]);
         weighted_sum(&terms[..count], 1.0, &mut sum);
-        Some(finish(self.geo, alpha, (&sum.0, &sum.1), &near, (ja, la)))
+        Some(finish(self.geo, alpha, (&sum.0, &sum.1), near, (ja, la)))
     }
 }
 
@@ -776,14 +795,13 @@ fn finish(
 /// One roughness against many geometries: the normal search's lookups (`α` fixed by the
 /// straight pass, a new geometry at every step). Each geometry node's four `α` nodes are
 /// combined once and kept, so a new geometry combines its geometry nodes' kept tables: a
-/// quarter of what [`PixelLobes`] does for it, and no lock on the tables' map for the nodes
-/// already seen (the search's steps share most of their nodes).
+/// quarter of what [`PixelLobes`] does for it (the search's steps share most of their nodes).
 pub struct AlphaLobes<'a> {
     tables: &'a LobeTables,
     alpha: f64,
     stencil: (i32, [f64; 4]),
-    /// Per geometry node: its nodes and `M`, `M'·HT` at `alpha`.
-    combined: KeyMap<(Arc<GeoNodes>, Combined)>,
+    /// Per geometry node: `M`, `M'·HT` at `alpha`.
+    combined: KeyMap<Combined>,
 }
 
 impl<'a> AlphaLobes<'a> {
@@ -806,36 +824,33 @@ impl<'a> AlphaLobes<'a> {
         let (nodes, near) = geometry_stencil(geo)?;
         let (ja, la) = self.stencil;
         for &(key, _) in &nodes {
-            let tables = self.tables;
-            self.combined.entry(key).or_insert_with(|| {
-                let geo = tables.geometry(key);
-                let mut c = ([0.0; NT], [0.0; NT]);
-                let mut terms = [(&[0.0; NT], &[0.0; NT], 0.0); 4];
-                let mut count = 0;
-                for (ia, &wa) in la.iter().enumerate().filter(|(_, &wa)| wa != 0.0) {
-                    let node = geo.node(ja + ia as i32);
-                    terms[count] = (&node.m, &node.g, wa);
-                    count += 1;
-                }
-                weighted_sum(&terms[..count], HT, &mut c);
-                (geo, c)
-            });
+            if self.combined.contains_key(&key) {
+                continue;
+            }
+            let geo = self.tables.geometry(key)?;
+            let mut c = ([0.0; NT], [0.0; NT]);
+            let mut terms = [(&[0.0; NT], &[0.0; NT], 0.0); 4];
+            let mut count = 0;
+            for (ia, &wa) in la.iter().enumerate().filter(|(_, &wa)| wa != 0.0) {
+                let node = geo.node(ja + ia as i32);
+                terms[count] = (&node.m, &node.g, wa);
+                count += 1;
+            }
+            weighted_sum(&terms[..count], HT, &mut c);
+            self.combined.insert(key, c);
         }
         let mut terms = [(&[0.0; NT], &[0.0; NT], 0.0); ORDER_T * ORDER_U * 2];
         let mut count = 0;
         for (key, w) in nodes {
-            if let Some((_, c)) = self.combined.get(&key) {
+            if let Some(c) = self.combined.get(&key) {
                 terms[count] = (&c.0, &c.1, w);
                 count += 1;
             }
         }
         let mut sum = ([0.0; NT], [0.0; NT]);
         weighted_sum(&terms[..count], 1.0, &mut sum);
-        let near = match self.combined.get(&near) {
-            Some((geo, _)) => geo.clone(),
-            None => self.tables.geometry(near),
-        };
-        Some(finish(geo, self.alpha, (&sum.0, &sum.1), &near, self.stencil))
+        let near = self.tables.geometry(near)?;
+        Some(finish(geo, self.alpha, (&sum.0, &sum.1), near, self.stencil))
     }
 }
 
@@ -1227,8 +1242,39 @@ pub(crate) mod tests {
         let sum = FILE_CRC.checksum(&other);
         other.extend_from_slice(&sum.to_le_bytes());
         assert!(refused(&other).contains("other table constants"));
+        // A node's key beyond the tables' index (the first node's tilt step along θ, right
+        // after magic, fingerprint and count), its checksum made good.
+        let mut far = bytes[..bytes.len() - 4].to_vec();
+        far[20..24].copy_from_slice(&(KEY_REACH[0] + 1).to_le_bytes());
+        let sum = FILE_CRC.checksum(&far);
+        far.extend_from_slice(&sum.to_le_bytes());
+        assert!(refused(&far).contains("outside the tables' range"), "{}", refused(&far));
         assert!(LobeTables::load(&dir.join("missing.bin")).is_err());
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn every_stencil_stays_inside_the_tables_index() {
+        // Geometries up to the tables' limits (and just beyond, where the stencil is refused):
+        // every node a stencil asks for has a slot.
+        let mut tabled = 0;
+        for i in -40..=40 {
+            for j in -40..=40 {
+                for k in -20..=20 {
+                    let tilt = [f64::from(i) * MAX_TILT / 36.0, f64::from(j) * MAX_TILT / 36.0];
+                    let u = f64::from(k) * MAX_UM / 18.0;
+                    let geo = LobeGeometry { theta: 0.0, u, tilt };
+                    let Some((nodes, near)) = geometry_stencil(geo) else { continue };
+                    tabled += 1;
+                    for key in nodes.iter().map(|n| n.0).chain([near]) {
+                        for (k, reach) in key.into_iter().zip(KEY_REACH) {
+                            assert!(k.abs() <= reach, "{key:?} of {geo:?}");
+                        }
+                    }
+                }
+            }
+        }
+        assert!(tabled > 50_000, "{tabled}");
     }
 
     #[test]
