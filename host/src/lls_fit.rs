@@ -19,7 +19,6 @@ use lightrig_imaging::calib::Intrinsics;
 use lightrig_imaging::io::{
     read_with, write_exr_layers, write_png, BitDepth, Encoding, ExrPrecision, Image, Layer, ReadOptions,
 };
-use lightrig_pipelines::linear_light::hidden_by;
 use lightrig_pipelines::lls::{
     blend_normals, fit_normal, fit_tabled_traces, normals_from_points, point_on_sheet, register, strip_ratio,
     strip_scale_of, stripe_peak, BoardGeometry, Light, LobeTables, PassTrace, Registration, Setup, Sheet,
@@ -641,7 +640,7 @@ pub fn fit_session_with(
         let mut obs: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; n]);
         let mut valid: [Vec<bool>; 3] = std::array::from_fn(|_| vec![false; n]);
         // Leave a millimetre's margin around the tube's silhouette.
-        let hidden = hidden_by(p, v, sweep.tubes(), 1.0);
+        let hidden = sweep.hidden(p, v, 1.0);
         for c in 0..3 {
             let frames = pass.trace(i).chunks_exact(3).zip(&hidden);
             for ((o, ok), (rgb, &hidden)) in obs[c].iter_mut().zip(valid[c].iter_mut()).zip(frames) {

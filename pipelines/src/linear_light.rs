@@ -58,7 +58,7 @@ impl Tube {
     }
 
     /// World vector `a` in the tube's frame.
-    fn local(&self, a: V3) -> V3 {
+    pub(crate) fn local(&self, a: V3) -> V3 {
         if self.yaw == 0.0 {
             a
         } else {
@@ -277,7 +277,7 @@ pub fn hidden_by(p: V3, v: V3, tubes: &[Tube], margin: f64) -> Vec<bool> {
 }
 
 /// [`hides`] for `p` and `v` already in the tube's frame.
-fn hides_local(p: V3, v: V3, tube: &Tube) -> bool {
+pub(crate) fn hides_local(p: V3, v: V3, tube: &Tube) -> bool {
     // Distance from the axis (a line along y) to the ray, in the xz-plane.
     let (ox, oz) = (p[0] - tube.x, p[2] - tube.z);
     let (vx, vz) = (v[0], v[2]);

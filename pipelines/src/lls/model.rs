@@ -30,7 +30,7 @@ use std::f64::consts::{FRAC_1_PI, PI};
 use std::sync::OnceLock;
 
 use super::table::{lobe_geometry, AlphaLobes, LobeTables, PixelLobes, TableLobe};
-use crate::linear_light::{mirror, turn, Tube};
+use crate::linear_light::{hides_local, mirror, turn, Tube};
 use crate::quad::gauss_legendre;
 use crate::vec3::{dot, normalize, V3};
 
@@ -786,6 +786,61 @@ impl Sweep {
     pub fn tubes(&self) -> &[Tube] {
         &self.tubes
     }
+
+    /// Whether each frame's tube, widened by `margin` (mm), hides point `p` from a camera in
+    /// unit direction `v`: [`crate::linear_light::hidden_by`]'s flags, tested only on the
+    /// frames where the tube comes near the view ray (a few of an evenly spaced run; the
+    /// test on every frame of every pass had been a thirtieth of the fit).
+    pub fn hidden(&self, p: V3, v: V3, margin: f64) -> Vec<bool> {
+        let mut out = vec![false; self.tubes.len()];
+        for &(start, end, even) in &self.runs {
+            let run = &self.tubes[start..end];
+            let (pl, vl) = (run[0].local(p), run[0].local(v));
+            let (from, to) = if even { near_ray(pl, vl, run, margin) } else { (0, run.len()) };
+            for (k, t) in run.iter().enumerate().take(to).skip(from) {
+                out[start + k] = hides_local(pl, vl, &Tube { radius: t.radius + margin, ..*t });
+            }
+        }
+        out
+    }
+}
+
+/// The frames of an evenly spaced `run` outside which no tube (widened by `margin`) can hide
+/// `pl` from the view `vl` (both in the run's frame), as a range `from..to`. A tube hides the
+/// point only where the view ray's line passes within its radius of the axis: in the
+/// xz-plane, `|(pl − axis) × v| < r·|v|`. Along the run the axis and the radius move by equal
+/// steps, so both sides are linear in the frame `k` and the frames where it holds are one
+/// interval; two frames of margin either side absorb rounding (and the spacing's 1e-9 mm).
+fn near_ray(pl: V3, vl: V3, run: &[Tube], margin: f64) -> (usize, usize) {
+    let len = run.len();
+    if len < 2 {
+        return (0, len);
+    }
+    let (t0, t1) = (&run[0], &run[1]);
+    let (vx, vz) = (vl[0], vl[2]);
+    let norm = (vx * vx + vz * vz).sqrt();
+    // |c0 + c1·k| < r0 + dr·k, everything times |v|.
+    let c0 = (pl[0] - t0.x) * vz - (pl[2] - t0.z) * vx;
+    let c1 = -(t1.x - t0.x) * vz + (t1.z - t0.z) * vx;
+    let (r0, dr) = ((t0.radius + margin) * norm, (t1.radius - t0.radius) * norm);
+    // Both `c0 + c1·k < r0 + dr·k` and `−(c0 + c1·k) < r0 + dr·k`: `m·k < b` each.
+    let (mut lo, mut hi) = (f64::NEG_INFINITY, f64::INFINITY);
+    for (m, b) in [(c1 - dr, r0 - c0), (-c1 - dr, r0 + c0)] {
+        if m > 0.0 {
+            hi = hi.min(b / m);
+        } else if m < 0.0 {
+            lo = lo.max(b / m);
+        } else if b <= 0.0 {
+            return (0, 0);
+        }
+    }
+    // NaN (a degenerate view) leaves the bound open: every frame is tested.
+    let from = (lo.floor() - 2.0).max(0.0);
+    let to = (hi.ceil() + 3.0).min(len as f64);
+    if from >= to {
+        return (0, 0);
+    }
+    (from as usize, to as usize)
 }
 
 impl TraceModel {
@@ -1504,6 +1559,47 @@ mod tests {
         for (w, (alpha, tol)) in worst.iter().zip([(0.04, 0.07), (0.13, 0.13), (0.3, 0.2)]) {
             assert!(*w < tol, "α {alpha}: the position-only slopes are {w:.3} of the largest off");
         }
+    }
+
+    #[test]
+    fn the_sweep_hides_what_every_tube_does() {
+        // The frames near the view ray alone tested, against every frame: the same flags,
+        // over the rig's points, mounts and steps, a sweep of several runs, a run not evenly
+        // spaced, and a view straight down (the tube passes over the point).
+        let mut hidden = 0;
+        let mut cases: Vec<(V3, V3)> =
+            crate::lls::table::tests::rig_cases().into_iter().map(|(p, _, v, _)| (p, v)).collect();
+        cases.push(([3.0, -2.0, 0.0], [0.0, 0.0, 1.0]));
+        cases.push(([-60.0, 10.0, 0.0], normalize([0.3, -0.2, 1.0])));
+        for (p, v) in cases {
+            for (frames, step) in [(300, 0.8), (401, 0.6)] {
+                let mut tubes = Vec::new();
+                for yaw in [0.0, 15f64.to_radians(), -15f64.to_radians()] {
+                    tubes.extend((0..frames).map(|k| {
+                        Tube::through([-140.0 + step * k as f64, 0.0, 50.0], yaw, 6.0, 300.0)
+                    }));
+                }
+                // A run with uneven steps (every frame tested there).
+                tubes.extend((0..50).map(|k| {
+                    let x = -140.0 + 5.0 * f64::from(k) + if k % 3 == 0 { 0.4 } else { 0.0 };
+                    Tube::through([x, 0.0, 50.0], 0.3, 6.0, 300.0)
+                }));
+                let sweep = Sweep::new(&tubes);
+                assert_eq!(sweep.runs.iter().filter(|r| !r.2).count(), 1);
+                for margin in [0.0, 1.0] {
+                    let got = sweep.hidden(p, v, margin);
+                    assert_eq!(got, crate::linear_light::hidden_by(p, v, &tubes, margin), "{p:?} {v:?}");
+                    hidden += got.iter().filter(|&&h| h).count();
+                }
+                // The frames tested: those where the widened tube (14 mm across) meets the view
+                // ray's line, seen across it, and a few more either side.
+                let (pl, vl) = (tubes[0].local(p), tubes[0].local(v));
+                let (from, to) = near_ray(pl, vl, &tubes[..frames], 1.0);
+                let across = 14.0 * vl[0].hypot(vl[2]) / (step * vl[2]);
+                assert!(to - from <= across.ceil() as usize + 7, "{from}..{to} {p:?} {v:?}");
+            }
+        }
+        assert!(hidden > 1000, "{hidden}");
     }
 
     #[test]
