@@ -177,11 +177,13 @@ impl TraceStack {
         const PIECE: usize = (1 << 16) / VALUE;
         let (file, start) = (&self.file, self.block_offset(b));
         out.data.par_chunks_mut(PIECE).enumerate().try_for_each(|(j, values)| {
-            let mut bytes = [0u8; PIECE * VALUE];
-            let bytes = &mut bytes[..values.len() * VALUE];
-            read_at(file, bytes, start + (j * PIECE * VALUE) as u64)?;
-            for (v, b) in values.iter_mut().zip(bytes.chunks_exact(VALUE)) {
-                *v = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            // Into the values' own bytes (a copy and a pass through a buffer fewer: a fiftieth
+            // of the fit), then from little-endian where the machine is not.
+            read_at(file, bytemuck::cast_slice_mut(values), start + (j * PIECE * VALUE) as u64)?;
+            if cfg!(target_endian = "big") {
+                for v in values.iter_mut() {
+                    *v = f32::from_bits(u32::from_le(v.to_bits()));
+                }
             }
             Ok::<(), std::io::Error>(())
         })?;
