@@ -755,44 +755,50 @@ impl Sums {
     /// Per channel; `shared`: every channel has the same valid frames, so the traces'
     /// products are summed once.
     fn of(obs: &[Vec<f64>; 3], valid: &[Vec<bool>; 3], t: &Traces, shared: bool) -> [Sums; 3] {
-        let n = t.d.len();
-        // Sliced to one length: no bounds checks in the loops.
-        let v = [&t.d[..n], &t.s[..n], &t.jd[0][..n], &t.jd[1][..n], &t.js[0][..n], &t.js[1][..n]];
-        let at = |k: usize| [v[0][k], v[1][k], v[2][k], v[3][k], v[4][k], v[5][k]];
-        let mut out = [Sums::default(); 3];
-        // The traces' products over channel c's valid frames.
-        let gram = |c: usize| {
-            let (m, mut g) = (&valid[c][..n], [[0.0; 6]; 6]);
-            for k in (0..n).filter(|&k| m[k]) {
-                let x = at(k);
-                for i in 0..6 {
-                    for l in i..6 {
-                        g[i][l] += x[i] * x[l];
-                    }
-                }
-            }
-            g
-        };
-        for c in 0..3 {
-            out[c].g = if c > 0 && shared { out[0].g } else { gram(c) };
-            let (m, o) = (&valid[c][..n], &obs[c][..n]);
-            let (mut ox, mut oo) = ([0.0; 6], 0.0);
-            for k in (0..n).filter(|&k| m[k]) {
-                let (x, ok) = (at(k), o[k]);
-                for i in 0..6 {
-                    ox[i] += ok * x[i];
-                }
-                oo += ok * ok;
-            }
-            (out[c].o, out[c].oo) = (ox, oo);
-        }
-        out
+        sums_of(obs, valid, t, shared)
     }
 
     /// `Σ x_i·x_l` (either order).
     fn at(&self, i: usize, l: usize) -> f64 {
         self.g[i.min(l)][i.max(l)]
     }
+}
+
+/// [`Sums::of`] (a free function: compiled also for AVX2, which the 21 products a frame use).
+#[multiversion::multiversion(targets("x86_64+avx2+fma"))]
+fn sums_of(obs: &[Vec<f64>; 3], valid: &[Vec<bool>; 3], t: &Traces, shared: bool) -> [Sums; 3] {
+    let n = t.d.len();
+    // Sliced to one length: no bounds checks in the loops.
+    let v = [&t.d[..n], &t.s[..n], &t.jd[0][..n], &t.jd[1][..n], &t.js[0][..n], &t.js[1][..n]];
+    let at = |k: usize| [v[0][k], v[1][k], v[2][k], v[3][k], v[4][k], v[5][k]];
+    let mut out = [Sums::default(); 3];
+    // The traces' products over channel c's valid frames.
+    let gram = |c: usize| {
+        let (m, mut g) = (&valid[c][..n], [[0.0; 6]; 6]);
+        for k in (0..n).filter(|&k| m[k]) {
+            let x = at(k);
+            for i in 0..6 {
+                for l in i..6 {
+                    g[i][l] += x[i] * x[l];
+                }
+            }
+        }
+        g
+    };
+    for c in 0..3 {
+        out[c].g = if c > 0 && shared { out[0].g } else { gram(c) };
+        let (m, o) = (&valid[c][..n], &obs[c][..n]);
+        let (mut ox, mut oo) = ([0.0; 6], 0.0);
+        for k in (0..n).filter(|&k| m[k]) {
+            let (x, ok) = (at(k), o[k]);
+            for i in 0..6 {
+                ox[i] += ok * x[i];
+            }
+            oo += ok * ok;
+        }
+        (out[c].o, out[c].oo) = (ox, oo);
+    }
+    out
 }
 
 /// The unit normal of slopes `g`: `(−gx, −gy, 1)` normalised.

@@ -563,6 +563,7 @@ fn quintic(x: f64) -> [f64; 6] {
 /// strides beyond the ends, the tube moved on by its `step`, so that every frame's stencil is
 /// centred), quintics in between, appended to `bands`; the computed frames' diffuse vectors,
 /// turned to the world by `yaw` (`sin`, `cos`), to `es`. `samples`: scratch.
+#[multiversion::multiversion(targets("x86_64+avx2+fma"))]
 fn interpolated_bands(
     pl: V3,
     run: &[Tube],
@@ -1575,9 +1576,10 @@ mod tests {
             for (frames, step) in [(300, 0.8), (401, 0.6)] {
                 let mut tubes = Vec::new();
                 for yaw in [0.0, 15f64.to_radians(), -15f64.to_radians()] {
-                    tubes.extend((0..frames).map(|k| {
-                        Tube::through([-140.0 + step * k as f64, 0.0, 50.0], yaw, 6.0, 300.0)
-                    }));
+                    tubes.extend(
+                        (0..frames)
+                            .map(|k| Tube::through([-140.0 + step * k as f64, 0.0, 50.0], yaw, 6.0, 300.0)),
+                    );
                 }
                 // A run with uneven steps (every frame tested there).
                 tubes.extend((0..50).map(|k| {

@@ -355,8 +355,7 @@ const KEY_REACH: [i32; 3] =
     [(MAX_TILT / D_TILT_T) as i32 + 3, (MAX_TILT / D_TILT_U) as i32 + 3, (MAX_UM / D_UM) as i32 + 3];
 /// Slots of the tables' index: one per key in reach (some 33 000, of which a camera uses a
 /// few hundred).
-const KEY_SLOTS: usize =
-    ((2 * KEY_REACH[0] + 1) * (2 * KEY_REACH[1] + 1) * (2 * KEY_REACH[2] + 1)) as usize;
+const KEY_SLOTS: usize = ((2 * KEY_REACH[0] + 1) * (2 * KEY_REACH[1] + 1) * (2 * KEY_REACH[2] + 1)) as usize;
 
 /// The node tables, built on first use and shared by every pixel (and thread).
 pub struct LobeTables {
@@ -638,12 +637,7 @@ impl<'a> PixelLobes<'a> {
             .and_then(|(keys, _)| keys.iter().map(|&(k, w)| Some((tables.geometry(k)?, w))).collect())
             .unwrap_or_default();
         let near = stencil.and_then(|(_, near)| tables.geometry(near));
-        PixelLobes {
-            geo,
-            nodes,
-            near,
-            combined: vec![None; N_ALPHA as usize],
-        }
+        PixelLobes { geo, nodes, near, combined: vec![None; N_ALPHA as usize] }
     }
 
     /// `M` and `M'·HT` of the geometry at `α` node `ja`.
@@ -690,6 +684,7 @@ impl<'a> PixelLobes<'a> {
 /// `Σ w·m` and `Σ w·g·scale` over `terms` `(m, g, w)`, summed in their order, into `out`. A few
 /// grid points at a time over all the terms, so the sums stay in registers. (Its time is
 /// mostly the first touch of each term's cache lines, not the sums: see docs/benchmarks.md.)
+#[multiversion::multiversion(targets("x86_64+avx2+fma"))]
 fn weighted_sum(terms: &[(&[f64; NT], &[f64; NT], f64)], scale: f64, out: &mut Combined) {
     const CHUNK: usize = 8;
     for start in (0..NT).step_by(CHUNK) {
