@@ -661,16 +661,12 @@ pub fn fit_normal(passes: &[PassTrace], n0: V3, alpha: f64, tables: Option<&Lobe
             at = r.end;
         }
     };
-    // The passes' observations joined (copied into vectors of their final size: collecting a
-    // flat map grows them step by step).
-    fn joined<'a, T: Copy + 'a>(parts: impl Iterator<Item = &'a [T]>, len: usize) -> Vec<T> {
-        let mut out = Vec::with_capacity(len);
-        parts.for_each(|p| out.extend_from_slice(p));
-        out
-    }
-    let obs: [Vec<f64>; 3] = std::array::from_fn(|c| joined(passes.iter().map(|pt| &pt.obs[c][..]), frames));
+    // The passes' observations joined (`concat`: one vector of the final size; collecting a
+    // flat map grew them step by step).
+    let obs: [Vec<f64>; 3] =
+        std::array::from_fn(|c| passes.iter().map(|pt| &pt.obs[c][..]).collect::<Vec<_>>().concat());
     let valid: [Vec<bool>; 3] =
-        std::array::from_fn(|c| joined(passes.iter().map(|pt| &pt.valid[c][..]), frames));
+        std::array::from_fn(|c| passes.iter().map(|pt| &pt.valid[c][..]).collect::<Vec<_>>().concat());
     // The channels share their valid frames but where one clipped: then their sums share
     // the traces' products.
     let shared = valid[1] == valid[0] && valid[2] == valid[0];

@@ -665,12 +665,18 @@ fn every_band(b: &[Band]) -> ((f64, f64), (f64, f64), Option<bool>, Option<(f64,
             du = most(du, most((x.u0 - w.u0).abs(), (x.u1 - w.u1).abs()));
         }
     }
-    let order = match (nonempty, rising, falling) {
+    let order = order_of(nonempty, rising, falling);
+    ((t_lo, t_hi), (u_lo, u_hi), order, nonempty.then_some((dt, du)))
+}
+
+/// A segment's order (see [`Segment`]): rising (`Some(true)`), else falling, where every band
+/// is non-empty; `None` otherwise.
+fn order_of(nonempty: bool, rising: bool, falling: bool) -> Option<bool> {
+    match (nonempty, rising, falling) {
         (true, true, _) => Some(true),
         (true, false, true) => Some(false),
         _ => None,
-    };
-    ((t_lo, t_hi), (u_lo, u_hi), order, nonempty.then_some((dt, du)))
+    }
 }
 
 /// [`every_band`] for an interpolated segment (`b`, every frame's bands) from its `computed`
@@ -725,11 +731,7 @@ fn computed_bands(
         }
         prev = x;
     }
-    let order = match (nonempty, rising, falling) {
-        (true, true, _) => Some(true),
-        (true, false, true) => Some(false),
-        _ => None,
-    };
+    let order = order_of(nonempty, rising, falling);
     // The intervals to look into frame by frame: either side of each extreme frame, and each
     // steepest one with its neighbours; merged, then every frame of them.
     // (As the frames between: intervals `from..to`.)

@@ -803,9 +803,11 @@ impl<'a> AlphaLobes<'a> {
     /// `None` where `alpha` is outside the tables' range.
     pub fn new(tables: &'a LobeTables, alpha: f64) -> Option<Self> {
         let stencil = alpha_stencil(alpha)?;
-        // Room for a search's geometry nodes (18 a lobe, most shared from step to step; two
-        // passes): the map is not grown and rehashed while the first lobes are combined.
-        let combined = KeyMap::with_capacity_and_hasher(2 * ORDER_T * ORDER_U * 2 * 2, Default::default());
+        // Room for a search's geometry nodes: a lobe's stencil for each of the two passes,
+        // and as many again for the nodes its steps add (most are shared from step to step),
+        // so that the map is not grown and rehashed while the first lobes are combined.
+        const STENCIL: usize = ORDER_T * ORDER_U * 2;
+        let combined = KeyMap::with_capacity_and_hasher(2 * STENCIL * 2, Default::default());
         Some(AlphaLobes { tables, alpha, stencil, combined })
     }
 
