@@ -326,11 +326,12 @@ impl std::hash::Hasher for KeyHasher {
 
 /// A geometry node's key: its tilt along `θ` and `u` and its mirror elevation, in steps.
 type GeoKey = [i32; 3];
+/// A map by geometry key ([`AlphaLobes`]' combinations at its `α`).
 type KeyMap<V> = HashMap<GeoKey, V, std::hash::BuildHasherDefault<KeyHasher>>;
 
 /// The `α` nodes of one geometry node `(tilt, tilt, elevation)`, each built on first use. A
-/// pixel finds its geometry nodes once (a map lookup each) and then reaches their `α` nodes
-/// without the map: the lookups and the lock cost as much as combining the nodes.
+/// pixel finds its geometry nodes once ([`LobeTables::geometry`]) and then reaches their `α`
+/// nodes directly.
 #[derive(Default)]
 struct GeoNodes {
     key: [i32; 3],
