@@ -417,7 +417,7 @@ impl LobeTables {
     fn geometry(&self, key: [i32; 3]) -> Option<&GeoNodes> {
         let mut slot = 0;
         for (k, reach) in key.into_iter().zip(KEY_REACH) {
-            if k.abs() > reach {
+            if !(-reach..=reach).contains(&k) {
                 return None;
             }
             slot = slot * (2 * reach + 1) as usize + (k + reach) as usize;
@@ -1250,11 +1250,13 @@ pub(crate) mod tests {
         assert!(refused(&other).contains("other table constants"));
         // A node's key beyond the tables' index (the first node's tilt step along θ, right
         // after magic, fingerprint and count), its checksum made good.
-        let mut far = bytes[..bytes.len() - 4].to_vec();
-        far[20..24].copy_from_slice(&(KEY_REACH[0] + 1).to_le_bytes());
-        let sum = FILE_CRC.checksum(&far);
-        far.extend_from_slice(&sum.to_le_bytes());
-        assert!(refused(&far).contains("outside the tables' range"), "{}", refused(&far));
+        for key in [KEY_REACH[0] + 1, -KEY_REACH[0] - 1, i32::MIN] {
+            let mut far = bytes[..bytes.len() - 4].to_vec();
+            far[20..24].copy_from_slice(&key.to_le_bytes());
+            let sum = FILE_CRC.checksum(&far);
+            far.extend_from_slice(&sum.to_le_bytes());
+            assert!(refused(&far).contains("outside the tables' range"), "{key}: {}", refused(&far));
+        }
         assert!(LobeTables::load(&dir.join("missing.bin")).is_err());
         let _ = std::fs::remove_dir_all(&dir);
     }
