@@ -6,8 +6,8 @@
 //!   tables (`fit_trace_tabled`; warm: the nodes this pixel needs already built, as for all
 //!   but the first pixels of an image; cold: built in the iteration, an upper bound), and
 //!   refitted from that fit with α 1 % off (a session's refit with the blended normals);
-//!   and the normal search on one pixel's two diagonal passes (`fit_normal`), half of a
-//!   session's fit on one thread.
+//!   and the normal search on one pixel's two diagonal passes (`fit_normal`), about a
+//!   quarter of a session's fit on one thread (docs/pipelines/lls.md, "Speed").
 //! - `lls_read`: a stack of 400 16-bit RGB PNG frames (what the virtual camera writes) read
 //!   from disk into memory, per pixel of the frame: the rate at which traces arrive.
 //!
