@@ -15,10 +15,43 @@ use std::vec::Vec;
 use lightrig_protocol::config::Xy;
 use lightrig_protocol::event::Switch;
 use lightrig_protocol::sequence::AxisRef;
-use lightrig_protocol::{MAX_CAMERAS, MAX_FILTER_WHEELS, MAX_LASERS, MAX_STEPPERS, MAX_VOICE_COILS};
+use lightrig_protocol::session::{BoardId, Capabilities, DeviceInfo, ResetCause, Version};
+use lightrig_protocol::{
+    MAX_CAMERAS, MAX_FILTER_WHEELS, MAX_LASERS, MAX_PACKET, MAX_STEPPERS, MAX_VOICE_COILS, PROTOCOL_VERSION,
+    SCHEMA_HASH,
+};
 
 use crate::controller::Clock;
 use crate::hal::{Cameras, Capture, Galvos, HwError, Lasers, Motors, VoiceCoils};
+
+/// What the virtual rig's controller says of itself: a [`SimBoard`] behind a
+/// [`crate::Controller`] at 1 MHz (host µs = device ticks). Its `boot_id` is 0: whoever starts
+/// a virtual device gives it a fresh one, as a real device's differs at every start.
+pub fn virtual_device_info() -> DeviceInfo {
+    DeviceInfo {
+        protocol_version: PROTOCOL_VERSION,
+        schema_hash: SCHEMA_HASH,
+        firmware: Version { major: 0, minor: 1, patch: 0 },
+        board: BoardId::Virtual,
+        serial: 0,
+        tick_hz: 1_000_000,
+        reset_cause: ResetCause::PowerOn,
+        boot_id: 0,
+        capabilities: Capabilities {
+            galvos: 1,
+            lasers: 3,
+            steppers: 2,
+            filter_wheels: 1,
+            voice_coils: 2,
+            partials_per_coil: 8,
+            cameras: MAX_CAMERAS as u8,
+            sequence_buffer: 256,
+            event_queue: 64,
+            link_window: 8,
+            max_packet: MAX_PACKET as u16,
+        },
+    }
+}
 
 /// Simulated device time, shared by clones (1 tick = 1/`tick_hz` s).
 #[derive(Debug, Clone, Default)]

@@ -2,7 +2,7 @@
 //! written and read back block by block does not grow with the number of frames (a counting
 //! allocator; this binary holds this one test so that nothing else allocates meanwhile).
 
-use lightrig_host::lls_stack::{block_pixels, Block, TraceStack};
+use lightrig_host::fit::lls::stack::{block_pixels, Block, TraceStack};
 
 #[path = "support/counting_alloc.rs"]
 mod counting_alloc;

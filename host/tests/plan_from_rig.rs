@@ -2,9 +2,9 @@
 
 use std::path::PathBuf;
 
+use lightrig_firmware::sim::virtual_device_info;
 use lightrig_host::plan::from_rig;
 use lightrig_host::rigfile::RigFile;
-use lightrig_host::selfcheck::virtual_device_info;
 use lightrig_protocol::sequence::Action;
 
 fn example(name: &str) -> PathBuf {

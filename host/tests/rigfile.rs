@@ -3,8 +3,8 @@
 
 use std::path::{Path, PathBuf};
 
+use lightrig_firmware::sim::virtual_device_info;
 use lightrig_host::rigfile::{ticks_from_ms, ticks_from_us, Connect, FrameSource, Method, RigFile};
-use lightrig_host::selfcheck::virtual_device_info;
 use lightrig_protocol::config::{
     AxisKind, ConfigItem, DacKind, HomingMode, Input, Polarity, Ratio, StepRange, StepperConfig,
 };

@@ -8,8 +8,8 @@ use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::{Duration, Instant};
 
+use lightrig_firmware::sim::virtual_device_info;
 use lightrig_host::client::EventRecord;
-use lightrig_host::selfcheck::virtual_device_info;
 use lightrig_host::session::{
     crc32, crc_of_file, decode_line, encode_line, pair, Arrival, CameraTriggers, Damage, Extra, ExtraReason,
     Manifest, Pair, Pairing, PlanStep, PlanSummary, Record, Session, SessionError, State, Trigger, JOURNAL,

@@ -16,7 +16,7 @@
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use lightrig_imaging::io::{read_with, write_png, BitDepth, Encoding, Image, ReadOptions};
-use lightrig_pipelines::linear_light::{response, Quadrature, Tube};
+use lightrig_pipelines::lls::linear_light::{response, Quadrature, Tube};
 use lightrig_pipelines::lls::{
     fit_normal, fit_trace, fit_trace_tabled, LobeTables, PassTrace, Sweep, TraceFit, TraceModel,
 };

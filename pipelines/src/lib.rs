@@ -4,14 +4,13 @@
 //! - [`vec3`]: the small vector algebra everything here uses.
 //! - [`quad`]: Gauss–Legendre quadrature.
 //! - [`ward`]: the isotropic Ward (1992) BRDF.
-//! - [`linear_light`]: a cylindrical light source's diffuse and specular response at a surface
-//!   point, integrated numerically over its width and length (the virtual camera renders
-//!   with it; the fit's faster [`lls::TraceModel`] is tested against it).
-//! - [`lls`]: the linear light source reflectometry fit (Gardner et al. 2003).
+//! - [`lls`]: the linear light source reflectometry fit (Gardner et al. 2003), and
+//!   [`lls::linear_light`], a cylindrical light source's diffuse and specular response at a
+//!   surface point integrated numerically over its width and length (the virtual camera
+//!   renders with it; the fit's faster [`lls::TraceModel`] is tested against it).
 //! - [`firs`]: fluorescent immersion range scanning (Hullin et al. 2008).
 
 pub mod firs;
-pub mod linear_light;
 pub mod lls;
 pub mod quad;
 pub mod vec3;

@@ -4,8 +4,8 @@
 //! time, so a test can inject its own bytes and inspect both ends.
 
 use lightrig_firmware::sim::SimBoard;
+use lightrig_firmware::sim::{virtual_device_info, SimClock};
 use lightrig_firmware::Controller;
-use lightrig_host::selfcheck::{virtual_device_info, SimClock};
 use lightrig_protocol::link::{Delivery, Link, LinkConfig, Role};
 use lightrig_protocol::session::DeviceInfo;
 use lightrig_protocol::{Command, DeviceMsg, HostMsg, MAX_FRAME};

@@ -28,7 +28,7 @@
 use lightrig_protocol::config::{AxisKind, Xy};
 use lightrig_protocol::session::DeviceInfo;
 
-use super::{brdf_display, disco, immersion, lls, Plan};
+use super::{disco, display, firs, lls, Plan};
 use crate::rigfile::{ticks_from_ms, ticks_from_us, Camera, Method, RigError, RigFile};
 
 /// Default bytes per frame for the data-volume estimate: a 5 MP 16-bit frame.
@@ -327,7 +327,7 @@ fn immersion_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         None => true,
         Some(v) => v.as_bool().ok_or_else(|| rig.error("plan.calibration", "must be true or false"))?,
     };
-    let p = immersion::ImmersionParams {
+    let p = firs::ImmersionParams {
         turntable,
         orientations,
         laser,
@@ -343,7 +343,7 @@ fn immersion_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         frame_bytes: frame_bytes(rig)?,
         tick_hz: hz,
     };
-    immersion::plan_with_targets(&p, &targets(rig)?).map_err(|e| rig.error("plan", e.0))
+    firs::plan_with_targets(&p, &targets(rig)?).map_err(|e| rig.error("plan", e.0))
 }
 
 /// `[plan] calibration_targets`: the calibration target's positions, front to back, each a
@@ -408,7 +408,7 @@ fn display_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
             })
             .collect();
         let channels = rig.voice_coils.iter().map(|c| (c.channel, partials.clone())).collect();
-        targets.push(brdf_display::Target { name: name.clone(), channels });
+        targets.push(display::Target { name: name.clone(), channels });
     }
     let cameras = plan_cameras(rig)?;
     let exposure = exposure(rig, &cameras, hz)?;
@@ -417,7 +417,7 @@ fn display_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         ticks_from_ms(v, hz)
             .ok_or_else(|| rig.error(&format!("plan.{key}"), format!("{v} ms is out of range")))
     };
-    let p = brdf_display::DisplayParams {
+    let p = display::DisplayParams {
         targets,
         ramp: ms("ramp_ms", 200.0)?,
         settle: ms("settle_ms", 2000.0)?,
@@ -428,11 +428,11 @@ fn display_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         frame_bytes: frame_bytes(rig)?,
         tick_hz: hz,
     };
-    brdf_display::plan(&p).map_err(|e| rig.error("plan", e.0))
+    display::plan(&p).map_err(|e| rig.error("plan", e.0))
 }
 
 fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
-    use super::bispectral::{self, Pair};
+    use super::brrdf::{self, Pair};
     let hz = info.tick_hz;
     let axis = |name: &str| {
         rig.stepper_named(name).ok_or_else(|| {
@@ -522,7 +522,7 @@ fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         None => vec![pulse(rig, &cameras, hz)?],
     };
     let readout = us(rig, "readout_us", num(rig, "readout_us", Some(1000.0))?, hz)?;
-    let p = bispectral::BispectralParams {
+    let p = brrdf::BispectralParams {
         sample_axis: sample.axis,
         light_axis: light.axis,
         geometries,
@@ -536,7 +536,7 @@ fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         frame_bytes: frame_bytes(rig)?,
         tick_hz: hz,
     };
-    bispectral::plan(&p).map_err(|e| rig.error("plan", e.0))
+    brrdf::plan(&p).map_err(|e| rig.error("plan", e.0))
 }
 
 #[cfg(test)]
@@ -557,7 +557,7 @@ mod tests {
 
     #[test]
     fn calibration_targets_become_board_and_sweep_steps() {
-        let info = crate::selfcheck::virtual_device_info();
+        let info = lightrig_firmware::sim::virtual_device_info();
         let plan =
             super::plan(&rig_with("calibration_targets = [{ z_mm = -12.0 }, { z_mm = 8 }]"), &info).unwrap();
         // Two positions × (board, sweep), then 2 views.

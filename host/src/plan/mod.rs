@@ -10,11 +10,11 @@
 //! before a planner sees them. Planners are plain functions of their parameters: no device, no
 //! I/O, so they are tested alone and their output is deterministic.
 
-pub mod bispectral;
-pub mod brdf_display;
+pub mod brrdf;
 pub mod disco;
+pub mod display;
+pub mod firs;
 pub mod from_rig;
-pub mod immersion;
 pub mod lls;
 
 use lightrig_protocol::sequence::{Action, AxisRef, Item, Profile, WaitFor};

@@ -29,6 +29,23 @@ pub struct Layer {
     pub image: Image,
 }
 
+impl Layer {
+    /// A layer of linear `w × h` data, `channels.len()` samples a pixel, named as `channels`.
+    pub fn linear(name: &str, channels: &[&str], w: u32, h: u32, data: Vec<f32>) -> Self {
+        Layer {
+            name: name.into(),
+            channels: channels.iter().map(|c| c.to_string()).collect(),
+            image: Image {
+                width: w,
+                height: h,
+                channels: channels.len() as u8,
+                data,
+                encoding: Encoding::Linear,
+            },
+        }
+    }
+}
+
 /// Custom layer attribute recording the caller's channel order: EXR stores channels sorted by name,
 /// which would turn `R, G, B` into `B, G, R`.
 const ORDER_ATTRIBUTE: &str = "lightrigChannelOrder";

@@ -960,7 +960,7 @@ pub fn strip_scale_of(ratios: &[[Option<f64>; 3]]) -> Option<[f64; 3]> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::linear_light::{response, Quadrature, Tube};
+    use crate::lls::linear_light::{response, Quadrature, Tube};
 
     #[test]
     fn stripe_peak_is_exact_for_a_gaussian() {

@@ -20,6 +20,9 @@
 //!    per trial.
 //! 5. Translucency: backlit over light box.
 //!
+//! [`linear_light`] is the independent forward model: the tube integrated numerically (the
+//! virtual camera renders with it; [`TraceModel`] is tested against it).
+//!
 //! **Vector code.** A few innermost loops (the tables' weighted sums, the bands' quintics,
 //! the normal search's sums of products) are compiled twice, for the build's baseline and for
 //! AVX2, and the machine's best is picked at run time (`multiversion`). Both do the same
@@ -29,6 +32,7 @@
 //! for it on one thread.
 
 mod fit;
+pub mod linear_light;
 mod model;
 mod table;
 
@@ -43,8 +47,8 @@ pub use fit::{
 use lightrig_imaging::calib::{find_chessboard, pixel_ray, pose_from_board, Board, Intrinsics, Pose};
 use lightrig_imaging::io::Image;
 
-use crate::linear_light::Tube;
 use crate::vec3::V3;
+use linear_light::Tube;
 
 /// The light tube on the gantry, millimetres.
 #[derive(Debug, Clone, Copy, PartialEq)]

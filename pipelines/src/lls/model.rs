@@ -1,6 +1,6 @@
 //! A pixel's model traces over a whole pass, integrated in direction space: every frame's
 //! diffuse response `D_k` and specular response `S_k(α)` for the price of one integration per
-//! trial `(n, α)` instead of one per frame (which is what [`crate::linear_light::response`]
+//! trial `(n, α)` instead of one per frame (which is what [`crate::lls::linear_light::response`]
 //! costs, and why the fit used to take minutes).
 //!
 //! **Why it works.** Seen from a point `p`, parametrise directions in the tube's frame (axis
@@ -17,20 +17,20 @@
 //! their own weights, the panels a band edge cuts with the integrals of their Lagrange basis
 //! polynomials up to the edge.
 //!
-//! **Approximations**, each tested against [`crate::linear_light::response`] at high order:
+//! **Approximations**, each tested against [`crate::lls::linear_light::response`] at high order:
 //! - `ρ` varies across a band (from `d − r` at its centre to `√(d² − r²)` at its edges), so
 //!   the `u` limits do too; we use their mean over the band, which makes the error second
 //!   order. It matters only where the lobe reaches the tube's ends (broad lobes).
 //! - The grid stops `12α` from the mirror direction, where the lobe is below `e⁻³⁶`.
 //! - The diffuse lobe uses the same mean limits and is then closed form per frame:
 //!   `∫ cos²u du = (u + sin u cos u)/2`, `∫ sin u cos u du = sin²u/2`, and the `θ` integrals
-//!   of `cos θ`, `sin θ`; as in [`crate::linear_light::diffuse_vector`], `D = n·E`.
+//!   of `cos θ`, `sin θ`; as in [`crate::lls::linear_light::diffuse_vector`], `D = n·E`.
 
 use std::f64::consts::{FRAC_1_PI, PI};
 use std::sync::OnceLock;
 
 use super::table::{lobe_geometry, AlphaLobes, LobeTables, PixelLobes, TableLobe};
-use crate::linear_light::{hides_local, mirror, turn, Tube};
+use crate::lls::linear_light::{hides_local, mirror, turn, Tube};
 use crate::quad::gauss_legendre;
 use crate::vec3::{dot, normalize, V3};
 
@@ -791,7 +791,7 @@ impl Sweep {
     }
 
     /// Whether each frame's tube, widened by `margin` (mm), hides point `p` from a camera in
-    /// unit direction `v`: [`crate::linear_light::hidden_by`]'s flags, tested only on the
+    /// unit direction `v`: [`crate::lls::linear_light::hidden_by`]'s flags, tested only on the
     /// frames where the tube comes near the view ray (a few of an evenly spaced run; the
     /// test on every frame of every pass had been a thirtieth of the fit).
     pub fn hidden(&self, p: V3, v: V3, margin: f64) -> Vec<bool> {
@@ -1321,7 +1321,7 @@ fn sample_stride(s: &Segment, lobe: &TableLobe, any: bool) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::linear_light::{response, Quadrature};
+    use crate::lls::linear_light::{response, Quadrature};
 
     #[test]
     fn partial_weights_integrate_polynomials() {
@@ -1592,7 +1592,7 @@ mod tests {
                 assert_eq!(sweep.runs.iter().filter(|r| !r.2).count(), 1);
                 for margin in [0.0, 1.0] {
                     let got = sweep.hidden(p, v, margin);
-                    assert_eq!(got, crate::linear_light::hidden_by(p, v, &tubes, margin), "{p:?} {v:?}");
+                    assert_eq!(got, crate::lls::linear_light::hidden_by(p, v, &tubes, margin), "{p:?} {v:?}");
                     hidden += got.iter().filter(|&&h| h).count();
                 }
                 // The frames tested: those where the widened tube (14 mm across) meets the view

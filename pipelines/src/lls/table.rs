@@ -28,7 +28,7 @@ use std::collections::HashMap;
 use std::f64::consts::PI;
 use std::sync::{Arc, OnceLock};
 
-use crate::linear_light::mirror;
+use crate::lls::linear_light::mirror;
 use crate::quad::gauss_legendre;
 use crate::vec3::{dot, normalize, V3};
 
@@ -1145,9 +1145,14 @@ pub(crate) mod tests {
         let tables = LobeTables::new();
         let mut worst = vec![0f64; alphas.len()];
         for (p, n, v, yaw) in rig_cases() {
-            let tubes: Vec<crate::linear_light::Tube> = (0..300)
+            let tubes: Vec<crate::lls::linear_light::Tube> = (0..300)
                 .map(|k| {
-                    crate::linear_light::Tube::through([-140.0 + 0.8 * k as f64, 0.0, 50.0], yaw, 6.0, 300.0)
+                    crate::lls::linear_light::Tube::through(
+                        [-140.0 + 0.8 * k as f64, 0.0, 50.0],
+                        yaw,
+                        6.0,
+                        300.0,
+                    )
                 })
                 .collect();
             let model = super::super::TraceModel::new(p, v, &tubes);
@@ -1171,7 +1176,7 @@ pub(crate) mod tests {
         let tables = LobeTables::new();
         let mut widest = 0f64;
         for (_, n, v, yaw) in rig_cases() {
-            let turn = |a: V3| crate::linear_light::turn(a, -yaw);
+            let turn = |a: V3| crate::lls::linear_light::turn(a, -yaw);
             let Some(geo) = lobe_geometry(turn(n), turn(v)) else { continue };
             for alpha in [0.02, 0.04, 0.1, 0.3, 0.6] {
                 let Some(lobe) = tables.lobe(&geo, alpha) else { continue };
@@ -1293,7 +1298,7 @@ pub(crate) mod tests {
         for alpha in [0.04, 0.0448, 0.13, 0.3] {
             let mut fixed = AlphaLobes::new(&tables, alpha).unwrap();
             for (_, n, v, yaw) in rig_cases().into_iter().step_by(5) {
-                let turn = |a: V3| crate::linear_light::turn(a, -yaw);
+                let turn = |a: V3| crate::lls::linear_light::turn(a, -yaw);
                 let Some(geo) = lobe_geometry(turn(n), turn(v)) else { continue };
                 let (Some(mut want), Some(mut got)) = (tables.lobe(&geo, alpha), fixed.lobe(geo)) else {
                     continue;
@@ -1364,15 +1369,15 @@ pub(crate) mod tests {
                 let n = normalize(n);
                 for yaw in [15f64, -15.0] {
                     let yaw = yaw.to_radians();
-                    let turn = |a: V3| crate::linear_light::turn(a, -yaw);
+                    let turn = |a: V3| crate::lls::linear_light::turn(a, -yaw);
                     let geo = lobe_geometry(turn(n), turn(v)).unwrap();
                     if geo.tilt[0].abs() + geo.tilt[1].abs() + 0.22 > MAX_TILT {
                         assert!(tables.lobe(&geo, 0.1).is_some(), "{geo:?}");
                         tabled += 1;
                     }
-                    let tubes: Vec<crate::linear_light::Tube> = (0..300)
+                    let tubes: Vec<crate::lls::linear_light::Tube> = (0..300)
                         .map(|k| {
-                            crate::linear_light::Tube::through(
+                            crate::lls::linear_light::Tube::through(
                                 [-140.0 + 0.8 * k as f64, 0.0, 50.0],
                                 yaw,
                                 6.0,

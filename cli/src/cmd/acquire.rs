@@ -1,0 +1,367 @@
+//! `lightrig acquire` and `lightrig resume`: a rig file's plan, run into a session directory.
+
+use std::path::{Path, PathBuf};
+
+use lightrig_firmware::sim::virtual_device_info;
+use lightrig_host::acquire::{
+    self, plan_summary, Captured, DirectoryInput, FrameInput, Progress, StepPreparation,
+};
+use lightrig_host::bringup::{bring_up_on, reconnect_backoff_ms, RECONNECT_ATTEMPTS};
+use lightrig_host::client::{Client, ClientError};
+use lightrig_host::plan::{from_rig, Plan, Step};
+use lightrig_host::rigfile::{self, FrameSource, RigFile};
+use lightrig_host::session::{Manifest, PlanStep, Session};
+use lightrig_host::transport::{Connect, Transport};
+use lightrig_protocol::event::TriggerEvent;
+use lightrig_protocol::session::DeviceInfo;
+use lightrig_sim::camera::VirtualCamera;
+use lightrig_sim::scenes::scene_for;
+use lightrig_sim::timeline::Timeline;
+use lightrig_sim::transport::connect_for_camera;
+
+use crate::error::{err, CliError, DEVICE, FAILURE, INPUT};
+
+/// Arguments of `lightrig acquire`.
+#[derive(Debug, clap::Args)]
+pub struct AcquireArgs {
+    /// The rig file (see docs/rigs).
+    pub rig: PathBuf,
+    /// Session directory to create.
+    #[arg(long)]
+    pub session: PathBuf,
+    /// Override the rig file's `[device] connect`.
+    #[arg(long)]
+    pub connect: Option<Connect>,
+    /// Take what steps ask of a person or of host instruments (`meta.operator`,
+    /// `meta.host`) as done, without asking: for scripts on a rig set up beforehand.
+    #[arg(long)]
+    pub yes: bool,
+}
+
+/// Arguments of `lightrig resume`.
+#[derive(Debug, clap::Args)]
+pub struct ResumeArgs {
+    /// Session directory.
+    pub session: PathBuf,
+    /// The original rig file (for its relative paths; must be unchanged).
+    #[arg(long)]
+    pub rig: Option<PathBuf>,
+    /// Override the rig file's `[device] connect`.
+    #[arg(long)]
+    pub connect: Option<Connect>,
+    /// Take what steps ask of a person or of host instruments (`meta.operator`,
+    /// `meta.host`) as done, without asking: for scripts on a rig set up beforehand.
+    #[arg(long)]
+    pub yes: bool,
+}
+
+fn connect_spec(rig: &RigFile, over: Option<&Connect>) -> Connect {
+    over.cloned().unwrap_or_else(|| match &rig.connect {
+        rigfile::Connect::Virtual => Connect::Virtual,
+        rigfile::Connect::Serial { port, baud } => Connect::Serial { path: port.clone(), baud: *baud },
+        rigfile::Connect::Usb => Connect::Usb { serial: None },
+    })
+}
+
+/// Opens the link `spec` names. The virtual device is wired as the rig file says (switch
+/// polarities, interlocks) and comes with its timeline, for a virtual camera to follow.
+fn open(rig: &RigFile, spec: &Connect) -> Result<(Box<dyn Transport>, Option<Timeline>), CliError> {
+    Ok(match spec {
+        Connect::Virtual => {
+            let (t, timeline) = connect_for_camera(rig, virtual_device_info(), false);
+            (Box::new(t), Some(timeline))
+        }
+        _ => (spec.open().map_err(|e| err(DEVICE, e.to_string()))?, None),
+    })
+}
+
+/// Where a virtual camera writes its files inside a session directory (scratch: the session
+/// stores its own copy of each frame; removed when the session completes).
+pub const VIRTUAL_CAMERA_DIR: &str = "virtual-camera";
+
+/// The frame inputs of the rig's cameras, as one. A virtual camera renders
+/// [`scene_for`] the rig into `session/virtual-camera/camN/`, following the
+/// virtual device's `timeline` if it runs on one (else from each trigger's snapshot: a real
+/// controller with no camera attached).
+fn frame_input(
+    rig: &RigFile,
+    session: &Path,
+    timeline: Option<Timeline>,
+    tick_hz: u32,
+) -> Result<Box<dyn FrameInput>, CliError> {
+    if rig.cameras.is_empty() {
+        return Err(err(INPUT, format!("{}: the rig has no [[camera]]", rig.path.display())));
+    }
+    let scratch = session.join(VIRTUAL_CAMERA_DIR);
+    // Files of an earlier run would hide this run's files of the same numbers.
+    if scratch.exists() {
+        std::fs::remove_dir_all(&scratch).map_err(|e| err(FAILURE, format!("{}: {e}", scratch.display())))?;
+    }
+    let mut inputs: Vec<Box<dyn FrameInput>> = Vec::new();
+    for cam in &rig.cameras {
+        inputs.push(match &cam.source {
+            FrameSource::Directory { dir, pattern } => {
+                Box::new(DirectoryInput::new(cam.camera, dir, pattern).map_err(|e| err(INPUT, e))?)
+            }
+            FrameSource::Virtual => {
+                let dir = scratch.join(format!("cam{}", cam.camera));
+                let (scene, sensor) = scene_for(rig, 1 + u64::from(cam.camera));
+                let mut camera = VirtualCamera::new(rig, cam.camera, scene, sensor, tick_hz, &dir)
+                    .map_err(|e| err(FAILURE, format!("{}: {e}", dir.display())))?;
+                match &timeline {
+                    // The in-process device's time waits for the camera: render in step.
+                    Some(t) => {
+                        camera.follow(t.clone());
+                        Box::new(camera)
+                    }
+                    // A controller in real time must not wait on the rendering.
+                    None => Box::new(acquire::Background::new(Box::new(camera))),
+                }
+            }
+        });
+    }
+    Ok(Box::new(acquire::Cameras(inputs)))
+}
+
+/// Checks the directory sources before connecting, so a wrong path fails at once.
+fn check_sources(rig: &RigFile) -> Result<(), CliError> {
+    if rig.cameras.is_empty() {
+        return Err(err(INPUT, format!("{}: the rig has no [[camera]]", rig.path.display())));
+    }
+    for cam in &rig.cameras {
+        if let FrameSource::Directory { dir, pattern } = &cam.source {
+            DirectoryInput::new(cam.camera, dir, pattern).map_err(|e| err(INPUT, e))?;
+        }
+    }
+    Ok(())
+}
+
+/// How `acquire` and `resume` meet what a step asks of the host ([`acquire::step_requests`]):
+/// on the virtual rig its instruments do it; else a person is asked at the terminal, or with
+/// `--yes` it is taken as done (a scripted run on a rig set up beforehand).
+pub struct OperatorPrompt {
+    /// The device is the virtual rig.
+    pub virtual_rig: bool,
+    /// `--yes`.
+    pub assume_done: bool,
+}
+
+impl StepPreparation for OperatorPrompt {
+    fn prepare(&mut self, step: &Step, requests: &[String]) -> Result<String, String> {
+        use std::io::{BufRead, IsTerminal};
+        let list = requests.join("; ");
+        if self.virtual_rig {
+            eprintln!("\nstep {} ({}): the virtual rig does: {list}", step.id, step.name);
+            return Ok("virtual".into());
+        }
+        eprintln!("\nstep {} ({}) needs:", step.id, step.name);
+        for r in requests {
+            eprintln!("  - {r}");
+        }
+        if self.assume_done {
+            eprintln!("  (--yes: taken as done)");
+            return Ok("assumed".into());
+        }
+        let stdin = std::io::stdin();
+        if !stdin.is_terminal() {
+            return Err(format!(
+                "step {} ({}) needs a person: {list}. Run `lightrig resume` in a terminal to be asked, \
+                 or pass --yes if the rig is already set up that way",
+                step.id, step.name
+            ));
+        }
+        eprint!("press Enter when done (q, Enter: stop here): ");
+        let mut line = String::new();
+        stdin.lock().read_line(&mut line).map_err(|e| format!("reading the answer: {e}"))?;
+        if line.trim().eq_ignore_ascii_case("q") {
+            return Err(format!("stopped by the operator before step {} ({})", step.id, step.name));
+        }
+        Ok("operator".into())
+    }
+}
+
+struct Boxed<'a>(&'a mut dyn FrameInput);
+
+impl FrameInput for Boxed<'_> {
+    fn begin_step(&mut self, step: &Step) -> std::io::Result<()> {
+        self.0.begin_step(step)
+    }
+    fn on_trigger(&mut self, t: &TriggerEvent, h: Option<f64>) -> std::io::Result<()> {
+        self.0.on_trigger(t, h)
+    }
+    fn poll(&mut self, now: f64) -> std::io::Result<Vec<Captured>> {
+        self.0.poll(now)
+    }
+}
+
+fn print_summary(plan: &Plan, info: &DeviceInfo) {
+    let s = plan.summary();
+    eprintln!(
+        "plan: {} ({} steps, {} frames, at least {:.0} s, {:.1} GB) on {:?} at {} Hz",
+        plan.method,
+        s.steps,
+        s.triggers,
+        s.min_duration_us as f64 / 1e6,
+        s.bytes as f64 / 1e9,
+        info.board,
+        info.tick_hz
+    );
+}
+
+fn progress_printer(start: std::time::Instant) -> impl FnMut(Progress) {
+    move |p: Progress| {
+        let elapsed = start.elapsed().as_secs_f64().max(1e-3);
+        let done = p.steps_done.max(1) as f64;
+        let eta = elapsed / done * (p.steps - p.steps_done) as f64;
+        let bar = (20 * p.steps_done / p.steps.max(1)).min(20);
+        eprint!(
+            "\r[{}{}] step {}/{}  {} frames  {:.1} frames/s  ETA {:.0} s   ",
+            "=".repeat(bar),
+            " ".repeat(20 - bar),
+            p.steps_done,
+            p.steps,
+            p.frames,
+            p.frames as f64 / elapsed,
+            eta
+        );
+    }
+}
+
+fn run(
+    client: Client<Box<dyn Transport>>,
+    rig: &RigFile,
+    spec: &Connect,
+    session: &mut Session,
+    plan: &Plan,
+    input: &mut dyn FrameInput,
+    prep: &mut OperatorPrompt,
+) -> Result<(), CliError> {
+    let start = std::time::Instant::now();
+    // A real device that goes away (unplug, port reset) is waited for and brought up again;
+    // the virtual one lives in this process and cannot.
+    let attempts = if *spec == Connect::Virtual { 0 } else { RECONNECT_ATTEMPTS };
+    let mut reconnect = |old: Option<Box<dyn Transport>>, k: u32| {
+        drop(old); // close the old port before opening it again
+        std::thread::sleep(std::time::Duration::from_millis(reconnect_backoff_ms(k)));
+        let (t, _) = open(rig, spec).map_err(|e| client_error(spec, e))?;
+        bring_up_on(rig, t).map_err(|e| client_error(spec, e.into()))
+    };
+    let r = acquire::run_reconnecting(
+        client,
+        &mut reconnect,
+        attempts,
+        session,
+        plan,
+        &mut Boxed(input),
+        prep,
+        progress_printer(start),
+        |m| eprintln!("\n{m}"),
+    );
+    eprintln!();
+    r.map_err(|e| match e {
+        acquire::AcquireError::Preparation(_) => err(FAILURE, e.to_string()),
+        _ => err(DEVICE, e.to_string()),
+    })?;
+    let scratch = session.dir().join(VIRTUAL_CAMERA_DIR);
+    if scratch.exists() {
+        std::fs::remove_dir_all(&scratch).map_err(|e| err(FAILURE, format!("{}: {e}", scratch.display())))?;
+    }
+    eprintln!("session complete: {}", session.dir().display());
+    Ok(())
+}
+
+/// A bring-up failure during reconnection, as the client error the engine reports.
+fn client_error(spec: &Connect, e: CliError) -> ClientError {
+    ClientError::Io { device: spec.to_string(), error: std::io::Error::other(e.message) }
+}
+
+/// `lightrig acquire RIG --session DIR [--yes]`.
+pub fn acquire(
+    rig_path: &Path,
+    dir: &Path,
+    over: Option<&Connect>,
+    assume_done: bool,
+) -> Result<(), CliError> {
+    let rig = RigFile::load(rig_path).map_err(|e| err(INPUT, e.to_string()))?;
+    let text =
+        std::fs::read_to_string(rig_path).map_err(|e| err(INPUT, format!("{}: {e}", rig_path.display())))?;
+    if dir.join("manifest.json").exists() {
+        return Err(err(
+            INPUT,
+            format!("{} already holds a session; continue it with `lightrig resume {0}`", dir.display()),
+        ));
+    }
+    check_sources(&rig)?;
+    let spec = connect_spec(&rig, over);
+    let (transport, timeline) = open(&rig, &spec)?;
+    let client = bring_up_on(&rig, transport)?;
+    let plan = from_rig::plan(&rig, client.info()).map_err(|e| err(INPUT, e.to_string()))?;
+    print_summary(&plan, client.info());
+    let manifest = Manifest::new(text, client.info(), plan_summary(&plan));
+    let mut session = Session::create(dir, manifest).map_err(|e| err(INPUT, e.to_string()))?;
+    let mut input = frame_input(&rig, dir, timeline, client.info().tick_hz)?;
+    let mut prep = OperatorPrompt { virtual_rig: spec == Connect::Virtual, assume_done };
+    run(client, &rig, &spec, &mut session, &plan, input.as_mut(), &mut prep)
+}
+
+/// `lightrig resume DIR [--rig RIG] [--yes]`: the session's own rig file (the copy in its
+/// manifest; `rig` says where the original lives, for its relative paths, and must be
+/// unchanged), planned again and checked against the manifest, then the steps not yet done.
+pub fn resume(
+    dir: &Path,
+    rig_path: Option<&Path>,
+    over: Option<&Connect>,
+    assume_done: bool,
+) -> Result<(), CliError> {
+    let (mut session, recovery) = Session::open(dir).map_err(|e| err(INPUT, e.to_string()))?;
+    eprintln!("resuming {}: {recovery:?}", dir.display());
+    if session.is_done() {
+        eprintln!("{}: the session is already complete", dir.display());
+        return Ok(());
+    }
+    let text = session.manifest().rig.clone();
+    let base: PathBuf = match rig_path {
+        Some(p) => {
+            let now = std::fs::read_to_string(p).map_err(|e| err(INPUT, format!("{}: {e}", p.display())))?;
+            if now != text {
+                return Err(err(
+                    INPUT,
+                    format!(
+                        "{} changed since the session started; resume with the original rig file",
+                        p.display()
+                    ),
+                ));
+            }
+            p.to_path_buf()
+        }
+        None => PathBuf::from("rig.toml"),
+    };
+    let rig = RigFile::parse(&text, &base).map_err(|e| err(INPUT, e.to_string()))?;
+    check_sources(&rig)?;
+    let spec = connect_spec(&rig, over);
+    let (transport, timeline) = open(&rig, &spec)?;
+    let client = bring_up_on(&rig, transport)?;
+    let plan = from_rig::plan(&rig, client.info()).map_err(|e| err(INPUT, e.to_string()))?;
+    if !same_steps(&plan_summary(&plan).steps, &session.manifest().plan.steps) {
+        return Err(err(
+            INPUT,
+            "the rig file's plan no longer matches the session's (a different device tick rate or a changed \
+             planner); finish it with the host version that started it",
+        ));
+    }
+    print_summary(&plan, client.info());
+    let mut input = frame_input(&rig, dir, timeline, client.info().tick_hz)?;
+    let mut prep = OperatorPrompt { virtual_rig: spec == Connect::Virtual, assume_done };
+    run(client, &rig, &spec, &mut session, &plan, input.as_mut(), &mut prep)
+}
+
+/// Whether a re-made plan is the one a session started with: the same steps (ids, names,
+/// triggers per camera, `meta`). Sessions written before plans were lazy also kept each shot's
+/// label (`extra.shots`); those are not compared.
+fn same_steps(now: &[PlanStep], then: &[PlanStep]) -> bool {
+    now.len() == then.len()
+        && now.iter().zip(then).all(|(a, b)| {
+            (a.id, &a.name, &a.triggers, a.extra.get("meta"))
+                == (b.id, &b.name, &b.triggers, b.extra.get("meta"))
+        })
+}

@@ -1,0 +1,126 @@
+//! `lightrig devices`, `lightrig info` and `lightrig schema`: what is attached, what a device
+//! says about itself, and what this build speaks.
+
+use std::process::ExitCode;
+
+use lightrig_host::client::Client;
+use lightrig_host::transport::{candidates, Connect, Transport};
+use lightrig_protocol::{MAX_FRAME, MAX_PACKET, PROTOCOL_VERSION, SCHEMA_HASH};
+
+use crate::error::{DEVICE, USAGE};
+
+/// Arguments of `lightrig devices`.
+#[derive(Debug, clap::Args)]
+pub struct DevicesArgs {
+    /// Say Hello to every port (a port that is not a lightrig controller costs a 3 s timeout).
+    #[arg(long)]
+    pub probe: bool,
+    /// Machine-readable output.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Arguments of `lightrig info`.
+#[derive(Debug, clap::Args)]
+pub struct InfoArgs {
+    /// `virtual`, `serial:PATH[@BAUD]`, `usb` or `usb:SERIAL`.
+    #[arg(long, default_value = "virtual")]
+    pub connect: Connect,
+    /// Machine-readable output.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn connect(spec: &Connect) -> Result<Client<Box<dyn Transport>>, (u8, String)> {
+    let transport = lightrig_sim::transport::open(spec).map_err(|e| (DEVICE, e.to_string()))?;
+    let nonce = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.subsec_nanos() ^ (d.as_secs() as u32))
+        .unwrap_or(1);
+    Client::connect(transport, nonce).map_err(|e| (DEVICE, e.to_string()))
+}
+
+fn info_json(c: &Client<Box<dyn Transport>>) -> serde_json::Value {
+    let i = c.info();
+    serde_json::json!({
+        "device": c.transport().describe(),
+        "board": format!("{:?}", i.board),
+        "firmware": format!("{}.{}.{}", i.firmware.major, i.firmware.minor, i.firmware.patch),
+        "protocol_version": i.protocol_version,
+        "schema_hash": format!("0x{:016x}", i.schema_hash),
+        "serial": i.serial,
+        "tick_hz": i.tick_hz,
+        "reset_cause": format!("{:?}", i.reset_cause),
+        "boot_id": i.boot_id,
+        "capabilities": format!("{:?}", i.capabilities),
+        "clock": {
+            "rate_ppm": c.clock().rate().map(|r| (r * 1e6 / f64::from(i.tick_hz) - 1.0) * 1e6),
+            "residual_ticks": c.clock().residual(),
+            "min_rtt_us": c.clock().min_rtt_us(),
+        },
+    })
+}
+
+/// `lightrig devices [--probe] [--json]`.
+pub fn devices(args: &DevicesArgs) -> ExitCode {
+    let mut rows = Vec::new();
+    for c in candidates() {
+        let answer = if args.probe {
+            match c.connect.parse::<Connect>().map_err(|e| (USAGE, e)).and_then(|s| connect(&s)) {
+                Ok(client) => Some(info_json(&client)),
+                Err((_, e)) => Some(serde_json::json!({ "error": e })),
+            }
+        } else {
+            None
+        };
+        rows.push(serde_json::json!({ "connect": c.connect, "description": c.description, "hello": answer }));
+    }
+    if args.json {
+        println!("{}", serde_json::Value::Array(rows));
+    } else if rows.is_empty() {
+        println!(
+            "no serial ports or USB controllers found (the virtual rig is always there: --connect virtual)"
+        );
+    } else {
+        for r in &rows {
+            println!(
+                "{:<28} {}",
+                r["connect"].as_str().unwrap_or(""),
+                r["description"].as_str().unwrap_or("")
+            );
+            if !r["hello"].is_null() {
+                println!("    {}", r["hello"]);
+            }
+        }
+    }
+    ExitCode::SUCCESS
+}
+
+/// `lightrig info [--connect SPEC] [--json]`.
+pub fn info(args: &InfoArgs) -> ExitCode {
+    match connect(&args.connect) {
+        Ok(client) => {
+            let v = info_json(&client);
+            if args.json {
+                println!("{v}");
+            } else if let Some(map) = v.as_object() {
+                for (k, val) in map {
+                    println!("{k:<16} {val}");
+                }
+            }
+            ExitCode::SUCCESS
+        }
+        Err((code, e)) => {
+            eprintln!("error: {e}");
+            ExitCode::from(code)
+        }
+    }
+}
+
+/// `lightrig schema`.
+pub fn schema() -> ExitCode {
+    println!("protocol version {PROTOCOL_VERSION}");
+    println!("schema hash      0x{SCHEMA_HASH:016x}");
+    println!("max packet       {MAX_PACKET} bytes, max frame {MAX_FRAME} bytes");
+    ExitCode::SUCCESS
+}

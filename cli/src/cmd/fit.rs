@@ -1,0 +1,105 @@
+//! `lightrig fit PIPELINE SESSION --out DIR`: a session through its rig's pipeline
+//! (`lightrig_host::fit`), the files written listed one per line.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use lightrig_host::fit::{firs, lls};
+
+use crate::error::{FAILURE, USAGE};
+
+/// Arguments of `lightrig fit`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Pipeline: `lls`, `firs-surface` or `firs-volume`.
+    pub pipeline: String,
+    /// Session directory.
+    pub session: PathBuf,
+    /// Output directory for the maps.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// The camera's calibration file from `lightrig calibrate` (else the rig file's
+    /// `[plan.fit].camera`).
+    #[arg(long)]
+    pub calibration: Option<PathBuf>,
+}
+
+/// Runs `lightrig fit`.
+pub fn run(args: &Args) -> ExitCode {
+    match args.pipeline.as_str() {
+        "lls" => fit_lls(&args.session, args.calibration.as_deref(), &args.out),
+        "firs-surface" => fit_firs_surface(&args.session, &args.out),
+        "firs-volume" => fit_firs_volume(&args.session, &args.out),
+        other => {
+            eprintln!("error: `lightrig fit {other}`: the pipelines are: lls, firs-surface, firs-volume");
+            ExitCode::from(USAGE)
+        }
+    }
+}
+
+/// `lightrig fit lls SESSION --out DIR [--calibration FILE]`.
+fn fit_lls(session: &Path, calibration: Option<&Path>, out: &Path) -> ExitCode {
+    let bar = indicatif::ProgressBar::new(0);
+    let b = bar.clone();
+    let maps = lls::fit_session(session, calibration, out, &move |done, total| {
+        b.set_length(total);
+        b.set_position(done);
+    });
+    bar.finish();
+    report_files(maps.and_then(|m| {
+        let t = m.timing;
+        println!(
+            "{} frames read in {:.2} s (one thread), fitted in {:.2} s on {} threads",
+            t.frames, t.read_s, t.fit_s, t.threads
+        );
+        println!("{}", m.tables_note);
+        lls::write_outputs(&m, out)
+    }))
+}
+
+/// `lightrig fit firs-surface SESSION --out DIR`.
+fn fit_firs_surface(session: &Path, out: &Path) -> ExitCode {
+    let fit = firs::fit_surface(session, &|done, total| eprintln!("sweep {done}/{total}"));
+    report_files(fit.and_then(|s| {
+        println!(
+            "{} pixels with a ray; sheets: {} samples, {:.2} µm RMS; {} points merged from {} orientation(s)",
+            s.ray_pixels,
+            s.sheet_samples,
+            s.sheet_rms * 1e3,
+            s.merged.len(),
+            s.scans.len()
+        );
+        firs::write_outputs(&s, out)
+    }))
+}
+
+/// `lightrig fit firs-volume SESSION --out DIR`.
+fn fit_firs_volume(session: &Path, out: &Path) -> ExitCode {
+    let fit = firs::fit_volume(session, out, &|_, _| {});
+    report_files(fit.and_then(|v| {
+        println!(
+            "grid {:?} of {:.3} mm; {} triangles; enclosed {:.1} mm³",
+            v.grid.dims,
+            v.grid.voxel[0],
+            v.mesh.triangles.len(),
+            v.enclosed_mm3
+        );
+        firs::write_volume_outputs(&v, out)
+    }))
+}
+
+/// A fit's written files, one per line, or its error.
+fn report_files<E: std::fmt::Display>(files: Result<Vec<PathBuf>, E>) -> ExitCode {
+    match files {
+        Ok(files) => {
+            for f in files {
+                println!("{}", f.display());
+            }
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(FAILURE)
+        }
+    }
+}

@@ -1,0 +1,222 @@
+//! `lightrig demo`: a whole acquisition and fit on the virtual rig, checked against the
+//! ground truth the frames were rendered from. One module per rig ([`lls`], [`firs`]); what
+//! they share is here: the demo's rig file written and planned ([`DemoRig`]), the acquisition
+//! on the virtual rig exactly as `lightrig acquire` runs it ([`DemoRig::acquire`]), the
+//! ground truth's scene file, progress bars and the report's tables ([`Report`]).
+
+pub mod firs;
+pub mod lls;
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use indicatif::{ProgressBar, ProgressStyle};
+use lightrig_firmware::sim::virtual_device_info;
+use lightrig_host::acquire::{self, plan_summary};
+use lightrig_host::bringup::bring_up_on;
+use lightrig_host::plan::{from_rig, Plan};
+use lightrig_host::rigfile::RigFile;
+use lightrig_host::session::{Manifest, Session};
+use lightrig_host::transport::Transport;
+use lightrig_protocol::session::DeviceInfo;
+use lightrig_sim::camera::{Scene, VirtualCamera};
+use lightrig_sim::sensor::Sensor;
+use lightrig_sim::transport::connect_for_camera;
+
+use crate::error::{err, failure, io, CliError, FAILURE, INPUT, USAGE};
+
+/// Arguments of `lightrig demo`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Method: `lls` (linear light source) or `firs` (fluorescent immersion).
+    #[arg(default_value = "lls")]
+    pub method: String,
+    /// A small scene for a quick check (about half a minute).
+    #[arg(long)]
+    pub quick: bool,
+    /// Output directory.
+    #[arg(long, default_value = "lightrig-demo")]
+    pub out: PathBuf,
+    /// Noise seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Exit with failure if a fit accuracy target is missed.
+    #[arg(long)]
+    pub check: bool,
+    /// Run the virtual rig in real time, as long as the real rig would take (by default
+    /// simulated time jumps ahead whenever the device waits).
+    #[arg(long)]
+    pub real_time: bool,
+    /// The LLS gantry's step, mm (default 1, 2 with --quick): 0.6 gives the 400-frame
+    /// passes of the fit's benchmark (docs/benchmarks.md).
+    #[arg(long)]
+    pub step_mm: Option<f64>,
+}
+
+/// Runs `lightrig demo [METHOD]`: the demo's output in `out/<method>/`; with `check`, a
+/// missed accuracy target is a failure.
+pub fn run(args: &Args) -> ExitCode {
+    let firs = args.method == "firs" || args.method == "fluorescent-immersion";
+    if let Some(step) = args.step_mm.filter(|_| firs) {
+        eprintln!("error: --step-mm {step}: the firs demo has no gantry; it is for `lightrig demo lls`");
+        return ExitCode::from(USAGE);
+    }
+    if let Some(step) = args.step_mm.filter(|s| !(0.1..=5.0).contains(s)) {
+        eprintln!("error: --step-mm {step}: give a gantry step from 0.1 to 5 mm");
+        return ExitCode::from(USAGE);
+    }
+    let missed = if firs {
+        let opts = firs::FirsDemoOptions {
+            objects: vec![firs::FirsDemoObject::Sphere, firs::FirsDemoObject::Faceted],
+            volume: true,
+            quick: args.quick,
+            out: args.out.join("firs"),
+            seed: args.seed,
+            progress: true,
+            real_time: args.real_time,
+        };
+        firs::run_firs(&opts).map(|result| result.missed())
+    } else if args.method == "lls" || args.method == "linear-light-source" {
+        let opts = lls::DemoOptions {
+            quick: args.quick,
+            out: args.out.join("lls"),
+            seed: args.seed,
+            progress: true,
+            real_time: args.real_time,
+            step_mm: args.step_mm,
+        };
+        lls::run_lls(&opts).map(|(acc, _)| {
+            acc.targets().into_iter().filter(|t| !t.3).map(|t| t.0.to_string()).collect::<Vec<_>>()
+        })
+    } else {
+        eprintln!("error: `lightrig demo {}`: the methods with a demo are: lls, firs", args.method);
+        return ExitCode::from(USAGE);
+    };
+    match missed {
+        Ok(missed) if args.check && !missed.is_empty() => {
+            eprintln!("error: accuracy targets missed: {}", missed.join(", "));
+            ExitCode::from(FAILURE)
+        }
+        Ok(_) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {}", e.message);
+            ExitCode::from(e.code)
+        }
+    }
+}
+
+/// A demo's rig: its rig file written as `rig.toml` in the demo's directory (a valid rig file a
+/// user can read and run), parsed and planned for the virtual controller.
+pub struct DemoRig {
+    /// The rig file's text.
+    pub text: String,
+    /// The rig file.
+    pub rig: RigFile,
+    /// Its plan.
+    pub plan: Plan,
+    /// The virtual controller it runs on.
+    pub info: DeviceInfo,
+}
+
+impl DemoRig {
+    /// Writes `text` to `out/rig.toml`, parses and plans it.
+    pub fn write(out: &Path, text: String) -> Result<Self, CliError> {
+        let rig_path = out.join("rig.toml");
+        std::fs::write(&rig_path, &text).map_err(io(&rig_path))?;
+        let rig = RigFile::parse(&text, &rig_path).map_err(|e| err(INPUT, e.to_string()))?;
+        let info = virtual_device_info();
+        let plan = from_rig::plan(&rig, &info).map_err(|e| err(INPUT, e.to_string()))?;
+        Ok(Self { text, rig, plan, info })
+    }
+
+    /// Acquires the plan on the virtual rig exactly as `lightrig acquire` does, into a fresh
+    /// `out/session`, the virtual camera 0 rendering `scene` through `sensor` into a fresh
+    /// `out/camera` and following the board over each exposure; `out/fit` is cleared for the
+    /// fit. `progress` follows the frames. Returns the camera (and with it the scene).
+    pub fn acquire<S: Scene>(
+        &self,
+        out: &Path,
+        scene: S,
+        sensor: Sensor,
+        real_time: bool,
+        progress: &ProgressBar,
+    ) -> Result<VirtualCamera<S>, CliError> {
+        for d in ["session", "camera", "fit"] {
+            let d = out.join(d);
+            if d.exists() {
+                std::fs::remove_dir_all(&d).map_err(io(&d))?;
+            }
+        }
+        let (session_dir, camera_dir) = (out.join("session"), out.join("camera"));
+        let (virtual_rig, timeline) = connect_for_camera(&self.rig, self.info, real_time);
+        let transport: Box<dyn Transport> = Box::new(virtual_rig);
+        let mut client = bring_up_on(&self.rig, transport)?;
+        let manifest = Manifest::new(self.text.clone(), client.info(), plan_summary(&self.plan));
+        let mut session = Session::create(&session_dir, manifest).map_err(failure)?;
+        let mut camera = VirtualCamera::new(&self.rig, 0, scene, sensor, self.info.tick_hz, &camera_dir)
+            .map_err(io(&camera_dir))?;
+        camera.follow(timeline);
+        let bar = progress.clone();
+        camera.on_frame(move |n| bar.set_position(n));
+        acquire::run(&mut client, &mut session, &self.plan, &mut camera, |_| {}).map_err(failure)?;
+        Ok(camera)
+    }
+}
+
+/// Writes a scene's description as `dir/scene.json` (creating `dir`).
+pub fn write_scene_json(dir: &Path, scene: &impl serde::Serialize) -> Result<PathBuf, CliError> {
+    std::fs::create_dir_all(dir).map_err(io(dir))?;
+    let json = serde_json::to_string_pretty(scene).map_err(failure)?;
+    let p = dir.join("scene.json");
+    std::fs::write(&p, json + "\n").map_err(io(&p))?;
+    Ok(p)
+}
+
+/// A progress bar, hidden unless `show`.
+pub fn bar(show: bool, len: u64, what: &str) -> ProgressBar {
+    if !show {
+        return ProgressBar::hidden();
+    }
+    let b = ProgressBar::new(len);
+    b.set_style(
+        ProgressStyle::with_template("{msg:>12} [{bar:40}] {pos}/{len} {elapsed_precise} eta {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    b.set_message(what.to_string());
+    b
+}
+
+/// An accuracy target against the ground truth: `(name, value, limit, met)`.
+pub type Target = (&'static str, f64, f64, bool);
+
+/// A demo's `report.md`, in Markdown.
+#[derive(Debug, Default)]
+pub struct Report(pub String);
+
+impl Report {
+    /// A line (a paragraph ends with an empty one).
+    pub fn line(&mut self, text: impl std::fmt::Display) {
+        let _ = writeln!(self.0, "{text}");
+    }
+
+    /// The targets as a table: `columns` heads the name, value and limit columns, then "met";
+    /// `bound` goes before each limit (`"≤ "`, or nothing where the name says which way).
+    pub fn targets(&mut self, columns: [&str; 3], bound: &str, targets: &[Target]) {
+        let [name, value, limit] = columns;
+        let _ = writeln!(self.0, "| {name} | {value} | {limit} | met |\n|---|---|---|---|");
+        for (name, v, limit, met) in targets {
+            let met = if *met { "yes" } else { "**no**" };
+            let _ = writeln!(self.0, "| {name} | {v:.4} | {bound}{limit} | {met} |");
+        }
+    }
+
+    /// The files a fit wrote, one bullet each, after a heading line.
+    pub fn outputs(&mut self, files: &[PathBuf]) {
+        let _ = writeln!(self.0, "\nOutputs:\n");
+        for f in files {
+            let _ = writeln!(self.0, "- `{}`", f.display());
+        }
+    }
+}

@@ -1,0 +1,61 @@
+//! `lightrig`: the command-line entry point. Each subcommand lives in its own module of the
+//! `lightrig_cli` library ([`lightrig_cli::cmd`], [`lightrig_cli::demo`]).
+
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+use lightrig_cli::cmd::{self, acquire, calibrate, device, fit, hdr, selfcheck, sim};
+use lightrig_cli::demo;
+
+#[derive(Parser)]
+#[command(name = "lightrig", version, about = "Firmware and host toolkit for appearance-capture rigs")]
+struct Cli {
+    #[command(subcommand)]
+    command: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Run a whole acquisition and fit on the virtual rig and compare the fit with the ground
+    /// truth (the default method is the linear light source).
+    Demo(demo::Args),
+    /// Fit a session: `lightrig fit lls SESSION --out DIR [--calibration cam.toml]`, or
+    /// `lightrig fit firs-surface|firs-volume SESSION --out DIR`.
+    Fit(fit::Args),
+    /// Run the host link against the firmware controller in-process over a lossy simulated wire.
+    Selfcheck(selfcheck::Args),
+    /// Print this build's protocol version, schema hash and frame limits.
+    Schema,
+    /// List serial ports and USB controllers; with --probe, ask each what it is.
+    Devices(device::DevicesArgs),
+    /// Run a rig file's acquisition plan into a new session directory.
+    Acquire(acquire::AcquireArgs),
+    /// Continue an interrupted session: re-acquire the steps not finished.
+    Resume(acquire::ResumeArgs),
+    /// High dynamic range from exposure series.
+    #[command(subcommand)]
+    Hdr(hdr::Cmd),
+    /// Camera calibration from chessboard images; with --pose-only, a board's pose on the
+    /// reference plane. Writes a calibration file (docs/calibration-format.md).
+    Calibrate(calibrate::Args),
+    /// Serve the virtual rig's controller to other processes: `lightrig sim --pty`.
+    Sim(sim::Args),
+    /// Connect to a device and print what it says about itself and how its clock maps.
+    Info(device::InfoArgs),
+}
+
+fn main() -> ExitCode {
+    match Cli::parse().command {
+        Cmd::Demo(args) => demo::run(&args),
+        Cmd::Fit(args) => fit::run(&args),
+        Cmd::Selfcheck(args) => selfcheck::run(&args),
+        Cmd::Schema => device::schema(),
+        Cmd::Devices(args) => device::devices(&args),
+        Cmd::Acquire(a) => cmd::exit(acquire::acquire(&a.rig, &a.session, a.connect.as_ref(), a.yes)),
+        Cmd::Resume(a) => cmd::exit(acquire::resume(&a.session, a.rig.as_deref(), a.connect.as_ref(), a.yes)),
+        Cmd::Hdr(c) => hdr::run(&c),
+        Cmd::Calibrate(args) => calibrate::run(&args),
+        Cmd::Sim(args) => sim::run(&args),
+        Cmd::Info(args) => device::info(&args),
+    }
+}

@@ -1,0 +1,198 @@
+//! The virtual rig end to end: the linear-light-source demo at quick size, its fit checked
+//! against the ground truth the frames were rendered from, and the virtual camera's renders
+//! checked against closed forms and for determinism.
+
+use lightrig_cli::demo::lls::{run_lls, DemoOptions};
+use lightrig_sim::camera::{RigState, Scene};
+use lightrig_sim::scenes::lls::{LlsScene, LlsSceneSpec, Region};
+use lightrig_sim::sensor::Sensor;
+
+#[test]
+fn lls_demo_meets_the_accuracy_targets() {
+    let out = std::env::temp_dir().join(format!("lightrig-demo-test-{}", std::process::id()));
+    let opts = DemoOptions {
+        quick: true,
+        out: out.clone(),
+        seed: 7,
+        progress: false,
+        real_time: false,
+        step_mm: None,
+    };
+    let (acc, report) = run_lls(&opts).unwrap();
+    assert!(acc.pixels > 1500, "{} pixels compared", acc.pixels);
+    for (name, value, limit, met) in acc.targets() {
+        assert!(met, "{name}: {value} > {limit}");
+    }
+    assert!(acc.translucency_abs < 0.01, "translucency {}", acc.translucency_abs);
+    let text = std::fs::read_to_string(report).unwrap();
+    assert!(text.contains("| roughness, median rel |"), "{text}");
+    for f in [
+        "fit/maps.exr",
+        "fit/relit.png",
+        "truth/truth.exr",
+        "truth/scene.json",
+        "rig.toml",
+        "session/journal.jsonl",
+    ] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    // The session is an ordinary one: `lightrig fit lls` reads it again to the same maps
+    // (every number of the comparison with the truth agrees).
+    let again = lightrig_host::fit::lls::fit_session(
+        &out.join("session"),
+        Some(&out.join("camera.toml")),
+        &out.join("again"),
+        &|_, _| {},
+    )
+    .unwrap();
+    let scene = LlsScene::new(LlsSceneSpec::new(80, 60));
+    assert_eq!(lightrig_cli::demo::lls::lls_accuracy(&scene, &again, 2.0), acc);
+    // Streamed in small blocks (a tenth of the quick session's traces at most resident) the
+    // fit gives exactly the same maps as with all of them in one block.
+    let small = 1 << 20;
+    let streamed = lightrig_host::fit::lls::fit_session_with(
+        &out.join("session"),
+        Some(&out.join("camera.toml")),
+        lightrig_host::fit::lls::Streaming {
+            scratch: &out.join("streamed"),
+            block_bytes: small,
+            tables: Some(&out.join("tables.bin")),
+        },
+        &|_, _| {},
+    )
+    .unwrap();
+    // It kept the lobe tables it built; a fit that reads them gives the same maps.
+    assert!(streamed.tables_note.contains("none kept") && streamed.tables_note.contains("now kept"));
+    let from_kept = lightrig_host::fit::lls::fit_session_with(
+        &out.join("session"),
+        Some(&out.join("camera.toml")),
+        lightrig_host::fit::lls::Streaming {
+            scratch: &out.join("streamed"),
+            block_bytes: lightrig_host::fit::lls::BLOCK_BYTES,
+            tables: Some(&out.join("tables.bin")),
+        },
+        &|_, _| {},
+    )
+    .unwrap();
+    assert!(from_kept.tables_note.contains("nodes read from"), "{}", from_kept.tables_note);
+    assert!(!from_kept.tables_note.contains("now kept"), "{}", from_kept.tables_note);
+    assert_same_maps(&from_kept, &again);
+    assert!(again.resident_trace_bytes > 10 * small, "{} bytes in one block", again.resident_trace_bytes);
+    assert!(streamed.resident_trace_bytes <= small, "{} bytes resident", streamed.resident_trace_bytes);
+    assert_same_maps(&streamed, &again);
+    assert!(std::fs::read_dir(out.join("streamed")).unwrap().next().is_none(), "scratch files left");
+    // The diagonal passes were used, and their normals alone meet the target too.
+    assert_eq!(again.diagonal_mounts, vec![-15, 15]);
+    assert!(acc.photometric_normal_deg < 1.0, "{}", acc.photometric_normal_deg);
+    // The check frame (relit.png's pair): the maps' prediction of the middle frame against the
+    // capture, over the fitted pixels, relative to the capture's median there.
+    let (_, captured, predicted) = &again.check_frame;
+    let median = |mut v: Vec<f32>| {
+        v.sort_by(f32::total_cmp);
+        v[v.len() / 2]
+    };
+    let fitted = |j: &usize| again.fitted[j / 3];
+    let level = median((0..captured.len()).filter(fitted).map(|j| captured[j]).collect());
+    let off =
+        median((0..captured.len()).filter(fitted).map(|j| (captured[j] - predicted[j]).abs()).collect());
+    // Measured 6.2 % (the frame's noise: one frame, where the fit saw the whole trace).
+    assert!(level > 0.0 && off < 0.08 * level, "check frame: {off} off a median level of {level}");
+    std::fs::remove_dir_all(&out).ok();
+}
+
+/// Every map of two fits, bit for bit (NaN equal to NaN).
+fn assert_same_maps(a: &lightrig_host::fit::lls::LlsMaps, b: &lightrig_host::fit::lls::LlsMaps) {
+    assert_eq!((a.width, a.height), (b.width, b.height));
+    assert_eq!(a.fitted, b.fitted);
+    assert_eq!(a.fit, b.fit);
+    assert_eq!(a.points, b.points);
+    assert_eq!(a.normals, b.normals);
+    assert_eq!(a.geometric_normals, b.geometric_normals);
+    assert_eq!(a.photometric_normals, b.photometric_normals);
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&a.translucency), bits(&b.translucency));
+    assert_eq!(a.scale, b.scale);
+    assert_eq!(a.specular_strip.0.to_bits(), b.specular_strip.0.to_bits());
+    assert_eq!(a.check_frame.0, b.check_frame.0);
+    assert_eq!(bits(&a.check_frame.1), bits(&b.check_frame.1));
+    assert_eq!(bits(&a.check_frame.2), bits(&b.check_frame.2));
+}
+
+fn state(pass: Option<&str>, gantry: f64, lasers: u8) -> RigState {
+    RigState {
+        pass: pass.map(str::to_string),
+        mount_deg: 0.0,
+        axes: vec![gantry],
+        lasers,
+        filters: vec![],
+        exposure_s: 0.004,
+        ..RigState::default()
+    }
+}
+
+#[test]
+fn a_white_plate_under_the_tube_matches_the_view_factor() {
+    // A Lambertian strip (the diffuse calibration strip, ρ = 0.8) under the tube: radiance
+    // ρ·Le·r·h/(h² + Δx²), the closed form for an infinitely long tube; the tube is made 200 m
+    // long so that its ends cost nothing.
+    let mut spec = LlsSceneSpec::new(80, 60);
+    spec.light.length_mm = 2e5;
+    let scene = LlsScene::new(spec.clone());
+    let (w, _) = scene.size();
+    let mut checked = 0;
+    for (i, t) in scene.truth.iter().enumerate() {
+        if t.region != Region::DiffuseStrip {
+            continue;
+        }
+        let g = t.point[0] + 40.0; // on the far side from the camera: never in its way
+        let l = scene.radiance(i as u32 % w, i as u32 / w, &state(None, g, 1 << spec.tube_channel));
+        let (r, h) = (spec.light.diameter_mm / 2.0, spec.light.height_mm);
+        let dx = t.point[0] - g;
+        let want = 0.8 * spec.light.radiance * r * h / (h * h + dx * dx);
+        for c in l {
+            assert!((c / want - 1.0).abs() < 1e-5, "pixel {i}: {c} vs {want}");
+        }
+        checked += 1;
+    }
+    assert!(checked > 50, "{checked} strip pixels");
+}
+
+#[test]
+fn the_stripe_lights_the_points_on_the_sheet() {
+    // Every sample pixel is brightest in the stripe when the sheet passes through its point.
+    let spec = LlsSceneSpec::new(40, 30);
+    let scene = LlsScene::new(spec.clone());
+    let (w, _) = scene.size();
+    let tan = spec.stripe.angle_deg.to_radians().tan();
+    for (i, t) in scene.truth.iter().enumerate().filter(|(_, t)| t.region == Region::Sample) {
+        let g = t.point[0] - spec.stripe.offset_mm - t.point[2] * tan;
+        let at =
+            |g: f64| scene.radiance(i as u32 % w, i as u32 / w, &state(None, g, 1 << spec.stripe_channel))[0];
+        let peak = at(g);
+        assert!(peak > 0.0);
+        assert!(at(g + 0.3) < peak && at(g - 0.3) < peak, "pixel {i}");
+        let want = spec.stripe.radiance * t.material.diffuse[0];
+        assert!((peak / want - 1.0).abs() < 1e-9, "pixel {i}: {peak} vs {want}");
+    }
+}
+
+#[test]
+fn same_seed_same_bytes() {
+    let spec = LlsSceneSpec::new(24, 18);
+    let scene = LlsScene::new(spec.clone());
+    let s = Sensor { seed: 3, ..Sensor::default() };
+    let frame = |sensor: &Sensor, key: u64| -> Vec<u32> {
+        let st = state(None, -10.0, 1 << spec.tube_channel);
+        let (w, h) = scene.size();
+        (0..w * h)
+            .flat_map(|i| {
+                let l = scene.radiance(i % w, i / w, &st);
+                (0..3).map(move |c| (i, c, l[c]))
+            })
+            .map(|(i, c, l)| sensor.expose(l, 0.004, key * 1_000_000 + u64::from(i) * 3 + c as u64).to_bits())
+            .collect()
+    };
+    assert_eq!(frame(&s, 5), frame(&s, 5));
+    assert_ne!(frame(&s, 5), frame(&s, 6));
+    assert_ne!(frame(&s, 5), frame(&Sensor { seed: 4, ..s }, 5));
+}

@@ -1,0 +1,139 @@
+//! Bringing a rig up: connect, recover what an earlier run left, upload the rig file's
+//! configuration, home; and how long to wait for a device that went away.
+
+use lightrig_protocol::config::{AxisKind, HomingMode};
+use lightrig_protocol::event::Event;
+use lightrig_protocol::sequence::AxisRef;
+use lightrig_protocol::Command;
+
+use crate::acquire;
+use crate::client::Client;
+use crate::rigfile::{RigFile, Stepper};
+use crate::transport::Transport;
+
+/// Why a rig could not be brought up.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum BringUpError {
+    /// The device could not be reached, refused, or failed (homing).
+    Device(String),
+    /// The rig file does not fit the device.
+    RigFile(String),
+}
+
+impl std::fmt::Display for BringUpError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            BringUpError::Device(m) | BringUpError::RigFile(m) => f.write_str(m),
+        }
+    }
+}
+
+impl std::error::Error for BringUpError {}
+
+/// Connects over `transport`, uploads the rig's configuration and homes what has a homing
+/// procedure: a device an earlier run left mid-sequence or faulted is recovered first; the
+/// heartbeat follows the rig file's `[safety]`.
+pub fn bring_up_on(
+    rig: &RigFile,
+    transport: Box<dyn Transport>,
+) -> Result<Client<Box<dyn Transport>>, BringUpError> {
+    let nonce = std::process::id() ^ (std::time::SystemTime::now().elapsed().map_or(7, |d| d.subsec_nanos()));
+    let mut client = Client::connect(transport, nonce).map_err(|e| BringUpError::Device(e.to_string()))?;
+    // A device an earlier run left mid-sequence or faulted takes no configuration until then.
+    acquire::recover(&mut client).map_err(|e| BringUpError::Device(e.to_string()))?;
+    if let Some(s) = &rig.safety {
+        client.set_heartbeat_us((s.heartbeat_timeout_ms * 1000.0 / 4.0) as u64);
+    }
+    let items = rig.config_items(client.info()).map_err(|e| BringUpError::RigFile(e.to_string()))?;
+    for item in items {
+        client.request(Command::Configure(item)).map_err(|e| BringUpError::Device(e.to_string()))?;
+    }
+    let mut homing: Vec<AxisRef> = rig
+        .steppers
+        .iter()
+        .filter(|s| s.homing.mode != HomingMode::None)
+        .map(|s| AxisRef::Stepper(s.axis))
+        .chain(rig.filter_wheels.iter().map(|w| AxisRef::FilterWheel(w.wheel)))
+        .collect();
+    for &a in &homing {
+        client.request(Command::Home(a)).map_err(|e| BringUpError::Device(e.to_string()))?;
+    }
+    let deadline_us = homing_timeout_us(rig);
+    let give_up = client.transport().now_us().saturating_add(deadline_us);
+    while !homing.is_empty() {
+        let left = give_up.saturating_sub(client.transport().now_us());
+        let e = client.next_event(left).map_err(|e| BringUpError::Device(e.to_string()))?;
+        match e.map(|e| e.event) {
+            Some(Event::Homed { axis, .. }) => homing.retain(|a| *a != axis),
+            Some(Event::Fault { cause, .. }) => {
+                return Err(BringUpError::Device(format!(
+                    "homing failed: {cause:?}; check the switches and their wiring"
+                )))
+            }
+            Some(_) => {}
+            None => {
+                return Err(BringUpError::Device(format!(
+                    "homing did not finish within {:.0} s (1.5 × the longest seek at the rig file's \
+                     homing speed, + 10 s): {homing:?}; check the switches and the homing speed",
+                    deadline_us as f64 / 1e6
+                )))
+            }
+        }
+    }
+    Ok(client)
+}
+
+/// How long homing may take, µs: 1.5 × the longest seek (a linear axis' whole travel between
+/// its limits, else 1 m, plus twice its back-off; two turns of a rotary axis or a filter wheel)
+/// at the axis' homing speed, + 10 s. The axes home together.
+pub fn homing_timeout_us(rig: &RigFile) -> u64 {
+    let seek_s = |s: &Stepper| -> f64 {
+        if s.homing.mode == HomingMode::None || s.homing.speed <= 0.0 {
+            return 0.0;
+        }
+        let travel = match s.kind {
+            AxisKind::Rotary => 720.0,
+            AxisKind::Linear => s.limits.map_or(1000.0, |(lo, hi)| hi - lo),
+        };
+        (travel + 2.0 * s.homing.backoff.abs()) / s.homing.speed
+    };
+    // A wheel's max_speed is in rev/s.
+    let wheels = rig.filter_wheels.iter().map(|w| 2.0 / w.max_speed.max(1e-3));
+    let longest = rig.steppers.iter().map(seek_s).chain(wheels).fold(0.0, f64::max);
+    ((1.5 * longest + 10.0) * 1e6).min(u64::MAX as f64 / 2.0) as u64
+}
+
+/// How many times `acquire` and `resume` try to get a lost device back, waiting 1, 2, 4, 8,
+/// then 10 s before each: about 1.5 minutes to plug the cable back in.
+pub const RECONNECT_ATTEMPTS: u32 = 12;
+
+/// The wait before reconnection attempt `k` (1, 2, …), ms.
+pub fn reconnect_backoff_ms(k: u32) -> u64 {
+    1000u64.saturating_mul(1 << k.saturating_sub(1).min(4)).min(10_000)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::Path;
+
+    fn example(name: &str) -> RigFile {
+        RigFile::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/rigs").join(name)).unwrap()
+    }
+
+    #[test]
+    fn homing_may_take_one_and_a_half_seeks_plus_ten_seconds() {
+        // Gantry: limits ±200 mm, back-off 2 mm, 20 mm/s: (400 + 4) / 20 = 20.2 s.
+        assert_eq!(homing_timeout_us(&example("lls-gantry.toml")), 40_300_000);
+        // Turntable seeking its index at 2 deg/s: two turns, 360 s.
+        assert_eq!(homing_timeout_us(&example("fluorescent-immersion.toml")), 550_000_000);
+    }
+
+    #[test]
+    fn reconnection_waits_double_up_to_ten_seconds() {
+        let waits: Vec<u64> = (1..=7).map(reconnect_backoff_ms).collect();
+        assert_eq!(waits, [1_000, 2_000, 4_000, 8_000, 10_000, 10_000, 10_000]);
+        let total: u64 = (1..=RECONNECT_ATTEMPTS).map(reconnect_backoff_ms).sum();
+        assert_eq!(total, 95_000);
+    }
+}

@@ -1,0 +1,29 @@
+//! Per-rig session readers: each turns a session directory into its pipeline's inputs, runs
+//! the maths in `lightrig_pipelines::<rig>` and writes the outputs.
+//!
+//! - [`lls`]: `lightrig fit lls`: frames with their trigger snapshots → maps, previews, relit
+//!   check; [`lls::stack`] streams the passes into per-pixel traces.
+//! - [`firs`]: `lightrig fit firs-surface` and `firs-volume`: calibration through the tank
+//!   wall, surface meshes and points, or the volume and its isosurface.
+//!
+//! Both return a [`FitError`]: one message that says what was wrong, where (file, step,
+//! field) and what to do.
+
+pub mod firs;
+pub mod lls;
+
+/// Why a fit stopped: what, where, what to do.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FitError(pub String);
+
+impl std::fmt::Display for FitError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for FitError {}
+
+pub(crate) fn fail(m: impl Into<String>) -> FitError {
+    FitError(m.into())
+}

@@ -1,0 +1,46 @@
+//! A serial port (CDC-ACM over USB, or a UART) as a [`Transport`], on the wall clock.
+
+use std::io::{self, Read, Write};
+use std::time::{Duration, Instant};
+
+use super::Transport;
+
+/// A serial port: CDC-ACM over USB, or a UART.
+pub struct SerialTransport {
+    port: Box<dyn serialport::SerialPort>,
+    path: String,
+    epoch: Instant,
+}
+
+impl SerialTransport {
+    /// Opens `path` at `baud` (ignored by CDC-ACM).
+    pub fn open(path: &str, baud: u32) -> Result<Self, serialport::Error> {
+        let port = serialport::new(path, baud).timeout(Duration::from_millis(10)).open()?;
+        Ok(Self { port, path: path.to_string(), epoch: Instant::now() })
+    }
+}
+
+impl Transport for SerialTransport {
+    fn send(&mut self, bytes: &[u8]) -> io::Result<()> {
+        self.port.write_all(bytes)
+    }
+
+    fn recv(&mut self, buf: &mut [u8], deadline: u64) -> io::Result<usize> {
+        let now = self.now_us();
+        let wait = Duration::from_micros(deadline.saturating_sub(now).max(1));
+        self.port.set_timeout(wait).map_err(io::Error::other)?;
+        match self.port.read(buf) {
+            Ok(n) => Ok(n),
+            Err(e) if e.kind() == io::ErrorKind::TimedOut => Ok(0),
+            Err(e) => Err(e),
+        }
+    }
+
+    fn now_us(&self) -> u64 {
+        self.epoch.elapsed().as_micros() as u64
+    }
+
+    fn describe(&self) -> String {
+        format!("serial {}", self.path)
+    }
+}

@@ -1,0 +1,66 @@
+//! What the virtual camera looks at: one scene per rig, each with its ground truth.
+//!
+//! - [`lls`]: the linear-light-source sample and its ground truth.
+//! - [`firs`]: the fluorescent-immersion tank scene and its ground truth.
+//! - [`card`]: the test card for the rigs without a scene of their own yet (DISCO,
+//!   bispectral, BRDF display).
+//! - [`scene_for`]: a rig file's scene, for `lightrig acquire` with `source = { kind = "virtual" }`.
+
+pub mod card;
+pub mod firs;
+pub mod lls;
+
+use lightrig_host::rigfile::{Method, RigFile};
+use lightrig_protocol::config::AxisKind;
+
+use crate::camera::Scene;
+use crate::sensor::Sensor;
+
+/// What the virtual camera of `rig` looks at, and a sensor exposed for it (noise seed
+/// `seed`):
+///
+/// - linear light source: the demo's sample ([`lls::LlsScene`], 128 × 96), its tube,
+///   stripe and light box on the lasers named `light-tube` (or `tube`), `stripe` and
+///   `backlight` (or `light-box`), the gantry on the first linear axis;
+/// - fluorescent immersion: the demo's tank and sphere ([`firs::FirsScene`], 208 × 160),
+///   the sheet from `[plan] laser` (else the first laser) on the first galvo pair, the
+///   turntable on the first rotary axis;
+/// - DISCO, bispectral, BRDF display: the [`card::CardScene`] test card (160 × 120).
+pub fn scene_for(rig: &RigFile, seed: u64) -> (Box<dyn Scene + Send>, Sensor) {
+    let laser = |names: &[&str]| {
+        rig.lasers.iter().find(|l| l.name.as_deref().is_some_and(|n| names.contains(&n))).map(|l| l.channel)
+    };
+    let axis = |kind: AxisKind| rig.steppers.iter().find(|s| s.kind == kind).map(|s| s.axis);
+    match rig.method {
+        Method::LinearLightSource => {
+            let mut spec = lls::LlsSceneSpec::new(128, 96);
+            spec.tube_channel = laser(&["light-tube", "tube"]).unwrap_or(spec.tube_channel);
+            spec.stripe_channel = laser(&["stripe"]).unwrap_or(spec.stripe_channel);
+            spec.backlight_channel = laser(&["backlight", "light-box"]).unwrap_or(spec.backlight_channel);
+            spec.gantry_axis = axis(AxisKind::Linear).unwrap_or(spec.gantry_axis);
+            // As the demo's: a white tile under the tube fills about half the well in 4 ms.
+            let sensor = Sensor { gain: 30_000.0 / (0.16 * 0.004), seed, ..Sensor::default() };
+            (Box::new(lls::LlsScene::new(spec)), sensor)
+        }
+        Method::FluorescentImmersion => {
+            let mut spec = firs::FirsSceneSpec::new(208, 160);
+            let named = rig.plan.get("laser").and_then(|n| n.as_str());
+            spec.sheet.laser = rig
+                .lasers
+                .iter()
+                .find(|l| named.is_none_or(|n| l.name.as_deref() == Some(n)))
+                .map_or(spec.sheet.laser, |l| l.channel);
+            spec.sheet.galvo = rig.galvos.first().map_or(spec.sheet.galvo, |g| g.galvo);
+            spec.turntable_axis = axis(AxisKind::Rotary).unwrap_or(spec.turntable_axis);
+            let sensor = Sensor { gain: 20_000.0 / (1.3 * 0.02), seed, ..Sensor::default() };
+            (Box::new(firs::FirsScene::new(spec)), sensor)
+        }
+        Method::Disco | Method::Bispectral | Method::BrdfDisplay => {
+            let card = card::CardScene::new(rig, 160, 120);
+            // A laser spot on white fills half the well at the camera's own pulse width.
+            let pulse_s = rig.cameras.first().map_or(1e-3, |c| c.pulse_us * 1e-6).max(1e-6);
+            let sensor = Sensor { gain: 15_000.0 / (card.spot * pulse_s), seed, ..Sensor::default() };
+            (Box::new(card), sensor)
+        }
+    }
+}

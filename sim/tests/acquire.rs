@@ -1,0 +1,282 @@
+//! The acquisition engine end to end on the virtual device: one frame per trigger in the
+//! session, missing and duplicate frames recorded, link damage, an unplug, and a host killed
+//! at many points, each resumed to a complete session.
+
+mod common;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use lightrig_firmware::sim::virtual_device_info;
+use lightrig_firmware::sim::SimBoard;
+use lightrig_host::acquire::{self, plan_summary, AcquireError, Captured, FrameInput};
+use lightrig_host::client::Client;
+use lightrig_host::plan::{lls, Plan};
+use lightrig_host::session::{Manifest, Session};
+use lightrig_protocol::event::TriggerEvent;
+use lightrig_sim::transport::{Impairment, VirtualTransport};
+
+/// A camera for tests: on every trigger it makes a small frame that names the trigger (so a
+/// test can check each stored frame belongs to its trigger), and it can drop or duplicate
+/// frames, or kill the whole process at a given trigger (a host crash).
+#[derive(Default)]
+struct TestCamera {
+    triggers: u64,
+    ready: Vec<Captured>,
+    drop: Vec<u64>,
+    duplicate: Vec<u64>,
+    crash_at: Option<u64>,
+}
+
+impl FrameInput for TestCamera {
+    fn begin_step(&mut self, _step: &lightrig_host::plan::Step) -> std::io::Result<()> {
+        Ok(())
+    }
+
+    fn on_trigger(&mut self, t: &TriggerEvent, host_us: Option<f64>) -> std::io::Result<()> {
+        let n = self.triggers;
+        self.triggers += 1;
+        if self.crash_at == Some(n) {
+            std::process::abort();
+        }
+        let data = format!(
+            "seq {} item {} frame {} tick {} x {}\n",
+            t.sequence, t.item, t.frame, t.tick, t.snapshot.axes[0]
+        );
+        let c = Captured {
+            camera: t.camera,
+            frame: Some(t.frame),
+            ext: "txt".into(),
+            data: data.into_bytes(),
+            host_us: host_us.unwrap_or(0.0) + 500.0,
+        };
+        if self.duplicate.contains(&n) {
+            self.ready.push(c.clone());
+        }
+        if !self.drop.contains(&n) {
+            self.ready.push(c);
+        }
+        Ok(())
+    }
+
+    fn poll(&mut self, _now: f64) -> std::io::Result<Vec<Captured>> {
+        Ok(std::mem::take(&mut self.ready))
+    }
+}
+
+fn lls_plan() -> Plan {
+    lls::plan(&common::lls_params()).unwrap()
+}
+
+fn temp_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("lightrig-acq-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+fn new_session(dir: &Path, plan: &Plan) -> Session {
+    Session::create(dir, Manifest::new("# test rig", &virtual_device_info(), plan_summary(plan))).unwrap()
+}
+
+fn connect(board: SimBoard) -> Client<VirtualTransport> {
+    common::setup(Client::connect(VirtualTransport::new(virtual_device_info(), board), 5).unwrap())
+}
+
+/// Every planned trigger has exactly one frame in its step's completed attempt, and that frame
+/// is the one its trigger made (the right gantry position).
+fn check_complete(dir: &Path, plan: &Plan) {
+    let (s, _) = Session::read(dir).unwrap();
+    assert!(s.is_done(), "session done");
+    assert_eq!(s.verify(), vec![], "every file intact");
+    for step in &plan.steps {
+        let frames = s.frames_of(step.id);
+        let by_frame: BTreeMap<u32, _> = frames.iter().map(|f| (f.frame, f)).collect();
+        assert_eq!(by_frame.len(), frames.len(), "no frame twice in step {}", step.id);
+        assert_eq!(frames.len(), step.shot_count(), "step {}", step.id);
+        for (k, f) in &by_frame {
+            let text = std::fs::read_to_string(dir.join(&f.file)).unwrap();
+            let x = -800 + 80 * *k as i64;
+            assert!(text.starts_with(&format!("seq {} ", f.sequence)), "{text}");
+            assert!(text.ends_with(&format!("x {x}\n")), "frame {k} of step {}: {text}", step.id);
+        }
+    }
+}
+
+#[test]
+fn a_run_stores_one_frame_per_trigger_and_records_missing_and_duplicate_frames() {
+    let dir = temp_dir("basic");
+    let plan = lls_plan();
+    let mut session = new_session(&dir, &plan);
+    let mut client = connect(SimBoard::default());
+    let mut cam = TestCamera { drop: vec![5], duplicate: vec![30], ..Default::default() };
+    let mut updates = Vec::new();
+    acquire::run(&mut client, &mut session, &plan, &mut cam, |p| updates.push(p.steps_done)).unwrap();
+    assert_eq!(updates, [1, 2, 3]);
+    assert!(session.is_done());
+    let frames: usize = plan.steps.iter().map(|s| session.frames_of(s.id).len()).sum();
+    assert_eq!(frames, 62, "63 triggers, one frame lost");
+    let st = session.state();
+    let attempts: Vec<_> = st.steps.values().flat_map(|a| a.values()).collect();
+    assert_eq!(attempts.iter().map(|a| a.missing.len()).sum::<usize>(), 1);
+    assert_eq!(attempts.iter().map(|a| a.extra.len()).sum::<usize>(), 1);
+    assert_eq!(session.verify(), vec![]);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn link_damage_costs_retransmissions_not_frames() {
+    let dir = temp_dir("damage");
+    let plan = lls_plan();
+    let mut session = new_session(&dir, &plan);
+    let mut client = connect(SimBoard::default());
+    client.transport_mut().impair(Impairment { drop: 3, corrupt: 3, duplicate: 3, seed: 42 });
+    acquire::run(&mut client, &mut session, &plan, &mut TestCamera::default(), |_| {}).unwrap();
+    drop(session);
+    check_complete(&dir, &plan);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn an_unplug_mid_step_abandons_it_and_resume_completes_the_session() {
+    let dir = temp_dir("unplug");
+    let plan = lls_plan();
+    let mut session = new_session(&dir, &plan);
+    let mut client = connect(SimBoard::default());
+    // Pull the cable 0.4 s (simulated) into the run: in the middle of a pass.
+    let now = lightrig_host::transport::Transport::now_us(client.transport());
+    client.transport_mut().unplug_at(now + 400_000);
+    let mut cam = TestCamera::default();
+    let err = acquire::run(&mut client, &mut session, &plan, &mut cam, |_| {}).unwrap_err();
+    assert!(matches!(err, AcquireError::Device(_)), "{err}");
+    assert!(err.to_string().contains("`lightrig resume` acquires it again"), "{err}");
+    let interrupted = plan.steps.iter().find(|s| !session.steps_done().contains(&s.id)).unwrap().id;
+    assert_eq!(session.open_attempt(), None, "the interrupted attempt was abandoned, not left open");
+    // Plug back in: the device kept its configuration and is still running the old sequence.
+    let mut transport = client.into_transport();
+    transport.replug();
+    let mut client = Client::connect(transport, 6).unwrap();
+    acquire::run(&mut client, &mut session, &plan, &mut cam, |_| {}).unwrap();
+    let attempts = session.state().steps[&interrupted].len();
+    assert_eq!(attempts, 2, "the interrupted pass took two attempts");
+    drop(session);
+    check_complete(&dir, &plan);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn a_run_rides_out_an_unplug_by_reconnecting_and_stores_every_frame_once() {
+    use lightrig_host::client::ClientError;
+    use lightrig_host::transport::Transport;
+    let dir = temp_dir("reconnect");
+    let plan = lls_plan();
+    let mut session = new_session(&dir, &plan);
+    let mut client = connect(SimBoard::default());
+    let now = client.transport().now_us();
+    client.transport_mut().unplug_at(now + 400_000);
+    let mut cam = TestCamera::default();
+    // The cable stays out through the first reconnection attempt; the second finds it back.
+    let mut stash: Option<VirtualTransport> = None;
+    let mut tries = Vec::new();
+    let mut reconnect = |old: Option<VirtualTransport>, k: u32| {
+        tries.push((k, old.is_some()));
+        if let Some(t) = old {
+            stash = Some(t);
+        }
+        if k == 1 {
+            return Err(ClientError::Timeout {
+                device: "virtual".into(),
+                what: "Hello".into(),
+                waited_ms: 1,
+            });
+        }
+        let mut t = stash.take().expect("the transport handed over at the first attempt");
+        t.replug();
+        Client::connect(t, 7)
+    };
+    let mut said = Vec::new();
+    acquire::run_reconnecting(
+        client,
+        &mut reconnect,
+        5,
+        &mut session,
+        &plan,
+        &mut cam,
+        &mut acquire::Unattended("virtual"),
+        |_| {},
+        |m| said.push(m.to_string()),
+    )
+    .unwrap();
+    assert_eq!(tries, [(1, true), (2, false)]);
+    assert!(said[0].starts_with("device lost: "), "{said:?}");
+    assert!(said[1].starts_with("reconnection 1/5 failed: "), "{said:?}");
+    assert_eq!(said.len(), 3, "{said:?}");
+    let interrupted: Vec<_> =
+        session.state().steps.iter().filter(|(_, a)| a.len() == 2).map(|(s, _)| *s).collect();
+    assert_eq!(interrupted.len(), 1, "one step was interrupted and acquired again");
+    drop(session);
+    check_complete(&dir, &plan);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn only_a_lost_link_is_worth_reconnecting_for() {
+    use lightrig_host::client::ClientError;
+    use lightrig_protocol::event::FaultCause;
+    let fault = |cause| ClientError::Fault { device: "d".into(), cause, tick: 1 };
+    assert!(acquire::is_link_loss(&fault(FaultCause::HeartbeatLost)));
+    assert!(!acquire::is_link_loss(&fault(FaultCause::TriggerTooSoon { camera: 0 })));
+    let io = ClientError::Io { device: "d".into(), error: std::io::Error::other("unplugged") };
+    assert!(acquire::is_link_loss(&io));
+}
+
+/// Child side of the kill test: runs the acquisition into `LIGHTRIG_ACQ_DIR` and aborts the
+/// process at trigger `LIGHTRIG_ACQ_CRASH` (as a host crash would).
+#[test]
+fn acquisition_child() {
+    let (Ok(dir), Ok(crash)) = (std::env::var("LIGHTRIG_ACQ_DIR"), std::env::var("LIGHTRIG_ACQ_CRASH"))
+    else {
+        return;
+    };
+    let plan = lls_plan();
+    let dir = PathBuf::from(dir);
+    let mut session = match Session::open(&dir) {
+        Ok((s, _)) => s,
+        Err(_) => new_session(&dir, &plan),
+    };
+    let mut client = connect(SimBoard::default());
+    let mut cam = TestCamera { crash_at: Some(crash.parse().unwrap()), ..Default::default() };
+    acquire::run(&mut client, &mut session, &plan, &mut cam, |_| {}).unwrap();
+}
+
+#[test]
+fn a_host_killed_at_any_point_resumes_to_a_complete_session() {
+    let plan = lls_plan();
+    let exe = std::env::current_exe().unwrap();
+    // Crash points spread over the run: early, at step boundaries, mid-step; two crashes in a
+    // row for one session.
+    for (case, crashes) in
+        [vec![0u64], vec![20], vec![21], vec![22], vec![40, 10], vec![62]].into_iter().enumerate()
+    {
+        let dir = temp_dir(&format!("kill{case}"));
+        for &crash in &crashes {
+            let status = std::process::Command::new(&exe)
+                .args(["--exact", "acquisition_child", "--nocapture", "--test-threads=1"])
+                .env("LIGHTRIG_ACQ_DIR", &dir)
+                .env("LIGHTRIG_ACQ_CRASH", crash.to_string())
+                .stdout(std::process::Stdio::null())
+                .stderr(std::process::Stdio::null())
+                .status()
+                .unwrap();
+            assert!(!status.success(), "the child crashed at trigger {crash}");
+        }
+        // Resume in this process with a new device connection.
+        let (mut session, _recovery) = Session::open(&dir).unwrap();
+        let done_before = session.steps_done().len();
+        let mut client = connect(SimBoard::default());
+        acquire::run(&mut client, &mut session, &plan, &mut TestCamera::default(), |_| {}).unwrap();
+        drop(session);
+        check_complete(&dir, &plan);
+        assert!(done_before < plan.steps.len(), "case {case}: the crash came before the end");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
