@@ -59,7 +59,7 @@ bind_interrupts!(struct Irqs {
     DMA1_CHANNEL1 => dma::InterruptHandler<peripherals::DMA1_CH1>;
 });
 
-/// USB ids and interface layout the host's `UsbTransport` expects (host/src/transport.rs).
+/// USB ids and interface layout the host's `UsbTransport` expects (host/src/transport/usb.rs).
 const USB_VID: u16 = 0x1209;
 const USB_PID: u16 = 0x4C52;
 const USB_EP_OUT: usize = 0x01;
