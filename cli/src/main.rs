@@ -42,6 +42,8 @@ enum Cmd {
     Sim(sim::Args),
     /// Connect to a device and print what it says about itself and how its clock maps.
     Info(device::InfoArgs),
+    /// Emergency stop: lasers off, motors stopped at once, galvos parked, the fault latched.
+    Stop(device::StopArgs),
 }
 
 fn main() -> ExitCode {
@@ -57,5 +59,6 @@ fn main() -> ExitCode {
         Cmd::Calibrate(args) => calibrate::run(&args),
         Cmd::Sim(args) => sim::run(&args),
         Cmd::Info(args) => device::info(&args),
+        Cmd::Stop(args) => device::stop(&args),
     }
 }

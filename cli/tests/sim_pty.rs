@@ -30,8 +30,14 @@ impl Drop for Sim {
 }
 
 fn sim() -> Sim {
+    sim_with(&[])
+}
+
+/// The simulator with more arguments (`--rig FILE`).
+fn sim_with(args: &[&str]) -> Sim {
     let mut child = Command::new(env!("CARGO_BIN_EXE_lightrig"))
         .args(["sim", "--pty", "--seconds", "120"])
+        .args(args)
         .stdout(Stdio::piped())
         .spawn()
         .unwrap();
@@ -87,4 +93,79 @@ fn the_host_cli_in_another_process_connects_to_it() {
         .output()
         .unwrap();
     assert!(again.status.success(), "{}", String::from_utf8_lossy(&again.stderr));
+}
+
+/// A small LLS gantry whose second pass asks a person to turn the light's mount.
+const PROMPTING_RIG: &str = include_str!("../../sim/tests/support/prompting-gantry.toml");
+
+fn temp_dir(name: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("lightrig-pty-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// The reproduction: a real-time controller, `lightrig acquire` stops at the first step
+/// that needs a person (no terminal), the device times the departed host out, and `lightrig
+/// resume` at a terminal asks, is answered, clears the fault it finds and completes the session.
+#[test]
+fn acquire_stops_at_a_prompt_and_resume_at_a_terminal_completes_the_session() {
+    use std::io::Write;
+    use std::os::fd::{FromRawFd, IntoRawFd};
+    let dir = temp_dir("prompt");
+    let rig_path = dir.join("rig.toml");
+    std::fs::write(&rig_path, PROMPTING_RIG).unwrap();
+    let sim = sim_with(&["--rig", rig_path.to_str().unwrap()]);
+    let connect = format!("serial:{}", sim.path);
+    let session = dir.join("session");
+
+    let first = Command::new(env!("CARGO_BIN_EXE_lightrig"))
+        .args(["acquire", rig_path.to_str().unwrap(), "--session", session.to_str().unwrap()])
+        .args(["--connect", &connect])
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&first.stderr);
+    assert_eq!(first.status.code(), Some(1), "{err}");
+    assert!(err.contains("needs a person") && err.contains("`lightrig resume` in a terminal"), "{err}");
+
+    // The person walks over to a terminal; meanwhile the device times the departed host out.
+    std::thread::sleep(std::time::Duration::from_millis(600));
+    // At a terminal: the answer waits in the pseudo-terminal before the question comes.
+    let (mut master, slave) = serialport::TTYPort::pair().unwrap();
+    master.write_all(b"\n").unwrap();
+    let terminal = unsafe { std::fs::File::from_raw_fd(slave.into_raw_fd()) };
+    let resumed = Command::new(env!("CARGO_BIN_EXE_lightrig"))
+        .args(["resume", session.to_str().unwrap(), "--connect", &connect])
+        .stdin(terminal)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&resumed.stderr);
+    assert!(resumed.status.success(), "{err}");
+    assert!(
+        err.contains("latched a fault: the host went silent"),
+        "the departed host's fault is named: {err}"
+    );
+    assert!(err.contains("turn the linear light's mount to +15°"), "the person is asked: {err}");
+    assert!(err.contains("session complete"), "{err}");
+    let (s, _) = lightrig_host::session::Session::read(&session).unwrap();
+    assert!(s.is_done());
+    assert_eq!(s.verify(), vec![], "every frame stored intact");
+    drop(sim);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn lightrig_stop_stops_a_device_from_another_process() {
+    let sim = sim();
+    let out = Command::new(env!("CARGO_BIN_EXE_lightrig"))
+        .args(["stop", "--connect", &format!("serial:{}", sim.path)])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        text.contains("emergency stop sent and answered") && text.contains("Faulted(EmergencyStop)"),
+        "{text}"
+    );
 }

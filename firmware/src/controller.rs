@@ -58,6 +58,8 @@ pub struct Controller<C: Clock, B: Board> {
     /// Number of the next event (`DeviceMsg::Event::index`).
     event_index: u32,
     last_heartbeat: u64,
+    /// Datagrams dropped for carrying anything but `EmergencyStop`.
+    ignored_datagrams: u32,
 }
 
 /// Where the host session stands.
@@ -95,6 +97,7 @@ impl<C: Clock, B: Board> Controller<C, B> {
             rig,
             event_index: 0,
             last_heartbeat,
+            ignored_datagrams: 0,
         }
     }
 
@@ -128,6 +131,11 @@ impl<C: Clock, B: Board> Controller<C, B> {
         self.last_heartbeat
     }
 
+    /// Datagrams dropped unanswered for carrying anything but `EmergencyStop`.
+    pub fn ignored_datagrams(&self) -> u32 {
+        self.ignored_datagrams
+    }
+
     /// The link, for its counters.
     pub fn link(&self) -> &Link<DeviceMsg, HostMsg, LINK_WINDOW> {
         &self.link
@@ -146,8 +154,14 @@ impl<C: Clock, B: Board> Controller<C, B> {
                     self.answer(DeviceMsg::Response { id: msg.id, result });
                 }
                 Some(Delivery::Datagram(msg)) => {
-                    // Datagrams carry urgent, idempotent commands; they get no answer.
-                    let _ = self.handle(&msg.command);
+                    // Only an emergency stop may arrive unsequenced (it must act even while the
+                    // reliable queue is stalled); anything else as a datagram could be a replay
+                    // (a CRC-valid frame needs no link state) and is dropped unanswered.
+                    if msg.command == Command::EmergencyStop {
+                        let _ = self.handle(&msg.command);
+                    } else {
+                        self.ignored_datagrams = self.ignored_datagrams.wrapping_add(1);
+                    }
                 }
                 Some(Delivery::Rejected { seq, reason }) => {
                     self.answer(DeviceMsg::Rejected { seq, reason });

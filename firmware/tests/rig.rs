@@ -623,3 +623,38 @@ fn a_late_fault_keeps_outputs_in_tick_order() {
         .drain_events()
         .contains(&Event::Fault { cause: FaultCause::Late { sequence: 1, item: 0 }, tick: 2_000 }));
 }
+
+#[test]
+fn a_sequence_is_checked_again_at_start_against_the_configuration_of_then() {
+    let mut rig = rig();
+    configure_all(&mut rig);
+    rig.arm(0b01, 0).unwrap();
+    let far = Xy { x: 60_000, y: 3_000 };
+    let items = [
+        item(0, Action::Laser { channel: 0, on: true }),
+        item(1_000, Action::GalvoPoint { galvo: 0, to: far }),
+        item(1_000, Action::Laser { channel: 0, on: false }),
+    ];
+    load_all(&mut rig, 1, &items);
+    // After loading, the galvo's range narrows below the loaded point ...
+    let mut narrow = galvo();
+    narrow.x.max_code = 50_000;
+    rig.configure(&ConfigItem::Galvo(narrow), 0).unwrap();
+    rig.board_mut().record.clear();
+    // ... so the start is refused, and nothing moves or shines.
+    assert_eq!(
+        rig.start(1, StartAt::Tick(10), 0),
+        Err(Error::OutOfRange { kind: Peripheral::Galvo, index: 0 })
+    );
+    rig.run_until(10_000);
+    assert!(rig.board().changes(|o| matches!(o, Output::Galvo { .. } | Output::Laser { .. })).is_empty());
+    // The range back, but the laser disarmed since the load: refused too.
+    rig.configure(&ConfigItem::Galvo(galvo()), 0).unwrap();
+    rig.disarm(0);
+    assert_eq!(rig.start(1, StartAt::Tick(20_000), 10_000), Err(Error::NotArmed { channel: 0 }));
+    // Armed again, it starts and runs as loaded.
+    rig.arm(0b01, 10_000).unwrap();
+    rig.start(1, StartAt::Tick(20_000), 10_000).unwrap();
+    rig.run_until(30_000);
+    assert_eq!(laser_levels(&rig, 0), [(20_000, true), (21_000, false), (21_200, true), (22_000, false)]);
+}

@@ -11,15 +11,14 @@
 
 use std::io;
 
-use lightrig_protocol::event::DeviceState;
-use lightrig_protocol::event::TriggerEvent;
+use lightrig_protocol::event::{DeviceState, FaultCause, TriggerEvent};
 use lightrig_protocol::sequence::StartAt;
 use lightrig_protocol::{Command, Event, Reply};
 
 use crate::client::{Client, ClientError};
 use crate::frames::{DirectorySource, Pattern};
 use crate::plan::{Plan, Step};
-use crate::session::{pair, Arrival, CameraTriggers, PlanStep, PlanSummary, StepId, Trigger};
+use crate::session::{pair, Arrival, CameraTriggers, Pairing, PlanStep, PlanSummary, StepId, Trigger};
 use crate::session::{Session, SessionError};
 use crate::transport::Transport;
 
@@ -38,8 +37,9 @@ pub struct Captured {
     pub host_us: f64,
 }
 
-/// Where a camera's frames come from.
-pub trait FrameInput {
+/// Where a camera's frames come from. Inputs are `Send`: the engine polls them on another
+/// thread while it keeps a real-time device's link alive ([`Client::busy`]).
+pub trait FrameInput: Send {
     /// A step is about to start: frames from now on count from 0.
     fn begin_step(&mut self, step: &Step) -> io::Result<()>;
     /// The device fired a trigger (a rendering camera renders it here).
@@ -72,8 +72,10 @@ pub fn step_requests(step: &Step) -> Vec<String> {
 }
 
 /// Carries out (or has a person carry out) a step's [`step_requests`] before its sequence
-/// runs. A refusal stops the run before the step starts: the session stays resumable.
-pub trait StepPreparation {
+/// runs. A refusal stops the run before the step starts: the session stays resumable. It runs
+/// on another thread while the engine keeps a real-time device's link alive (a person may take
+/// minutes), with the lasers disarmed.
+pub trait StepPreparation: Send {
     /// Prepares `step`; returns who did it (the journal's `StepPrepared.by`), or why not.
     /// Called only for steps that ask for something.
     fn prepare(&mut self, step: &Step, requests: &[String]) -> Result<String, String>;
@@ -378,7 +380,29 @@ pub fn run_prepared<T: Transport>(
     mut progress: impl FnMut(Progress),
 ) -> Result<(), AcquireError> {
     session.device_connected(client.info())?;
-    recover(client).map_err(AcquireError::Device)?;
+    // What arrived since the connection (an earlier run's last events, a fault from while no
+    // host was there, homing) is journaled before anything else.
+    for e in client.take_events() {
+        session.record_event(&e)?;
+    }
+    recover(client, &mut |c: &FaultCause| !needs_a_person(c)).map_err(AcquireError::Device)?;
+    let result = run_steps(client, session, plan, input, prep, &mut progress);
+    if result.is_err() {
+        // Whatever stopped the run, the lasers are left disarmed where the device still
+        // listens (a device that went away disarms itself when the heartbeat lapses).
+        let _ = client.request(Command::Disarm);
+    }
+    result
+}
+
+fn run_steps<T: Transport>(
+    client: &mut Client<T>,
+    session: &mut Session,
+    plan: &Plan,
+    input: &mut dyn FrameInput,
+    prep: &mut dyn StepPreparation,
+    progress: &mut impl FnMut(Progress),
+) -> Result<(), AcquireError> {
     let lasers = lasers_used(plan);
     if lasers != 0 {
         client.request(Command::Arm { lasers }).map_err(AcquireError::Device)?;
@@ -393,7 +417,15 @@ pub fn run_prepared<T: Transport>(
         let prepared_by = if requests.is_empty() {
             None
         } else {
-            Some(prep.prepare(step, &requests).map_err(AcquireError::Preparation)?)
+            // A person may be at the rig: lasers disarmed until they are done, the link kept
+            // alive meanwhile so the device does not time the host out.
+            client.request(Command::Disarm).map_err(AcquireError::Device)?;
+            let done = client.busy(|| prep.prepare(step, &requests));
+            let by = done.map_err(AcquireError::Preparation)?;
+            if lasers != 0 {
+                client.request(Command::Arm { lasers }).map_err(AcquireError::Device)?;
+            }
+            Some(by)
         };
         frames += run_step(client, session, step, input, prepared_by.map(|by| (by, requests)))?;
         progress(Progress { steps_done: session.steps_done().len(), steps: total, frames });
@@ -403,26 +435,61 @@ pub fn run_prepared<T: Transport>(
     Ok(())
 }
 
+/// Whether clearing the latched fault `cause` needs a person's word first: an opened laser
+/// interlock (an enclosure door, a key switch) means someone may be at the beam.
+pub fn needs_a_person(cause: &FaultCause) -> bool {
+    matches!(cause, FaultCause::Interlock { .. })
+}
+
+/// What [`recover`] found on the device and did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Recovered {
+    /// The sequence an earlier run left running: aborted.
+    pub aborted: Option<u32>,
+    /// The fault that was latched: cleared.
+    pub cleared: Option<FaultCause>,
+}
+
 /// Readies a device a run was cut short on (host crash, unplug): stops the sequence it may
-/// still be running and clears a latched fault. Lasers stay disarmed until a run arms them.
-pub fn recover<T: Transport>(client: &mut Client<T>) -> Result<(), ClientError> {
+/// still be running and clears a latched fault if `may_clear` allows (else fails with
+/// [`ClientError::NeedsConfirmation`], the fault still latched). Lasers stay disarmed until a
+/// run arms them.
+pub fn recover<T: Transport>(
+    client: &mut Client<T>,
+    may_clear: &mut dyn FnMut(&FaultCause) -> bool,
+) -> Result<Recovered, ClientError> {
+    let mut found = Recovered::default();
     if let Reply::Status(s) = client.request(Command::GetStatus)? {
-        if let DeviceState::Running { sequence } = s.state {
-            client.request(Command::SequenceAbort { sequence })?;
+        match s.state {
+            DeviceState::Running { sequence } => {
+                client.request(Command::SequenceAbort { sequence })?;
+                found.aborted = Some(sequence);
+            }
+            DeviceState::Faulted(cause) => {
+                if !may_clear(&cause) {
+                    return Err(ClientError::NeedsConfirmation {
+                        device: client.transport().describe(),
+                        cause,
+                    });
+                }
+                client.request(Command::ClearFault)?;
+                found.cleared = Some(cause);
+            }
+            DeviceState::AwaitingHello | DeviceState::Ready => {}
         }
     }
-    client.request(Command::ClearFault)?;
-    Ok(())
+    Ok(found)
 }
 
 /// Whether `e` means the link to the device was lost (cable pulled, port gone, the device
-/// timed the host out), rather than the device refusing or faulting on what it was asked.
+/// timed the host out or restarted), rather than the device refusing or faulting on what it
+/// was asked.
 pub fn is_link_loss(e: &ClientError) -> bool {
-    use lightrig_protocol::event::FaultCause;
     matches!(
         e,
         ClientError::Io { .. }
             | ClientError::Timeout { .. }
+            | ClientError::SessionLost { .. }
             | ClientError::Fault { cause: FaultCause::HeartbeatLost, .. }
     )
 }
@@ -536,9 +603,9 @@ fn run_step<T: Transport>(
     loop {
         let now = client.transport().now_us() as f64;
         let before = arrivals.len();
-        arrivals.extend(
-            input.poll(now).map_err(AcquireError::Frames)?.into_iter().filter(|c| c.host_us >= start_us),
-        );
+        // Reading whole files may take a while: the link stays alive meanwhile.
+        let polled = client.busy(|| input.poll(now)).map_err(AcquireError::Frames)?;
+        arrivals.extend(polled.into_iter().filter(|c| c.host_us >= start_us));
         if arrivals.len() > before {
             wait_until = client.transport().now_us() + FRAME_WAIT_US;
         }
@@ -550,6 +617,14 @@ fn run_step<T: Transport>(
     let numbered: Vec<Arrival> =
         arrivals.iter().map(|c| Arrival { camera: c.camera, frame: c.frame, host_us: c.host_us }).collect();
     let pairing = pair(&triggers, &numbered, LATE_US);
+    // Each frame is written and fsynced with its record (hundreds in a pass): the link stays
+    // alive meanwhile.
+    client.busy(|| store(session, &pairing, &arrivals))
+}
+
+/// Stores a step attempt's paired frames, records the missing ones and the extra ones, and
+/// closes the attempt; returns the frames stored.
+fn store(session: &mut Session, pairing: &Pairing, arrivals: &[Captured]) -> Result<u64, AcquireError> {
     let mut stored = 0;
     for p in &pairing.pairs {
         let c = &arrivals[p.arrival];

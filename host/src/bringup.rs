@@ -1,13 +1,15 @@
 //! Bringing a rig up: connect, recover what an earlier run left, upload the rig file's
 //! configuration, home; and how long to wait for a device that went away.
 
+use std::sync::Arc;
+
 use lightrig_protocol::config::{AxisKind, HomingMode};
-use lightrig_protocol::event::Event;
+use lightrig_protocol::event::{Event, FaultCause};
 use lightrig_protocol::sequence::AxisRef;
 use lightrig_protocol::Command;
 
 use crate::acquire;
-use crate::client::Client;
+use crate::client::{describe_fault, fresh_nonce, Client, ClientError, Interrupt};
 use crate::rigfile::{RigFile, Stepper};
 use crate::transport::Transport;
 
@@ -30,23 +32,68 @@ impl std::fmt::Display for BringUpError {
 
 impl std::error::Error for BringUpError {}
 
-/// Connects over `transport`, uploads the rig's configuration and homes what has a homing
-/// procedure: a device an earlier run left mid-sequence or faulted is recovered first; the
-/// heartbeat follows the rig file's `[safety]`.
+/// What bring-up asks of, and tells, whoever drives it.
+pub trait BringUpHooks {
+    /// What is happening, in words (homing can take minutes).
+    fn say(&mut self, _what: &str) {}
+
+    /// Whether the fault the device has latched may be cleared now. By default any but
+    /// those that need a person's word ([`acquire::needs_a_person`]).
+    fn may_clear(&mut self, cause: &FaultCause) -> bool {
+        !acquire::needs_a_person(cause)
+    }
+
+    /// A stop request (Ctrl-C) the client is to obey from its connection on.
+    fn interrupt(&self) -> Option<Arc<Interrupt>> {
+        None
+    }
+}
+
+/// Bring-up that says nothing and clears what needs no person.
+pub struct Quiet;
+
+impl BringUpHooks for Quiet {}
+
+/// [`bring_up_with`], quietly.
 pub fn bring_up_on(
     rig: &RigFile,
     transport: Box<dyn Transport>,
 ) -> Result<Client<Box<dyn Transport>>, BringUpError> {
-    let nonce = std::process::id() ^ (std::time::SystemTime::now().elapsed().map_or(7, |d| d.subsec_nanos()));
-    let mut client = Client::connect(transport, nonce).map_err(|e| BringUpError::Device(e.to_string()))?;
+    bring_up_with(rig, transport, &mut Quiet)
+}
+
+/// Connects over `transport`, readies a device an earlier run left mid-sequence or faulted
+/// ([`acquire::recover`], asking `hooks` before clearing a fault), uploads the rig's
+/// configuration, sets the heartbeat from the rig file's `[safety]`, and homes what has a
+/// homing procedure. Events that arrive meanwhile stay queued on the client, for the session
+/// to journal.
+pub fn bring_up_with(
+    rig: &RigFile,
+    transport: Box<dyn Transport>,
+    hooks: &mut dyn BringUpHooks,
+) -> Result<Client<Box<dyn Transport>>, BringUpError> {
+    let device = |e: ClientError| BringUpError::Device(e.to_string());
+    let mut client = Client::connect(transport, fresh_nonce()).map_err(device)?;
+    if let Some(i) = hooks.interrupt() {
+        client.set_interrupt(i);
+    }
     // A device an earlier run left mid-sequence or faulted takes no configuration until then.
-    acquire::recover(&mut client).map_err(|e| BringUpError::Device(e.to_string()))?;
+    let found = acquire::recover(&mut client, &mut |c: &FaultCause| hooks.may_clear(c)).map_err(device)?;
+    if let Some(sequence) = found.aborted {
+        hooks.say(&format!("the device was still running sequence {sequence} of an earlier run: aborted"));
+    }
+    if let Some(cause) = found.cleared {
+        hooks.say(&format!("the device had latched a fault: {}; cleared", describe_fault(&cause)));
+    }
+    // Events of what came before (the fault just cleared, an earlier run's homing) may still
+    // be on their way: homing goes by the events after this.
+    client.fence().map_err(device)?;
     if let Some(s) = &rig.safety {
         client.set_heartbeat_us((s.heartbeat_timeout_ms * 1000.0 / 4.0) as u64);
     }
     let items = rig.config_items(client.info()).map_err(|e| BringUpError::RigFile(e.to_string()))?;
     for item in items {
-        client.request(Command::Configure(item)).map_err(|e| BringUpError::Device(e.to_string()))?;
+        client.request(Command::Configure(item)).map_err(device)?;
     }
     let mut homing: Vec<AxisRef> = rig
         .steppers
@@ -55,32 +102,70 @@ pub fn bring_up_on(
         .map(|s| AxisRef::Stepper(s.axis))
         .chain(rig.filter_wheels.iter().map(|w| AxisRef::FilterWheel(w.wheel)))
         .collect();
+    if homing.is_empty() {
+        return Ok(client);
+    }
     for &a in &homing {
-        client.request(Command::Home(a)).map_err(|e| BringUpError::Device(e.to_string()))?;
+        client.request(Command::Home(a)).map_err(device)?;
     }
     let deadline_us = homing_timeout_us(rig);
-    let give_up = client.transport().now_us().saturating_add(deadline_us);
+    let started = client.transport().now_us();
+    let give_up = started.saturating_add(deadline_us);
+    let names: Vec<String> = homing.iter().map(|a| axis_name(rig, a)).collect();
+    hooks.say(&format!("homing {} (at most {:.0} s)", names.join(", "), deadline_us as f64 / 1e6));
+    // Events stay queued (the session journals them); `seen` is how far this loop has read.
+    let mut seen = 0;
     while !homing.is_empty() {
         let left = give_up.saturating_sub(client.transport().now_us());
-        let e = client.next_event(left).map_err(|e| BringUpError::Device(e.to_string()))?;
-        match e.map(|e| e.event) {
-            Some(Event::Homed { axis, .. }) => homing.retain(|a| *a != axis),
-            Some(Event::Fault { cause, .. }) => {
-                return Err(BringUpError::Device(format!(
-                    "homing failed: {cause:?}; check the switches and their wiring"
-                )))
+        if !client.wait_for_events(seen, left).map_err(device)? {
+            return Err(BringUpError::Device(format!(
+                "homing did not finish within {:.0} s (1.5 × the longest seek at the rig file's homing speed, \
+                 + 10 s): {} still homing; check the switches and the homing speed",
+                deadline_us as f64 / 1e6,
+                homing.iter().map(|a| axis_name(rig, a)).collect::<Vec<_>>().join(", ")
+            )));
+        }
+        let e = client.queued()[seen].clone();
+        seen += 1;
+        if client.before_fence(&e) {
+            continue;
+        }
+        match e.event {
+            Event::Homed { axis, .. } if homing.contains(&axis) => {
+                homing.retain(|a| *a != axis);
+                let secs = client.transport().now_us().saturating_sub(started) as f64 / 1e6;
+                hooks.say(&format!("homed {} after {secs:.1} s", axis_name(rig, &axis)));
             }
-            Some(_) => {}
-            None => {
+            Event::Fault { cause, .. } => {
+                let advice = match cause {
+                    FaultCause::HomingFailed { .. } | FaultCause::Limit { .. } => {
+                        "; check the switches, their wiring and polarity in the rig file"
+                    }
+                    _ => "",
+                };
                 return Err(BringUpError::Device(format!(
-                    "homing did not finish within {:.0} s (1.5 × the longest seek at the rig file's \
-                     homing speed, + 10 s): {homing:?}; check the switches and the homing speed",
-                    deadline_us as f64 / 1e6
-                )))
+                    "homing stopped: {}{advice}",
+                    describe_fault(&cause)
+                )));
             }
+            _ => {}
         }
     }
     Ok(client)
+}
+
+/// An axis by its rig-file name, else by kind and number.
+fn axis_name(rig: &RigFile, axis: &AxisRef) -> String {
+    let named = match *axis {
+        AxisRef::Stepper(i) => rig.steppers.iter().find(|s| s.axis == i).and_then(|s| s.name.clone()),
+        AxisRef::FilterWheel(i) => {
+            rig.filter_wheels.iter().find(|w| w.wheel == i).and_then(|w| w.name.clone())
+        }
+    };
+    named.unwrap_or_else(|| match *axis {
+        AxisRef::Stepper(i) => format!("stepper {i}"),
+        AxisRef::FilterWheel(i) => format!("filter wheel {i}"),
+    })
 }
 
 /// How long homing may take, µs: 1.5 × the longest seek (a linear axis' whole travel between

@@ -8,6 +8,8 @@
 
 use std::collections::{HashSet, VecDeque};
 use std::fmt;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 
 use lightrig_protocol::event::FaultCause;
 use lightrig_protocol::link::{Delivery, Link, LinkConfig, Role};
@@ -25,6 +27,48 @@ use crate::transport::Transport;
 const WINDOW: usize = 8;
 /// Retransmission timeout, µs.
 const RTO_US: u64 = 20_000;
+/// How often [`Client::busy`] looks whether the work is done, µs.
+const BUSY_POLL_US: u64 = 10_000;
+
+/// A link nonce for one run of a host program: the OS's random source (through the standard
+/// library's hasher keys) mixed with the time and the process id, so two runs, even started
+/// in the same microsecond, differ.
+pub fn fresh_nonce() -> u32 {
+    use std::hash::{BuildHasher, Hasher};
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u32(std::process::id());
+    if let Ok(d) = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH) {
+        h.write_u128(d.as_nanos());
+    }
+    let x = h.finish();
+    (x ^ (x >> 32)) as u32
+}
+
+/// A request to stop, from outside the thread driving the client (a Ctrl-C handler): the
+/// client sends `EmergencyStop` at its next turn of the link, marks it sent, and fails the
+/// call in progress with [`ClientError::Interrupted`].
+#[derive(Debug, Default)]
+pub struct Interrupt {
+    requested: AtomicBool,
+    stopped: AtomicBool,
+}
+
+impl Interrupt {
+    /// Asks the client to stop the device.
+    pub fn request(&self) {
+        self.requested.store(true, Ordering::SeqCst);
+    }
+
+    /// Whether a stop was asked for.
+    pub fn requested(&self) -> bool {
+        self.requested.load(Ordering::SeqCst)
+    }
+
+    /// Whether the device has been told to stop (its answer came, or the link was gone).
+    pub fn stopped(&self) -> bool {
+        self.stopped.load(Ordering::SeqCst)
+    }
+}
 
 /// What went wrong talking to a device. Each message says what, where and what to do.
 #[derive(Debug)]
@@ -41,6 +85,13 @@ pub enum ClientError {
     Fault { device: String, cause: FaultCause, tick: u64 },
     /// The device answered something the protocol does not allow here.
     Protocol { device: String, detail: String },
+    /// Stopped at the user's request (Ctrl-C): the device was sent `EmergencyStop`.
+    Interrupted { device: String },
+    /// The device has latched a fault that a person must see to before it is cleared.
+    NeedsConfirmation { device: String, cause: FaultCause },
+    /// The device no longer knows this host's session: it restarted (reset, watchdog, power)
+    /// with the link still open, or its link was reset.
+    SessionLost { device: String },
 }
 
 impl fmt::Display for ClientError {
@@ -65,10 +116,29 @@ impl fmt::Display for ClientError {
             }
             ClientError::Fault { device, cause, tick } => write!(
                 f,
-                "{device} entered the safe state at tick {tick}: {cause:?}; lasers are off. Fix the cause, then send \
-                 ClearFault (`lightrig` does this when you resume)"
+                "{device} entered the safe state at tick {tick}: {} ({cause:?}); lasers are off. Fix the cause, then \
+                 send ClearFault (`lightrig` does this when you resume)",
+                describe_fault(cause)
             ),
             ClientError::Protocol { device, detail } => write!(f, "{device}: protocol error: {detail}"),
+            ClientError::Interrupted { device } => write!(
+                f,
+                "stopped by the user: {device} was sent EmergencyStop (lasers off, motion stopped, the fault latched \
+                 until a run clears it)"
+            ),
+            ClientError::SessionLost { device } => write!(
+                f,
+                "{device} no longer knows this host's session: it restarted (reset, watchdog, power) or its link \
+                 was reset; it has lost its configuration and whatever it was running. Connecting again says \
+                 Hello, configures and homes it"
+            ),
+            ClientError::NeedsConfirmation { device, cause } => write!(
+                f,
+                "{device} has latched a fault: {}. A person must see to it (the enclosure closed, the interlock and \
+                 its wiring checked) and confirm before it is cleared: run `lightrig resume` at a terminal, which \
+                 asks, or pass --yes once it is safe",
+                describe_fault(cause)
+            ),
         }
     }
 }
@@ -80,6 +150,51 @@ pub fn describe_error(e: &Error) -> String {
     match e {
         Error::InvalidConfig(c) => format!("invalid configuration: {c}"),
         other => format!("{other:?}"),
+    }
+}
+
+/// A fault cause in words: what happened and what to look at.
+pub fn describe_fault(cause: &FaultCause) -> String {
+    use lightrig_protocol::sequence::AxisRef;
+    let axis = |a: &AxisRef| match a {
+        AxisRef::Stepper(i) => format!("stepper {i}"),
+        AxisRef::FilterWheel(i) => format!("filter wheel {i}"),
+    };
+    match cause {
+        FaultCause::HeartbeatLost => {
+            "the host went silent for longer than the heartbeat timeout (a host that ended or hung, a \
+             pulled cable)"
+                .into()
+        }
+        FaultCause::EmergencyStop => "an emergency stop".into(),
+        FaultCause::Interlock { channel } => format!("laser {channel}'s interlock opened"),
+        FaultCause::LaserOnTime { channel } => format!("laser {channel} stayed on past its max_on time"),
+        FaultCause::Limit { axis: a } => {
+            format!("{} hit a limit switch or was sent past a soft limit", axis(a))
+        }
+        FaultCause::HomingFailed { axis: a } => format!("{} did not find its homing switch", axis(a)),
+        FaultCause::Underrun { sequence } => {
+            format!(
+                "sequence {sequence} ran out of items before its last chunk arrived (the host fell behind)"
+            )
+        }
+        FaultCause::WaitTimeout { sequence, item } => {
+            format!("item {item} of sequence {sequence} waited for a condition that did not come in time")
+        }
+        FaultCause::Late { sequence, item } => {
+            format!("item {item} of sequence {sequence} came due later than the device could run it exactly")
+        }
+        FaultCause::Driver { axis: a } => {
+            format!("{}'s driver failed or its move could not be planned", axis(a))
+        }
+        FaultCause::EventOverflow => {
+            "the device's event queue overflowed (the host stopped acknowledging)".into()
+        }
+        FaultCause::AxisBusy { axis: a } => format!("{} was asked to move while still moving", axis(a)),
+        FaultCause::TriggerTooSoon { camera } => {
+            format!("camera {camera} was triggered sooner than its min_interval after the last trigger")
+        }
+        FaultCause::GalvoOutput { galvo } => format!("galvo pair {galvo}'s output (converter or bus) failed"),
     }
 }
 
@@ -125,6 +240,13 @@ pub struct Client<T: Transport> {
     sample: Option<(u16, u64)>,
     heartbeat_us: u64,
     last_request_us: u64,
+    /// A link failure while [`Self::busy`] ran, for the next call to return.
+    pending: Option<ClientError>,
+    /// Device tick before which events are from an earlier attempt ([`Self::fence`]).
+    fence_tick: u64,
+    interrupt: Option<Arc<Interrupt>>,
+    /// The handshake is done: a `HandshakeRequired` from now on means the session was lost.
+    open: bool,
 }
 
 impl<T: Transport> Client<T> {
@@ -156,6 +278,10 @@ impl<T: Transport> Client<T> {
             sample: None,
             heartbeat_us: 200_000,
             last_request_us: now,
+            pending: None,
+            fence_tick: 0,
+            interrupt: None,
+            open: false,
         };
         let hello = Command::Hello { protocol_version: version, schema_hash: schema };
         let info = match client.request_timeout(hello, 3_000_000) {
@@ -164,9 +290,15 @@ impl<T: Transport> Client<T> {
             Err(e) => return Err(e),
         };
         client.info = info;
+        // Events the device resent before answering (what an earlier host left unacknowledged)
+        // came before we knew whose they are.
+        for e in &mut client.events {
+            e.boot_id = info.boot_id;
+        }
         if info.protocol_version != version || info.schema_hash != schema {
             return Err(client.incompatible());
         }
+        client.open = true;
         // Heartbeats well inside the device's default timeout (1 s).
         client.sync_clock(8)?;
         Ok(client)
@@ -213,6 +345,66 @@ impl<T: Transport> Client<T> {
     /// The host–device clock mapping.
     pub fn clock(&self) -> &ClockMap {
         &self.clock
+    }
+
+    /// From now on, `interrupt` stops the device: at the next turn of the link the client
+    /// sends `EmergencyStop` and fails the call in progress ([`ClientError::Interrupted`]).
+    pub fn set_interrupt(&mut self, interrupt: Arc<Interrupt>) {
+        self.interrupt = Some(interrupt);
+    }
+
+    /// Sends `EmergencyStop` as a datagram (acted on even if the reliable queue is stalled) and
+    /// reliably, and waits briefly for its answer.
+    pub fn emergency_stop(&mut self) -> Result<(), ClientError> {
+        self.next_id = self.next_id.wrapping_add(1);
+        let _ = self.link.send_datagram(HostMsg { id: self.next_id, command: Command::EmergencyStop });
+        self.request_timeout(Command::EmergencyStop, 500_000).map(|_| ())
+    }
+
+    /// Runs `work` (a person at a prompt, frames written to disk, files read) on another
+    /// thread while this one keeps the link alive: heartbeats, acknowledgements,
+    /// retransmissions; events that arrive queue up as always. A device in real time would
+    /// otherwise time the host out (`HeartbeatLost`) whenever the host is busy for longer than
+    /// its heartbeat timeout. A link failure meanwhile is returned by the next call on the
+    /// client. With a device that waits for the host ([`Transport::runs_alone`] false: the
+    /// in-process virtual rig) `work` runs here, directly.
+    pub fn busy<R: Send>(&mut self, work: impl FnOnce() -> R + Send) -> R {
+        if !self.transport.runs_alone() {
+            return work();
+        }
+        std::thread::scope(|scope| {
+            let job = scope.spawn(work);
+            while !job.is_finished() {
+                if self.pending.is_some() {
+                    // The link is gone: nothing to keep alive, only the work to wait for.
+                    std::thread::sleep(std::time::Duration::from_micros(BUSY_POLL_US));
+                    continue;
+                }
+                let deadline = self.transport.now_us().saturating_add(BUSY_POLL_US);
+                if let Err(e) = self.pump(deadline) {
+                    self.pending = Some(e);
+                }
+            }
+            job.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+        })
+    }
+
+    /// The device's tick now, measured by a round trip; events stamped earlier belong to what
+    /// came before (an earlier host's run, a cleared fault) and [`Self::run_sequence`] does not
+    /// act on them. Returns the tick.
+    pub fn fence(&mut self) -> Result<u64, ClientError> {
+        match self.request(Command::GetClock)? {
+            Reply::Clock { tick } => {
+                self.fence_tick = self.fence_tick.max(tick);
+                Ok(tick)
+            }
+            other => Err(self.protocol(format!("GetClock answered with {other:?}"))),
+        }
+    }
+
+    /// Whether `e` happened before the last [`Self::fence`].
+    pub fn before_fence(&self, e: &EventRecord) -> bool {
+        event_tick(&e.event).is_some_and(|t| t < self.fence_tick)
     }
 
     /// Sends a command and waits for its answer (up to 2 s); a refusal is an error naming the
@@ -276,6 +468,16 @@ impl<T: Transport> Client<T> {
 
     /// Moves bytes both ways once, waiting at most until `deadline` for something to arrive.
     fn pump(&mut self, deadline: u64) -> Result<(), ClientError> {
+        if let Some(e) = self.pending.take() {
+            return Err(e);
+        }
+        if let Some(stop) = self.interrupt.clone().filter(|i| i.requested() && !i.stopped()) {
+            // Stop first, then say why the call failed.
+            self.interrupt = None;
+            let _ = self.emergency_stop();
+            stop.stopped.store(true, Ordering::SeqCst);
+            return Err(ClientError::Interrupted { device: self.transport.describe() });
+        }
         let mut out = [0u8; MAX_FRAME];
         let now = self.transport.now_us();
         self.heartbeat(now)?;
@@ -320,6 +522,13 @@ impl<T: Transport> Client<T> {
 
     fn deliver(&mut self, d: Delivery<DeviceMsg>, at: u64) -> Result<(), ClientError> {
         match d {
+            // Any request (a heartbeat most likely) refused for want of a Hello: the device has
+            // forgotten us. Waiting on would hang: its events now come from another boot.
+            Delivery::Message(DeviceMsg::Response { result: Err(Error::HandshakeRequired), .. })
+                if self.open =>
+            {
+                return Err(ClientError::SessionLost { device: self.transport.describe() });
+            }
             Delivery::Message(DeviceMsg::Response { id, result }) => {
                 if let Some((sid, sent)) = self.sample {
                     if sid == id {
@@ -372,6 +581,26 @@ impl<T: Transport> Client<T> {
         Ok(())
     }
 
+    /// The events received and not yet taken, oldest first.
+    pub fn queued(&self) -> &VecDeque<EventRecord> {
+        &self.events
+    }
+
+    /// Takes every event received so far (to journal them).
+    pub fn take_events(&mut self) -> Vec<EventRecord> {
+        self.events.drain(..).collect()
+    }
+
+    /// Runs the link until more than `n` events are queued or `timeout_us` has passed;
+    /// returns whether they are.
+    pub fn wait_for_events(&mut self, n: usize, timeout_us: u64) -> Result<bool, ClientError> {
+        let deadline = self.transport.now_us().saturating_add(timeout_us);
+        while self.events.len() <= n && self.transport.now_us() < deadline {
+            self.pump(deadline)?;
+        }
+        Ok(self.events.len() > n)
+    }
+
     /// The next event, waiting up to `timeout_us`.
     pub fn next_event(&mut self, timeout_us: u64) -> Result<Option<EventRecord>, ClientError> {
         let deadline = self.transport.now_us().saturating_add(timeout_us);
@@ -402,6 +631,9 @@ impl<T: Transport> Client<T> {
         mut on_event: impl FnMut(&EventRecord),
     ) -> Result<SequenceOutcome, ClientError> {
         let capacity = u32::from(self.info.capabilities.sequence_buffer);
+        // A fault from before this sequence (an earlier attempt's, already cleared) may still
+        // arrive: it is handed on, not acted upon.
+        self.fence()?;
         let mut items = items.into_iter().peekable();
         let (mut sent, mut executed, mut chunk) = (0u32, 0u32, 0u32);
         let mut started = false;
@@ -437,7 +669,7 @@ impl<T: Transport> Client<T> {
                 Event::SequenceDone { sequence, items, tick } if sequence == id => {
                     return Ok(SequenceOutcome { items, tick });
                 }
-                Event::Fault { cause, tick } => {
+                Event::Fault { cause, tick } if tick >= self.fence_tick => {
                     return Err(ClientError::Fault { device: self.transport.describe(), cause, tick });
                 }
                 _ => {}

@@ -1,15 +1,17 @@
 #!/usr/bin/env bash
-# Fuzzes every target (or the ones named) for SECONDS each, starting from the checked-in seeds.
+# Fuzzes every target (or the ones named) for SECONDS each.
 #
 #     protocol/fuzz/run.sh SECONDS [TARGET...]
 #
-# Each target runs on a temporary copy of fuzz/seeds/<target>/ (the seeds stay untouched), with
-# debug assertions and overflow checks on (-a). Prints one line per target:
+# Each target's corpus grows from run to run in $LIGHTRIG_FUZZ_CORPUS/<target> (default
+# ${XDG_CACHE_HOME:-~/.cache}/lightrig/fuzz-corpus/<target>), so every run starts where the
+# last one on this machine stopped; the checked-in seeds (fuzz/seeds/<target>/) are read as a
+# second corpus and never written. Debug assertions and overflow checks are on (-a). Prints one
+# line per target:
 #     <target>  runs=<executions>  corpus=<files>  ok|CRASH
 # and exits non-zero if any target crashed (its artifact path and log are printed). An input
 # that runs longer than FUZZ_TIMEOUT seconds (default 30) counts as a crash: a hang (libFuzzer's
-# own default is 20 minutes, and -max_total_time does not interrupt a running input). Set
-# FUZZ_KEEP_CORPUS=1 to keep the grown corpora (their paths are printed).
+# own default is 20 minutes, and -max_total_time does not interrupt a running input).
 set -uo pipefail
 
 if [[ $# -lt 1 || ! $1 =~ ^[0-9]+$ ]]; then
@@ -20,6 +22,7 @@ seconds=$1
 shift
 
 fuzz_dir=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
+cache=${LIGHTRIG_FUZZ_CORPUS:-${XDG_CACHE_HOME:-$HOME/.cache}/lightrig/fuzz-corpus}
 cd "$fuzz_dir/.." # protocol/: cargo fuzz finds fuzz/ from here
 
 targets=("$@")
@@ -39,13 +42,15 @@ done
 failed=0
 for t in "${targets[@]}"; do
     work=$(mktemp -d "${TMPDIR:-/tmp}/lightrig-fuzz-$t.XXXXXX")
-    corpus="$work/corpus"
+    corpus="$cache/$t"
     mkdir -p "$corpus"
+    seeds=()
     if [[ -d "$fuzz_dir/seeds/$t" ]]; then
-        cp "$fuzz_dir/seeds/$t/"* "$corpus/" 2>/dev/null
+        seeds=("$fuzz_dir/seeds/$t")
     fi
     log="$work/fuzz.log"
-    cargo +nightly fuzz run -a "$t" "$corpus" -- \
+    # New inputs go to the first directory only: the kept corpus.
+    cargo +nightly fuzz run -a "$t" "$corpus" "${seeds[@]}" -- \
         -max_total_time="$seconds" -timeout="${FUZZ_TIMEOUT:-30}" -rss_limit_mb=2048 \
         -print_final_stats=1 >"$log" 2>&1
     rc=$?
@@ -66,8 +71,6 @@ for t in "${targets[@]}"; do
         echo "  exit code $rc; artifact: ${artifact:-none}; log: $log"
         echo "  reproduce: (cd $(pwd) && cargo +nightly fuzz run -a $t ${artifact:-<artifact>})"
         grep -m1 -E "panicked at|ERROR: |SUMMARY: " "$log" | sed 's/^/  /'
-    elif [[ ${FUZZ_KEEP_CORPUS:-0} == 1 ]]; then
-        echo "  corpus kept: $corpus"
     else
         rm -rf "$work"
     fi

@@ -43,8 +43,8 @@ pub struct RigState {
     pub coils: Vec<Vec<i16>>,
 }
 
-/// Something the virtual camera can look at.
-pub trait Scene: Sync {
+/// Something the virtual camera can look at (rendered on the camera's threads).
+pub trait Scene: Send + Sync {
     /// Image size, pixels.
     fn size(&self) -> (u32, u32);
     /// Linear RGB radiance of pixel `(x, y)` in `state`.

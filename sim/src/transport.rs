@@ -29,6 +29,8 @@ pub struct VirtualTransport {
     unplugged: bool,
     /// Pull the cable when the clock reaches this tick.
     unplug_at: Option<u64>,
+    /// Reset the device (a new boot, the cable still in) when the clock reaches this tick.
+    reset_at: Option<u64>,
     /// Simulated time held to the wall clock ([`VirtualTransport::pace_in_real_time`]).
     real_time: Option<RealTime>,
     /// The board's changes handed on to the virtual camera ([`VirtualTransport::timeline`]).
@@ -101,6 +103,7 @@ impl VirtualTransport {
             rng: 0,
             unplugged: false,
             unplug_at: None,
+            reset_at: None,
             real_time: None,
             timeline: None,
         }
@@ -136,6 +139,32 @@ impl VirtualTransport {
         self.unplug_at = Some(tick);
     }
 
+    /// Resets the device when simulated time reaches `tick`, the link left open (a watchdog
+    /// or a brown-out on a board whose USB-serial bridge stays powered, a UART, QEMU): a new
+    /// boot with a new boot id and nothing configured, on the same physical board.
+    pub fn reset_at(&mut self, tick: u64) {
+        self.reset_at = Some(tick);
+    }
+
+    fn check_reset(&mut self) {
+        if self.reset_at.is_none_or(|t| self.clock.now() < t) {
+            return;
+        }
+        self.reset_at = None;
+        let mut info = *self.device.info();
+        info.boot_id = fresh_boot_id().max(info.boot_id.wrapping_add(1)).max(1);
+        info.reset_cause = lightrig_protocol::session::ResetCause::Watchdog;
+        // The axes stay where they physically are; the laser pins go low, as an MCU's outputs
+        // do at reset.
+        let mut board = std::mem::take(self.device.rig_mut().board_mut());
+        board.lasers = Default::default();
+        self.device = Controller::new(self.clock.clone(), board, info, 2_000);
+        if let Some(t) = &self.timeline {
+            t.attach(self.device.rig_mut().board_mut());
+        }
+        self.pending.clear();
+    }
+
     /// Plugs the cable back in. Bytes in flight were lost; the device kept running meanwhile.
     pub fn replug(&mut self) {
         self.unplugged = false;
@@ -165,6 +194,7 @@ impl VirtualTransport {
     }
 
     fn collect(&mut self) {
+        self.check_reset();
         let mut out = [0u8; MAX_FRAME];
         self.device.poll();
         if let Some(t) = &self.timeline {
@@ -214,6 +244,11 @@ impl Transport for VirtualTransport {
 
     fn describe(&self) -> String {
         "virtual rig (in-process)".to_string()
+    }
+
+    fn runs_alone(&self) -> bool {
+        // Simulated time stands still while the host does other work.
+        false
     }
 }
 

@@ -280,3 +280,144 @@ fn a_host_killed_at_any_point_resumes_to_a_complete_session() {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }
+
+#[test]
+fn an_interlock_fault_is_cleared_only_on_a_persons_word() {
+    use lightrig_host::acquire::{needs_a_person, recover, Recovered};
+    use lightrig_host::client::ClientError;
+    use lightrig_protocol::event::{DeviceState, FaultCause};
+    use lightrig_protocol::sequence::Action;
+    use lightrig_protocol::{Command, Reply};
+    // Laser 0 on the interlock loop (closed: high), armed and on; then the loop opens.
+    use lightrig_protocol::config::{ConfigItem, Input, LaserConfig, Polarity};
+    let mut c = connect(SimBoard::default());
+    let on_the_loop = LaserConfig {
+        channel: 0,
+        wavelength_nm: 635,
+        warmup_ticks: 0,
+        max_on_ticks: 600_000_000,
+        enable: Polarity::ActiveHigh,
+        interlock: Input::Wired(Polarity::ActiveHigh),
+    };
+    c.request(Command::Configure(ConfigItem::Laser(on_the_loop))).unwrap();
+    c.request(Command::Arm { lasers: 1 }).unwrap();
+    c.request(Command::Immediate(Action::Laser { channel: 0, on: true })).unwrap();
+    c.transport_mut().device_mut().rig_mut().board_mut().interlocks[0] = false;
+    c.idle(1_000).unwrap();
+    let faulted = || DeviceState::Faulted(FaultCause::Interlock { channel: 0 });
+    let state = |c: &mut Client<VirtualTransport>| match c.request(Command::GetStatus).unwrap() {
+        Reply::Status(s) => s.state,
+        other => panic!("{other:?}"),
+    };
+    assert_eq!(state(&mut c), faulted());
+    // Without a person's word the fault stays latched, and the error says what to do.
+    let e = recover(&mut c, &mut |cause: &FaultCause| !needs_a_person(cause)).unwrap_err();
+    assert!(matches!(e, ClientError::NeedsConfirmation { cause: FaultCause::Interlock { channel: 0 }, .. }));
+    let words = e.to_string();
+    assert!(words.contains("laser 0's interlock opened") && words.contains("confirm"), "{words}");
+    assert_eq!(state(&mut c), faulted());
+    // With it (the interlock closed again, the person said so), it is cleared and reported.
+    c.transport_mut().device_mut().rig_mut().board_mut().interlocks[0] = true;
+    let found = recover(&mut c, &mut |_: &FaultCause| true).unwrap();
+    assert_eq!(found, Recovered { aborted: None, cleared: Some(FaultCause::Interlock { channel: 0 }) });
+    assert_eq!(state(&mut c), DeviceState::Ready);
+}
+
+/// [`TestCamera`] that asks for a stop (as Ctrl-C does) at trigger `at`.
+struct StopAt {
+    cam: TestCamera,
+    at: u64,
+    interrupt: std::sync::Arc<lightrig_host::client::Interrupt>,
+}
+
+impl FrameInput for StopAt {
+    fn begin_step(&mut self, step: &lightrig_host::plan::Step) -> std::io::Result<()> {
+        self.cam.begin_step(step)
+    }
+    fn on_trigger(&mut self, t: &TriggerEvent, host_us: Option<f64>) -> std::io::Result<()> {
+        if self.cam.triggers == self.at {
+            self.interrupt.request();
+        }
+        self.cam.on_trigger(t, host_us)
+    }
+    fn poll(&mut self, now: f64) -> std::io::Result<Vec<Captured>> {
+        self.cam.poll(now)
+    }
+}
+
+#[test]
+fn ctrl_c_stops_the_device_at_once_leaves_it_disarmed_and_resume_completes_the_session() {
+    use lightrig_host::client::{ClientError, Interrupt};
+    use lightrig_protocol::event::{DeviceState, FaultCause};
+    use lightrig_protocol::{Command, Reply};
+    let dir = temp_dir("ctrl-c");
+    let plan = lls_plan();
+    let mut session = new_session(&dir, &plan);
+    let mut client = connect(SimBoard::default());
+    let interrupt = std::sync::Arc::new(Interrupt::default());
+    client.set_interrupt(interrupt.clone());
+    // Ctrl-C at the 30th trigger, in the middle of the second pass, its lasers on.
+    let mut cam = StopAt { cam: TestCamera::default(), at: 30, interrupt: interrupt.clone() };
+    let err = acquire::run(&mut client, &mut session, &plan, &mut cam, |_| {}).unwrap_err();
+    assert!(matches!(err, AcquireError::Device(ClientError::Interrupted { .. })), "{err}");
+    assert!(interrupt.stopped());
+    assert!(err.to_string().contains("EmergencyStop"), "{err}");
+    assert_eq!(session.open_attempt(), None, "the interrupted attempt was abandoned");
+    let Reply::Status(s) = client.request(Command::GetStatus).unwrap() else { panic!("no status") };
+    assert_eq!(s.state, DeviceState::Faulted(FaultCause::EmergencyStop));
+    assert_eq!((s.armed, s.lasers_on), (0, 0), "lasers off and disarmed");
+    // `lightrig resume`: the emergency stop needs no person's word; the session completes.
+    acquire::run(&mut client, &mut session, &plan, &mut cam.cam, |_| {}).unwrap();
+    drop(session);
+    check_complete(&dir, &plan);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn a_device_reset_mid_step_is_seen_and_the_step_acquired_again_under_the_new_boot() {
+    use lightrig_host::session::{journal_records, Record};
+    let dir = temp_dir("reset");
+    let plan = lls_plan();
+    let mut session = new_session(&dir, &plan);
+    let mut client = connect(SimBoard::default());
+    // The device resets 0.4 s (simulated) into the run, in the middle of a pass, the link open.
+    let now = lightrig_host::transport::Transport::now_us(client.transport());
+    client.transport_mut().reset_at(now + 400_000);
+    let first_boot = client.info().boot_id;
+    let mut cam = TestCamera::default();
+    let mut said = Vec::new();
+    // Reconnecting over the same port: Hello, then configure and home again (what bring-up does).
+    let mut reconnect = |old: Option<VirtualTransport>, _k: u32| {
+        Ok(common::setup(Client::connect(old.expect("the port, still open"), 8)?))
+    };
+    acquire::run_reconnecting(
+        client,
+        &mut reconnect,
+        1,
+        &mut session,
+        &plan,
+        &mut cam,
+        &mut acquire::Unattended("virtual"),
+        |_| {},
+        |m| said.push(m.to_string()),
+    )
+    .unwrap();
+    assert!(said[0].contains("no longer knows this host's session"), "{said:?}");
+    let boots: Vec<u32> = journal_records(&dir)
+        .unwrap()
+        .into_iter()
+        .filter_map(|r| match r {
+            Record::DeviceConnected { boot_id, .. } => Some(boot_id),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(boots.len(), 2, "connected twice: {boots:?}");
+    assert_eq!(boots[0], first_boot);
+    assert_ne!(boots[1], first_boot, "the second connection is to the new boot");
+    let interrupted: Vec<_> =
+        session.state().steps.iter().filter(|(_, a)| a.len() == 2).map(|(s, _)| *s).collect();
+    assert_eq!(interrupted.len(), 1, "one step was cut short and acquired again");
+    drop(session);
+    check_complete(&dir, &plan);
+    std::fs::remove_dir_all(&dir).unwrap();
+}

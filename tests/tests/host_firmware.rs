@@ -133,3 +133,41 @@ fn every_command_gets_exactly_one_typed_answer() {
         }
     }
 }
+
+#[test]
+fn a_datagram_other_than_an_emergency_stop_is_dropped_unanswered() {
+    use lightrig_protocol::config::{ConfigItem, Input, LaserConfig, Polarity};
+    use lightrig_protocol::event::DeviceState;
+    use lightrig_protocol::sequence::Action;
+    let mut p = Pair::new();
+    p.request(1, hello(), 10);
+    let laser = LaserConfig {
+        channel: 0,
+        wavelength_nm: 635,
+        warmup_ticks: 0,
+        max_on_ticks: 1_000_000,
+        enable: Polarity::ActiveHigh,
+        interlock: Input::Unused,
+    };
+    let got = p.request(2, Command::Configure(ConfigItem::Laser(laser)), 10);
+    assert_eq!(got, vec![DeviceMsg::Response { id: 2, result: Ok(Reply::Done) }]);
+    // CRC-valid datagrams, as a replay or a stray sender would make them, in the open session:
+    // arm laser 0, then switch it on.
+    let mut out = [0u8; MAX_FRAME];
+    let h = Header { kind: FrameKind::Datagram, epoch: p.host.epoch(), seq: 0, ack: 0 };
+    for (id, command) in [
+        (90, Command::Arm { lasers: 1 }),
+        (91, Command::Immediate(Action::Laser { channel: 0, on: true })),
+        (92, Command::ClearFault),
+    ] {
+        let n = link::write(&h, Some(&lightrig_protocol::HostMsg { id, command }), &mut out);
+        p.device.receive(&out[..n]);
+    }
+    assert_eq!(p.device.ignored_datagrams(), 3);
+    assert_eq!(p.device.rig().armed(), 0, "a datagram armed a laser");
+    assert_eq!(p.device.state(), DeviceState::Ready);
+    // Nothing answers them, and the session goes on.
+    assert_eq!(p.messages(10), vec![]);
+    let got = p.request(3, Command::Immediate(Action::Laser { channel: 0, on: true }), 10);
+    assert_eq!(got, vec![DeviceMsg::Response { id: 3, result: Err(Error::NotArmed { channel: 0 }) }]);
+}

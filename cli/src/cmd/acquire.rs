@@ -6,20 +6,22 @@ use lightrig_firmware::sim::virtual_device_info;
 use lightrig_host::acquire::{
     self, plan_summary, Captured, DirectoryInput, FrameInput, Progress, StepPreparation,
 };
-use lightrig_host::bringup::{bring_up_on, reconnect_backoff_ms, RECONNECT_ATTEMPTS};
-use lightrig_host::client::{Client, ClientError};
+use std::sync::Arc;
+
+use lightrig_host::bringup::{bring_up_with, reconnect_backoff_ms, BringUpHooks, RECONNECT_ATTEMPTS};
+use lightrig_host::client::{describe_fault, Client, ClientError, Interrupt};
 use lightrig_host::plan::{from_rig, Plan, Step};
 use lightrig_host::rigfile::{self, FrameSource, RigFile};
 use lightrig_host::session::{Manifest, PlanStep, Session};
 use lightrig_host::transport::{Connect, Transport};
-use lightrig_protocol::event::TriggerEvent;
+use lightrig_protocol::event::{FaultCause, TriggerEvent};
 use lightrig_protocol::session::DeviceInfo;
 use lightrig_sim::camera::VirtualCamera;
 use lightrig_sim::scenes::scene_for;
 use lightrig_sim::timeline::Timeline;
 use lightrig_sim::transport::connect_for_camera;
 
-use crate::error::{err, CliError, DEVICE, FAILURE, INPUT};
+use crate::error::{err, CliError, DEVICE, FAILURE, INPUT, INTERRUPTED};
 
 /// Arguments of `lightrig acquire`.
 #[derive(Debug, clap::Args)]
@@ -136,25 +138,41 @@ fn check_sources(rig: &RigFile) -> Result<(), CliError> {
     Ok(())
 }
 
-/// How `acquire` and `resume` meet what a step asks of the host ([`acquire::step_requests`]):
-/// on the virtual rig its instruments do it; else a person is asked at the terminal, or with
-/// `--yes` it is taken as done (a scripted run on a rig set up beforehand).
+/// How `acquire` and `resume` meet what a step asks of the host ([`acquire::step_requests`])
+/// and a fault the device has latched: on the virtual rig its instruments do it and any fault
+/// is cleared; else a person is asked at the terminal, or with `--yes` it is taken as done (a
+/// scripted run on a rig set up beforehand).
+#[derive(Debug, Clone)]
 pub struct OperatorPrompt {
     /// The device is the virtual rig.
     pub virtual_rig: bool,
     /// `--yes`.
     pub assume_done: bool,
+    /// Ctrl-C: the client stops the device.
+    pub interrupt: Option<Arc<Interrupt>>,
+}
+
+/// Asks `question` at the terminal; `Ok(None)` when there is no terminal to ask at.
+fn ask(question: &str) -> Result<Option<String>, String> {
+    use std::io::{BufRead, IsTerminal};
+    let stdin = std::io::stdin();
+    if !stdin.is_terminal() {
+        return Ok(None);
+    }
+    eprint!("{question}");
+    let mut line = String::new();
+    stdin.lock().read_line(&mut line).map_err(|e| format!("reading the answer: {e}"))?;
+    Ok(Some(line.trim().to_string()))
 }
 
 impl StepPreparation for OperatorPrompt {
     fn prepare(&mut self, step: &Step, requests: &[String]) -> Result<String, String> {
-        use std::io::{BufRead, IsTerminal};
         let list = requests.join("; ");
         if self.virtual_rig {
             eprintln!("\nstep {} ({}): the virtual rig does: {list}", step.id, step.name);
             return Ok("virtual".into());
         }
-        eprintln!("\nstep {} ({}) needs:", step.id, step.name);
+        eprintln!("\nstep {} ({}) needs (lasers disarmed until you are done):", step.id, step.name);
         for r in requests {
             eprintln!("  - {r}");
         }
@@ -162,22 +180,71 @@ impl StepPreparation for OperatorPrompt {
             eprintln!("  (--yes: taken as done)");
             return Ok("assumed".into());
         }
-        let stdin = std::io::stdin();
-        if !stdin.is_terminal() {
-            return Err(format!(
+        match ask("press Enter when done (q, Enter: stop here): ")? {
+            None => Err(format!(
                 "step {} ({}) needs a person: {list}. Run `lightrig resume` in a terminal to be asked, \
                  or pass --yes if the rig is already set up that way",
                 step.id, step.name
-            ));
+            )),
+            Some(a) if a.eq_ignore_ascii_case("q") => {
+                Err(format!("stopped by the operator before step {} ({})", step.id, step.name))
+            }
+            Some(_) => Ok("operator".into()),
         }
-        eprint!("press Enter when done (q, Enter: stop here): ");
-        let mut line = String::new();
-        stdin.lock().read_line(&mut line).map_err(|e| format!("reading the answer: {e}"))?;
-        if line.trim().eq_ignore_ascii_case("q") {
-            return Err(format!("stopped by the operator before step {} ({})", step.id, step.name));
-        }
-        Ok("operator".into())
     }
+}
+
+impl BringUpHooks for OperatorPrompt {
+    fn say(&mut self, what: &str) {
+        eprintln!("{what}");
+    }
+
+    fn may_clear(&mut self, cause: &FaultCause) -> bool {
+        if self.virtual_rig || !acquire::needs_a_person(cause) {
+            return true;
+        }
+        eprintln!("the device has latched a fault: {}", describe_fault(cause));
+        if self.assume_done {
+            eprintln!("  (--yes: taken as seen to; clearing it)");
+            return true;
+        }
+        match ask("has a person seen to it, so that it is safe to clear? (yes, Enter / anything else: no) ") {
+            Ok(Some(a)) => a.eq_ignore_ascii_case("yes") || a.eq_ignore_ascii_case("y"),
+            _ => false,
+        }
+    }
+
+    fn interrupt(&self) -> Option<Arc<Interrupt>> {
+        self.interrupt.clone()
+    }
+}
+
+/// Ctrl-C during `acquire` or `resume`: the first asks the client to send `EmergencyStop` and
+/// lets the run end (its step abandoned, to be acquired again by `lightrig resume`); if the
+/// run has not ended 5 s after the stop went out (a prompt waiting on the terminal), or at a
+/// second Ctrl-C, the process ends at once with code 130. The device is safe either way.
+fn on_ctrl_c() -> Option<Arc<Interrupt>> {
+    let interrupt = Arc::new(Interrupt::default());
+    let i = interrupt.clone();
+    let installed = ctrlc::set_handler(move || {
+        if i.requested() {
+            std::process::exit(130);
+        }
+        eprintln!("\nCtrl-C: stopping the device (EmergencyStop)…");
+        i.request();
+        let i = i.clone();
+        std::thread::spawn(move || {
+            for _ in 0..40 {
+                if i.stopped() {
+                    break;
+                }
+                std::thread::sleep(std::time::Duration::from_millis(50));
+            }
+            std::thread::sleep(std::time::Duration::from_secs(5));
+            std::process::exit(130);
+        });
+    });
+    installed.is_ok().then_some(interrupt)
 }
 
 struct Boxed<'a>(&'a mut dyn FrameInput);
@@ -240,11 +307,12 @@ fn run(
     // A real device that goes away (unplug, port reset) is waited for and brought up again;
     // the virtual one lives in this process and cannot.
     let attempts = if *spec == Connect::Virtual { 0 } else { RECONNECT_ATTEMPTS };
+    let mut hooks = prep.clone();
     let mut reconnect = |old: Option<Box<dyn Transport>>, k: u32| {
         drop(old); // close the old port before opening it again
         std::thread::sleep(std::time::Duration::from_millis(reconnect_backoff_ms(k)));
         let (t, _) = open(rig, spec).map_err(|e| client_error(spec, e))?;
-        bring_up_on(rig, t).map_err(|e| client_error(spec, e.into()))
+        bring_up_with(rig, t, &mut hooks).map_err(|e| client_error(spec, e.into()))
     };
     let r = acquire::run_reconnecting(
         client,
@@ -260,6 +328,7 @@ fn run(
     eprintln!();
     r.map_err(|e| match e {
         acquire::AcquireError::Preparation(_) => err(FAILURE, e.to_string()),
+        acquire::AcquireError::Device(ClientError::Interrupted { .. }) => err(INTERRUPTED, e.to_string()),
         _ => err(DEVICE, e.to_string()),
     })?;
     let scratch = session.dir().join(VIRTUAL_CAMERA_DIR);
@@ -293,14 +362,15 @@ pub fn acquire(
     }
     check_sources(&rig)?;
     let spec = connect_spec(&rig, over);
+    let mut prep =
+        OperatorPrompt { virtual_rig: spec == Connect::Virtual, assume_done, interrupt: on_ctrl_c() };
     let (transport, timeline) = open(&rig, &spec)?;
-    let client = bring_up_on(&rig, transport)?;
+    let client = bring_up_with(&rig, transport, &mut prep)?;
     let plan = from_rig::plan(&rig, client.info()).map_err(|e| err(INPUT, e.to_string()))?;
     print_summary(&plan, client.info());
     let manifest = Manifest::new(text, client.info(), plan_summary(&plan));
     let mut session = Session::create(dir, manifest).map_err(|e| err(INPUT, e.to_string()))?;
     let mut input = frame_input(&rig, dir, timeline, client.info().tick_hz)?;
-    let mut prep = OperatorPrompt { virtual_rig: spec == Connect::Virtual, assume_done };
     run(client, &rig, &spec, &mut session, &plan, input.as_mut(), &mut prep)
 }
 
@@ -314,7 +384,7 @@ pub fn resume(
     assume_done: bool,
 ) -> Result<(), CliError> {
     let (mut session, recovery) = Session::open(dir).map_err(|e| err(INPUT, e.to_string()))?;
-    eprintln!("resuming {}: {recovery:?}", dir.display());
+    eprintln!("resuming {}: {recovery}", dir.display());
     if session.is_done() {
         eprintln!("{}: the session is already complete", dir.display());
         return Ok(());
@@ -339,8 +409,10 @@ pub fn resume(
     let rig = RigFile::parse(&text, &base).map_err(|e| err(INPUT, e.to_string()))?;
     check_sources(&rig)?;
     let spec = connect_spec(&rig, over);
+    let mut prep =
+        OperatorPrompt { virtual_rig: spec == Connect::Virtual, assume_done, interrupt: on_ctrl_c() };
     let (transport, timeline) = open(&rig, &spec)?;
-    let client = bring_up_on(&rig, transport)?;
+    let client = bring_up_with(&rig, transport, &mut prep)?;
     let plan = from_rig::plan(&rig, client.info()).map_err(|e| err(INPUT, e.to_string()))?;
     if !same_steps(&plan_summary(&plan).steps, &session.manifest().plan.steps) {
         return Err(err(
@@ -351,7 +423,6 @@ pub fn resume(
     }
     print_summary(&plan, client.info());
     let mut input = frame_input(&rig, dir, timeline, client.info().tick_hz)?;
-    let mut prep = OperatorPrompt { virtual_rig: spec == Connect::Virtual, assume_done };
     run(client, &rig, &spec, &mut session, &plan, input.as_mut(), &mut prep)
 }
 

@@ -1,11 +1,13 @@
-//! `lightrig devices`, `lightrig info` and `lightrig schema`: what is attached, what a device
-//! says about itself, and what this build speaks.
+//! `lightrig devices`, `lightrig info`, `lightrig stop` and `lightrig schema`: what is attached,
+//! what a device says about itself, an emergency stop from anywhere, and what this build
+//! speaks.
 
 use std::process::ExitCode;
 
-use lightrig_host::client::Client;
+use lightrig_host::client::{fresh_nonce, Client};
 use lightrig_host::transport::{candidates, Connect, Transport};
-use lightrig_protocol::{MAX_FRAME, MAX_PACKET, PROTOCOL_VERSION, SCHEMA_HASH};
+use lightrig_protocol::session::Capabilities;
+use lightrig_protocol::{Command, Reply, MAX_FRAME, MAX_PACKET, PROTOCOL_VERSION, SCHEMA_HASH};
 
 use crate::error::{DEVICE, USAGE};
 
@@ -33,11 +35,7 @@ pub struct InfoArgs {
 
 fn connect(spec: &Connect) -> Result<Client<Box<dyn Transport>>, (u8, String)> {
     let transport = lightrig_sim::transport::open(spec).map_err(|e| (DEVICE, e.to_string()))?;
-    let nonce = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.subsec_nanos() ^ (d.as_secs() as u32))
-        .unwrap_or(1);
-    Client::connect(transport, nonce).map_err(|e| (DEVICE, e.to_string()))
+    Client::connect(transport, fresh_nonce()).map_err(|e| (DEVICE, e.to_string()))
 }
 
 fn info_json(c: &Client<Box<dyn Transport>>) -> serde_json::Value {
@@ -52,7 +50,19 @@ fn info_json(c: &Client<Box<dyn Transport>>) -> serde_json::Value {
         "tick_hz": i.tick_hz,
         "reset_cause": format!("{:?}", i.reset_cause),
         "boot_id": i.boot_id,
-        "capabilities": format!("{:?}", i.capabilities),
+        "capabilities": {
+            "galvos": i.capabilities.galvos,
+            "lasers": i.capabilities.lasers,
+            "steppers": i.capabilities.steppers,
+            "filter_wheels": i.capabilities.filter_wheels,
+            "voice_coils": i.capabilities.voice_coils,
+            "partials_per_coil": i.capabilities.partials_per_coil,
+            "cameras": i.capabilities.cameras,
+            "sequence_buffer": i.capabilities.sequence_buffer,
+            "event_queue": i.capabilities.event_queue,
+            "link_window": i.capabilities.link_window,
+            "max_packet": i.capabilities.max_packet,
+        },
         "clock": {
             "rate_ppm": c.clock().rate().map(|r| (r * 1e6 / f64::from(i.tick_hz) - 1.0) * 1e6),
             "residual_ticks": c.clock().residual(),
@@ -105,7 +115,12 @@ pub fn info(args: &InfoArgs) -> ExitCode {
                 println!("{v}");
             } else if let Some(map) = v.as_object() {
                 for (k, val) in map {
-                    println!("{k:<16} {val}");
+                    match k.as_str() {
+                        "capabilities" => {
+                            println!("{k:<16} {}", capabilities_in_words(&client.info().capabilities))
+                        }
+                        _ => println!("{k:<16} {val}"),
+                    }
                 }
             }
             ExitCode::SUCCESS
@@ -115,6 +130,63 @@ pub fn info(args: &InfoArgs) -> ExitCode {
             ExitCode::from(code)
         }
     }
+}
+
+/// What a device offers, in words.
+pub fn capabilities_in_words(c: &Capabilities) -> String {
+    let n = |count: u8, one: &str, many: &str| format!("{count} {}", if count == 1 { one } else { many });
+    format!(
+        "{}, {}, {}, {}, {} ({} partials each), {}; sequence buffer {} items, event queue {}, link window {}, \
+         packets up to {} B",
+        n(c.galvos, "galvo pair", "galvo pairs"),
+        n(c.lasers, "laser", "lasers"),
+        n(c.steppers, "stepper", "steppers"),
+        n(c.filter_wheels, "filter wheel", "filter wheels"),
+        n(c.voice_coils, "voice coil", "voice coils"),
+        c.partials_per_coil,
+        n(c.cameras, "camera trigger", "camera triggers"),
+        c.sequence_buffer,
+        c.event_queue,
+        c.link_window,
+        c.max_packet
+    )
+}
+
+/// Arguments of `lightrig stop`.
+#[derive(Debug, clap::Args)]
+pub struct StopArgs {
+    /// The device: `serial:PATH[@BAUD]`, `usb` or `usb:SERIAL`.
+    #[arg(long)]
+    pub connect: Connect,
+}
+
+/// `lightrig stop --connect SPEC`: an emergency stop from another terminal. The device turns
+/// its lasers off, stops its motors without deceleration, parks its galvos and latches the
+/// fault until a run clears it.
+pub fn stop(args: &StopArgs) -> ExitCode {
+    let mut client = match connect(&args.connect) {
+        Ok(c) => c,
+        Err((code, e)) => {
+            eprintln!("error: {e}");
+            return ExitCode::from(code);
+        }
+    };
+    if let Err(e) = client.emergency_stop() {
+        eprintln!("error: {e}");
+        return ExitCode::from(DEVICE);
+    }
+    let state = match client.request(Command::GetStatus) {
+        Ok(Reply::Status(s)) => {
+            format!("{:?}; lasers armed {:#010b}, on {:#010b}", s.state, s.armed, s.lasers_on)
+        }
+        _ => "state not read".into(),
+    };
+    println!(
+        "{}: emergency stop sent and answered ({state}); the fault stays latched until `lightrig acquire` or \
+         `lightrig resume` clears it",
+        client.transport().describe()
+    );
+    ExitCode::SUCCESS
 }
 
 /// `lightrig schema`.

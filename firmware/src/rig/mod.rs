@@ -428,15 +428,21 @@ impl<B: Board> Rig<B> {
         self.check_not_faulted()?;
         self.seq.check_chunk(chunk)?;
         for item in &chunk.items {
-            self.check_action(&item.action)?;
-            if let Action::Laser { channel, on: true } = item.action {
-                if self.armed & bit(channel) == 0 {
-                    return Err(Error::NotArmed { channel });
-                }
-            }
+            self.check_item(&item.action)?;
         }
         self.seq.append(chunk);
         Ok(self.seq.status())
+    }
+
+    /// A sequence item against the configuration and arming as they are now.
+    fn check_item(&self, action: &Action) -> Result<(), Error> {
+        self.check_action(action)?;
+        if let Action::Laser { channel, on: true } = *action {
+            if self.armed & bit(channel) == 0 {
+                return Err(Error::NotArmed { channel });
+            }
+        }
+        Ok(())
     }
 
     /// Starts the loaded sequence `sequence`.
@@ -454,6 +460,13 @@ impl<B: Board> Rig<B> {
             StartAt::Tick(t) if t < now => return Err(Error::StartInPast { now }),
             StartAt::Tick(t) => t,
         };
+        // The configuration may have changed since the items were loaded (a narrower galvo
+        // range, new stepper limits, a disarm): they must hold under what holds now. Items
+        // loaded after the start are checked as they arrive, and nothing is configured while
+        // a sequence runs.
+        for item in self.seq.items() {
+            self.check_item(&item.action)?;
+        }
         self.seq.start(start);
         self.emit_state(now);
         // A sequence loaded without items ends at once; one loaded short is an underrun.

@@ -125,6 +125,11 @@ impl Sequencer {
         self.reported_free = self.free();
     }
 
+    /// The buffered items, next first.
+    pub fn items(&self) -> impl Iterator<Item = &Item> {
+        self.buffer.iter()
+    }
+
     /// Starts the loaded sequence with item 0 due `delta` after `start`.
     pub fn start(&mut self, start: u64) {
         self.phase = Phase::Running;

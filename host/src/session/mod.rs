@@ -213,6 +213,42 @@ pub struct Recovery {
     pub bad_files: Vec<FileProblem>,
 }
 
+/// In words, for a person resuming the session.
+impl fmt::Display for Recovery {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{} journal records read", self.records)?;
+        if self.dropped_bytes > 0 {
+            write!(f, "; {} bytes dropped from the journal's end", self.dropped_bytes)?;
+            if let Some(d) = self.damage {
+                write!(f, " ({})", d.describe())?;
+            }
+            if self.intact_after > 0 {
+                write!(
+                    f,
+                    ", {} intact-looking lines among them (damage inside the file)",
+                    self.intact_after
+                )?;
+            }
+            if let Some(p) = &self.saved_to {
+                write!(f, ", kept in {}", p.display())?;
+            }
+        }
+        if let Some((step, attempt)) = self.interrupted {
+            write!(f, "; step {step} (attempt {attempt}) was cut short: it is acquired again")?;
+        }
+        if !self.removed_partials.is_empty() {
+            write!(f, "; {} partly written frame file(s) removed", self.removed_partials.len())?;
+        }
+        if !self.orphans.is_empty() {
+            write!(f, "; {} frame file(s) no record names, left in place", self.orphans.len())?;
+        }
+        for b in &self.bad_files {
+            write!(f, "; {}: {}", b.file, b.problem)?;
+        }
+        Ok(())
+    }
+}
+
 /// An acquisition session directory, open for writing (or read-only, see [`Session::read`]).
 pub struct Session {
     dir: PathBuf,

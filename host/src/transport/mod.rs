@@ -27,6 +27,14 @@ pub trait Transport {
 
     /// Where the device is, for messages ("serial /dev/ttyACM0", "virtual rig").
     fn describe(&self) -> String;
+
+    /// Whether the device's time passes while the host is not waiting on [`Transport::recv`]:
+    /// every real device, so a host busy elsewhere must keep the link alive
+    /// ([`crate::client::Client::busy`]). Not the in-process virtual device, whose time moves
+    /// only while the host waits on it.
+    fn runs_alone(&self) -> bool {
+        true
+    }
 }
 
 impl<T: Transport + ?Sized> Transport for Box<T> {
@@ -44,6 +52,10 @@ impl<T: Transport + ?Sized> Transport for Box<T> {
 
     fn describe(&self) -> String {
         (**self).describe()
+    }
+
+    fn runs_alone(&self) -> bool {
+        (**self).runs_alone()
     }
 }
 
