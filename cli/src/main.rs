@@ -54,7 +54,7 @@ fn main() -> ExitCode {
         Cmd::Schema => device::schema(),
         Cmd::Devices(args) => device::devices(&args),
         Cmd::Acquire(a) => cmd::exit(acquire::acquire(&a.rig, &a.session, a.connect.as_ref(), a.yes)),
-        Cmd::Resume(a) => cmd::exit(acquire::resume(&a.session, a.rig.as_deref(), a.connect.as_ref(), a.yes)),
+        Cmd::Resume(a) => cmd::exit(acquire::resume(&a)),
         Cmd::Hdr(c) => hdr::run(&c),
         Cmd::Calibrate(args) => calibrate::run(&args),
         Cmd::Sim(args) => sim::run(&args),

@@ -200,7 +200,9 @@ impl<C: Clock, B: Board> Controller<C, B> {
     fn pump_events(&mut self) {
         self.flush_outbox();
         while self.outbox.is_empty() && self.link.free() > 1 {
-            let Some(event) = self.rig.pop_event() else { break };
+            let Some((dropped, event)) = self.rig.pop_event_after_gap() else { break };
+            // Events the rig had to drop use up their numbers: the host sees the gap.
+            self.event_index = self.event_index.wrapping_add(dropped);
             let index = self.event_index;
             self.event_index = self.event_index.wrapping_add(1);
             if let Err(e) = self.link.send(DeviceMsg::Event { index, event }) {

@@ -388,7 +388,20 @@ fn a_damaged_byte_drops_that_record_and_everything_after() {
                 assert!(rec.intact_after <= after && rec.intact_after + 1 >= after, "{what}");
                 assert_eq!(r.state(), &state_of(&records[..line], &m), "{what}");
                 drop(r);
-                let (mut s, rec) = Session::open(&dir).unwrap();
+                // Damage with intact lines after it is not a crash's torn write: opening to go
+                // on refuses, naming the line, and changes nothing, unless told to drop it.
+                let (mut s, rec) = if rec.intact_after > 0 {
+                    let e = Session::open(&dir).unwrap_err();
+                    assert!(
+                        matches!(e, SessionError::Damaged { line: l, .. } if l == line as u64 + 1),
+                        "{what}: {e}"
+                    );
+                    assert!(e.to_string().contains("--drop-damaged-tail"), "{e}");
+                    assert_eq!(fs::read(&journal).unwrap(), bad, "{what}: nothing changed");
+                    Session::open_dropping_damage(&dir).unwrap()
+                } else {
+                    Session::open(&dir).unwrap()
+                };
                 assert_eq!(
                     (rec.records, rec.dropped_bytes),
                     (line as u64, (full.len() - a) as u64),
@@ -747,4 +760,49 @@ fn pairing_edge_cases() {
     // From a client event record.
     let e = event_record(1, 2, trigger_event(&t[1]));
     assert_eq!(Trigger::from_record(&e), Some(Trigger { host_us: Some(1000.25), ..t[1] }));
+}
+
+#[test]
+fn a_session_refuses_links_and_frame_paths_that_lead_out_of_it() {
+    // A journal that is a symbolic link (to another session's, say) is refused and untouched.
+    let dir = scratch("links", true);
+    drop(populated(&dir));
+    let elsewhere = dir.with_extension("elsewhere");
+    let _ = fs::remove_dir_all(&elsewhere);
+    fs::create_dir_all(&elsewhere).unwrap();
+    let real = elsewhere.join(JOURNAL);
+    fs::rename(dir.join(JOURNAL), &real).unwrap();
+    std::os::unix::fs::symlink(&real, dir.join(JOURNAL)).unwrap();
+    let before = fs::read(&real).unwrap();
+    for e in [Session::open(&dir).map(|_| ()).unwrap_err(), Session::read(&dir).map(|_| ()).unwrap_err()] {
+        assert!(matches!(e, SessionError::Foreign { .. }), "{e}");
+        assert!(e.to_string().contains("symbolic link"), "{e}");
+    }
+    assert_eq!(fs::read(&real).unwrap(), before, "the linked journal untouched");
+    fs::remove_file(dir.join(JOURNAL)).unwrap();
+    fs::rename(&real, dir.join(JOURNAL)).unwrap();
+    // A link inside frames/ too.
+    std::os::unix::fs::symlink(&elsewhere, dir.join("frames").join("step-999999")).unwrap();
+    let e = Session::open(&dir).map(|_| ()).unwrap_err();
+    assert!(matches!(e, SessionError::Foreign { .. }), "{e}");
+    fs::remove_file(dir.join("frames").join("step-999999")).unwrap();
+    assert!(Session::read(&dir).is_ok());
+    // A Frame record (with an intact CRC) naming a file outside its attempt's folder.
+    let journal = dir.join(JOURNAL);
+    let good = fs::read(&journal).unwrap();
+    for file in ["/etc/passwd", "frames/step-000010/attempt-01/../../../x", "../x", "frames/x.raw"] {
+        // Attempt 2 of step 11 is open (`populated`); camera 1's frame 0 is not answered yet.
+        let mut bytes = good.clone();
+        let frame = format!(
+            r#"{{"type":"Frame","step":11,"attempt":2,"camera":1,"frame":0,"sequence":1101,"item":0,"tick":1,"trigger_us":null,"arrived_us":1.0,"late":false,"file":{file:?},"bytes":1,"crc32":"00000000"}}"#
+        );
+        bytes.extend(encode_line(frame.as_bytes()));
+        fs::write(&journal, &bytes).unwrap();
+        let e = Session::read(&dir).map(|_| ()).unwrap_err();
+        assert!(matches!(e, SessionError::Corrupt { .. }), "{file}: {e}");
+        assert!(e.to_string().contains("is not a file of its attempt's folder"), "{file}: {e}");
+    }
+    fs::write(&journal, &good).unwrap();
+    fs::remove_dir_all(&dir).unwrap();
+    fs::remove_dir_all(&elsewhere).unwrap();
 }

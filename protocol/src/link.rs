@@ -91,6 +91,14 @@ pub const HEADER_MIN: usize = 4;
 pub const HEADER_MAX: usize = 8;
 /// Largest encoded message a `Data` or `Datagram` frame carries.
 pub const MAX_MESSAGE: usize = MAX_PACKET - HEADER_MAX - CRC_LEN;
+/// The retransmission timer doubles at each timeout without ack progress, up to
+/// `rto << MAX_BACKOFF_SHIFT`, and is back at `rto` once an ack moves the window.
+pub const MAX_BACKOFF_SHIFT: u32 = 4;
+/// The responder stops retransmitting (data, and `SyncAck` while half-open) after this many
+/// timeouts in a row with nothing at all received from the initiator: the host has gone. It
+/// starts again at the next intact frame from the initiator.
+pub const GIVE_UP_TIMEOUTS: u32 = 12;
+
 /// Largest window any link may use.
 pub const SEQ_WINDOW_MAX: u16 = 64;
 
@@ -262,6 +270,14 @@ pub struct Link<T: Message, R: Message, const W: usize> {
     sent_max: usize,
     rto_deadline: Option<u64>,
     sync_deadline: Option<u64>,
+    /// Timeouts since the last ack progress: the timer is `rto << min(backoff, MAX_BACKOFF_SHIFT)`.
+    backoff: u32,
+    /// Timeouts in a row with nothing received from the peer.
+    silent: u32,
+    /// The responder has stopped retransmitting to a silent initiator.
+    given_up: bool,
+    /// Times the responder gave up.
+    give_ups: u32,
     datagrams: Deque<T, 2>,
     send_sync_ack: bool,
     send_confirm: bool,
@@ -297,6 +313,10 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
             sent_max: 0,
             rto_deadline: None,
             sync_deadline: None,
+            backoff: 0,
+            silent: 0,
+            given_up: false,
+            give_ups: 0,
             datagrams: Deque::new(),
             send_sync_ack: false,
             send_confirm: false,
@@ -334,6 +354,33 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
     /// Room for more messages before [`Link::send`] refuses.
     pub fn free(&self) -> usize {
         W - self.queue.len()
+    }
+
+    /// Times this (responder) link stopped retransmitting to an initiator that had gone
+    /// silent for [`GIVE_UP_TIMEOUTS`] timeouts.
+    pub fn give_ups(&self) -> u32 {
+        self.give_ups
+    }
+
+    /// The retransmission timer's current length: `rto`, doubled at each timeout without ack
+    /// progress, at most `rto << MAX_BACKOFF_SHIFT`.
+    pub fn current_rto(&self) -> u64 {
+        self.config.rto << self.backoff.min(MAX_BACKOFF_SHIFT)
+    }
+
+    /// A timer ran out: back off, and count it as silent unless something came meanwhile.
+    /// Returns whether to retransmit (a responder facing a silent initiator stops).
+    fn timed_out(&mut self) -> bool {
+        self.backoff = self.backoff.saturating_add(1);
+        self.silent = self.silent.saturating_add(1);
+        if self.role == Role::Responder && self.silent >= GIVE_UP_TIMEOUTS {
+            if !self.given_up {
+                self.give_ups = self.give_ups.wrapping_add(1);
+            }
+            self.given_up = true;
+            return false;
+        }
+        true
     }
 
     /// When the last intact frame arrived (any kind), if any.
@@ -462,6 +509,15 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
         };
         self.stats.frames_received = self.stats.frames_received.wrapping_add(1);
         self.last_rx = Some(now);
+        self.silent = 0;
+        if core::mem::take(&mut self.given_up) {
+            // The peer is back: send again what it has not acknowledged, and ask again.
+            self.backoff = 0;
+            self.go_back();
+            if self.state == LinkState::Syncing {
+                self.sync_deadline = Some(now);
+            }
+        }
         let this_epoch = header.epoch == self.epoch;
 
         match (header.kind, self.role) {
@@ -494,6 +550,7 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
                 if self.state == LinkState::Syncing && this_epoch && control.nonce == self.config.nonce =>
             {
                 self.state = LinkState::Up;
+                self.backoff = 0;
                 return Some(Delivery::Connected { epoch: header.epoch });
             }
             (FrameKind::SyncAck, Role::Initiator) if this_epoch && control.nonce == self.session => {
@@ -512,6 +569,13 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
                     LinkState::Up => self.connect(now),
                     LinkState::Down => {}
                 }
+            }
+            // Our epoch, another session's nonce, while we are up: a stale `Sync` of an earlier
+            // host run knocked the responder back to half-open in that session, and it answers
+            // our data with this. It will take none of it until we start a new epoch.
+            (FrameKind::SyncAck, Role::Initiator) if this_epoch && self.state == LinkState::Up => {
+                self.stats.stale_epoch = self.stats.stale_epoch.wrapping_add(1);
+                self.connect(now);
             }
             (FrameKind::Resync, Role::Initiator) if self.state == LinkState::Up && this_epoch => {
                 self.connect(now);
@@ -535,6 +599,7 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
                     FrameKind::Data => return self.on_data(header.seq, body),
                     FrameKind::Nak => {
                         self.stats.naks_received = self.stats.naks_received.wrapping_add(1);
+                        self.backoff = 0;
                         self.go_back();
                     }
                     _ => {}
@@ -558,6 +623,9 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
         self.unsent_from = 0;
         self.sent_max = 0;
         self.rto_deadline = None;
+        self.backoff = 0;
+        self.silent = 0;
+        self.given_up = false;
         self.send_nak = None;
         self.stats.syncs = self.stats.syncs.wrapping_add(1);
     }
@@ -576,6 +644,7 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
         }
         self.sent_max -= acked;
         self.unsent_from = self.unsent_from.saturating_sub(acked);
+        self.backoff = 0;
         self.rto_deadline = if self.sent_max > 0 { Some(now + self.config.rto) } else { None };
     }
 
@@ -627,12 +696,18 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
         let epoch = self.epoch;
         let header = |kind, seq, ack| Header { kind, epoch, seq, ack };
         if self.state == LinkState::Syncing && self.sync_deadline.is_some_and(|d| now >= d) {
-            self.sync_deadline = Some(now + self.config.rto);
             match self.role {
                 Role::Initiator => {
+                    self.sync_deadline = Some(now + self.config.rto);
                     return Some(write(&header(FrameKind::Sync, 0, 0), Some(&self.session), out));
                 }
-                Role::Responder => self.send_sync_ack = true,
+                // A half-open responder asks for `Confirm` again, less and less often, and
+                // not at all once the initiator has been silent for long.
+                Role::Responder => {
+                    let again = self.timed_out();
+                    self.sync_deadline = again.then(|| now + self.current_rto());
+                    self.send_sync_ack |= again;
+                }
             }
         }
         if core::mem::take(&mut self.send_sync_ack) {
@@ -659,6 +734,10 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
         if self.rto_deadline.is_some_and(|d| now >= d) {
             self.stats.timeouts = self.stats.timeouts.wrapping_add(1);
             self.rto_deadline = None;
+            if !self.timed_out() {
+                // Given up: nothing more until the peer speaks (or new data is queued).
+                return self.ack_only(now, out);
+            }
             self.go_back();
         }
         if let Some(msg) = self.queue.iter().nth(self.unsent_from) {
@@ -670,11 +749,18 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
             self.unsent_from += 1;
             self.sent_max = self.sent_max.max(self.unsent_from);
             self.need_ack = false;
-            self.rto_deadline.get_or_insert(now + self.config.rto);
+            let rto = self.current_rto();
+            self.rto_deadline.get_or_insert(now + rto);
             return Some(n);
         }
+        self.ack_only(now, out)
+    }
+
+    /// A pending `Ack`, if any.
+    fn ack_only(&mut self, _now: u64, out: &mut [u8; MAX_FRAME]) -> Option<usize> {
         if core::mem::take(&mut self.need_ack) {
-            return Some(write::<T>(&header(FrameKind::Ack, 0, self.expected), None, out));
+            let h = Header { kind: FrameKind::Ack, epoch: self.epoch, seq: 0, ack: self.expected };
+            return Some(write::<T>(&h, None, out));
         }
         None
     }
@@ -697,7 +783,7 @@ pub fn decode<R: Message>(body: &[u8]) -> Result<R, FrameError> {
     match postcard::take_from_bytes::<R>(body) {
         Ok((msg, [])) => Ok(msg),
         Ok(_) => Err(FrameError::BadPayload),
-        Err(_) if !R::known_tag(body) => Err(FrameError::UnknownType),
+        Err(_) if R::unknown_tag(body) => Err(FrameError::UnknownType),
         Err(_) => Err(FrameError::BadPayload),
     }
 }

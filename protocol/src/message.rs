@@ -160,6 +160,10 @@ pub trait Message: Serialize + for<'de> Deserialize<'de> + Schema + Clone + core
     /// unknown message type (a newer peer) from a damaged payload.
     fn known_tag(bytes: &[u8]) -> bool;
 
+    /// Whether the encoded message carries a whole type tag this build does not know (a newer
+    /// peer's message type). A body too short to hold its tag is damaged, not unknown.
+    fn unknown_tag(bytes: &[u8]) -> bool;
+
     /// If an undecodable message starts like the answer to `Hello`, the peer's protocol
     /// version and schema hash, read from the frozen prefix (see the module docs).
     fn handshake_prefix(_bytes: &[u8]) -> Option<(u16, u64)> {
@@ -212,11 +216,22 @@ impl Message for HostMsg {
             None => false,
         }
     }
+
+    fn unknown_tag(bytes: &[u8]) -> bool {
+        match read_varint(bytes) {
+            Some((_, n)) => matches!(read_varint(&bytes[n..]), Some((tag, _)) if tag >= COMMAND_COUNT),
+            None => false,
+        }
+    }
 }
 
 impl Message for DeviceMsg {
     fn known_tag(bytes: &[u8]) -> bool {
         matches!(read_varint(bytes), Some((tag, _)) if tag < DEVICE_MSG_COUNT)
+    }
+
+    fn unknown_tag(bytes: &[u8]) -> bool {
+        matches!(read_varint(bytes), Some((tag, _)) if tag >= DEVICE_MSG_COUNT)
     }
 
     fn handshake_prefix(bytes: &[u8]) -> Option<(u16, u64)> {

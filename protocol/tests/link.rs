@@ -346,7 +346,7 @@ fn intact_frame_with_undecodable_body_is_acked_and_reported() {
     // Command variant 200 does not exist: a valid CRC reaches the parser.
     let header = Header { kind: FrameKind::Data, epoch: 1, seq: 0, ack: 0 };
     let mut out = [0u8; MAX_FRAME];
-    let n = link::write(&header, Some(&(5u16, 200u8)), &mut out);
+    let n = link::write(&header, Some(&(5u16, 200u32)), &mut out);
     let got = feed(&mut d, &[out[..n].to_vec()], 1);
     assert_eq!(got, vec![Delivery::Rejected { seq: 0, reason: FrameError::UnknownType }]);
     assert_eq!(d.stats().unknown_type, 1);
@@ -639,4 +639,81 @@ proptest! {
         prop_assert_eq!(to_dev, (0..n_host).map(|i| req(i as u16)).collect::<Vec<_>>());
         prop_assert_eq!(to_host, (0..n_dev).map(ev).collect::<Vec<_>>());
     }
+}
+
+#[test]
+fn a_stale_sync_of_an_earlier_host_run_in_the_current_epoch_cannot_wedge_the_link() {
+    // An earlier host run (nonce 111) left a copy of its Sync(1) on a reordering wire.
+    let mut old = host_link_nonce(111);
+    old.connect(0);
+    let stale = drain(&mut old, 0);
+    // This host (another nonce) is up with the device in epoch 1 too.
+    let (mut h, mut d) = connected();
+    h.send(req(1)).unwrap();
+    let (to_dev, _) = pump(&mut h, &mut d, 1, 2);
+    assert_eq!(to_dev, vec![Delivery::Message(req(1))]);
+    // The stale copy arrives: the device goes half-open in the old session ...
+    feed(&mut d, &stale, 200);
+    assert_eq!(d.state(), LinkState::Syncing);
+    // ... and answers this host's data with SyncAcks for that session. The host takes one as
+    // the sign, starts epoch 2, and everything queued meanwhile gets through exactly once.
+    for id in 2..6 {
+        h.send(req(id)).unwrap();
+    }
+    let (to_dev, to_host) = pump(&mut h, &mut d, 201, 10);
+    assert_eq!(
+        to_dev,
+        vec![
+            Delivery::Connected { epoch: 2 },
+            Delivery::Message(req(2)),
+            Delivery::Message(req(3)),
+            Delivery::Message(req(4)),
+            Delivery::Message(req(5)),
+        ]
+    );
+    assert_eq!(to_host, vec![Delivery::Connected { epoch: 2 }]);
+    assert_eq!((h.state(), h.epoch(), d.state()), (LinkState::Up, 2, LinkState::Up));
+}
+
+#[test]
+fn the_device_backs_off_and_stops_resending_to_a_host_that_has_gone_then_resumes_when_it_speaks() {
+    use lightrig_protocol::link::{GIVE_UP_TIMEOUTS, MAX_BACKOFF_SHIFT};
+    let (mut h, mut d) = connected();
+    d.send(ev(0)).unwrap();
+    // The host has gone: nothing it would send arrives. When does the device write its Data?
+    let mut sent_at = Vec::new();
+    let mut now = 0;
+    while now < 2_000 * RTO {
+        if kinds(&drain(&mut d, now)).contains(&FrameKind::Data) {
+            sent_at.push(now);
+        }
+        now = d.next_deadline().unwrap_or(now + RTO).max(now + 1);
+    }
+    // Once, then again after rto, 2 rto, 4 rto, … up to 16 rto, each doubling: the timeouts
+    // without progress. After GIVE_UP_TIMEOUTS timeouts in silence it stops.
+    let gaps: Vec<u64> = sent_at.windows(2).map(|w| w[1] - w[0]).collect();
+    let expected: Vec<u64> = (0..GIVE_UP_TIMEOUTS - 1).map(|k| RTO << k.min(MAX_BACKOFF_SHIFT)).collect();
+    assert_eq!(gaps, expected, "sent at {sent_at:?}");
+    assert_eq!(d.next_deadline(), None, "nothing more is scheduled");
+    assert_eq!(d.give_ups(), 1);
+    // The host speaks again (its next heartbeat): the device resends at once, and the message
+    // is delivered.
+    h.send(req(9)).unwrap();
+    let later = now + 10 * RTO;
+    feed(&mut d, &drain(&mut h, later), later);
+    let back = drain(&mut d, later);
+    assert!(kinds(&back).contains(&FrameKind::Data), "{:?}", kinds(&back));
+    assert_eq!(feed(&mut h, &back, later), vec![Delivery::Message(ev(0))]);
+}
+
+#[test]
+fn an_empty_data_body_is_a_bad_payload_not_an_unknown_type() {
+    let (mut h, mut d) = connected();
+    let header = Header { kind: FrameKind::Data, epoch: 1, seq: 0, ack: 0 };
+    let mut out = [0u8; MAX_FRAME];
+    let n = link::write::<()>(&header, None, &mut out);
+    let got = feed(&mut d, &[out[..n].to_vec()], 1);
+    assert_eq!(got, vec![Delivery::Rejected { seq: 0, reason: FrameError::BadPayload }]);
+    assert_eq!((d.stats().unknown_type, d.stats().bad_payload), (0, 1));
+    let _ = &mut h;
 }

@@ -263,6 +263,10 @@ fn unknown_message_types_are_told_from_bad_payloads() {
     // Configure(Laser) cut short.
     assert_eq!(link::decode::<HostMsg>(&[7, 4, 1, 0]), Err(FrameError::BadPayload));
     assert_eq!(link::decode::<DeviceMsg>(&[3]), Err(FrameError::UnknownType));
+    // Too short to hold a tag: damaged, not of an unknown type.
+    assert_eq!(link::decode::<HostMsg>(&[]), Err(FrameError::BadPayload));
+    assert_eq!(link::decode::<HostMsg>(&[7]), Err(FrameError::BadPayload));
+    assert_eq!(link::decode::<DeviceMsg>(&[]), Err(FrameError::BadPayload));
     assert_eq!(link::decode::<HostMsg>(&[7, 1]), Ok(HostMsg { id: 7, command: Command::GetClock }));
 }
 

@@ -85,7 +85,7 @@ fn forged_frame_with_valid_crc_is_answered_with_rejected_and_the_device_keeps_wo
     // Sequence 1 is next; command variant 250 does not exist.
     let mut out = [0u8; MAX_FRAME];
     let h = Header { kind: FrameKind::Data, epoch: 1, seq: 1, ack: 1 };
-    let n = link::write(&h, Some(&(9u16, 250u8)), &mut out);
+    let n = link::write(&h, Some(&(9u16, 250u32)), &mut out);
     p.device.receive(&out[..n]);
     let got = p.messages(5);
     assert_eq!(got, vec![DeviceMsg::Rejected { seq: 1, reason: FrameError::UnknownType }]);
@@ -170,4 +170,60 @@ fn a_datagram_other_than_an_emergency_stop_is_dropped_unanswered() {
     assert_eq!(p.messages(10), vec![]);
     let got = p.request(3, Command::Immediate(Action::Laser { channel: 0, on: true }), 10);
     assert_eq!(got, vec![DeviceMsg::Response { id: 3, result: Err(Error::NotArmed { channel: 0 }) }]);
+}
+
+#[test]
+fn events_lost_to_a_full_queue_leave_a_gap_in_the_numbers_exactly_where_they_were_lost() {
+    use lightrig_protocol::config::{CameraConfig, ConfigItem, Input, Polarity};
+    use lightrig_protocol::event::{Event, FaultCause};
+    use lightrig_protocol::sequence::{Action, Chunk, Item, StartAt};
+    let mut p = Pair::new();
+    p.request(1, hello(), 10);
+    let cam = CameraConfig {
+        camera: 0,
+        pulse_ticks: 2,
+        polarity: Polarity::ActiveHigh,
+        exposure_input: Input::Unused,
+        min_interval_ticks: 0,
+    };
+    p.request(2, Command::Configure(ConfigItem::Camera(cam)), 10);
+    // 160 triggers 5 ticks apart: far more events than the link window and the event queue hold.
+    let trigger = Item { delta: 5, action: Action::Trigger { camera: 0, exposure: 0 } };
+    for k in 0..5u32 {
+        let items = std::iter::repeat_n(trigger.clone(), 32).collect();
+        let load = Command::SequenceLoad(Chunk { sequence: 7, chunk: k, last: k == 4, items });
+        p.request(10 + k as u16, load, 10);
+    }
+    p.request(20, Command::SequenceStart { sequence: 7, at: StartAt::Now }, 10);
+    // The host stops reading: the device runs on alone until its queue overflows.
+    for _ in 0..2_000 {
+        p.clock.advance(1);
+        p.device.poll();
+    }
+    let dropped = p.device.rig().dropped_events();
+    assert!(dropped > 0, "the queue overflowed");
+    // The host reads again: the event numbers skip exactly the lost ones, right before the
+    // overflow fault.
+    let events: Vec<(u32, Event)> = p
+        .messages(5_000)
+        .into_iter()
+        .filter_map(|m| match m {
+            DeviceMsg::Event { index, event } => Some((index, event)),
+            _ => None,
+        })
+        .collect();
+    let gaps: Vec<(usize, u32)> = events
+        .windows(2)
+        .enumerate()
+        .filter(|(_, w)| w[1].0 != w[0].0 + 1)
+        .map(|(i, w)| (i + 1, w[1].0 - w[0].0 - 1))
+        .collect();
+    assert_eq!(gaps.len(), 1, "one gap: {gaps:?}");
+    let (at, size) = gaps[0];
+    assert_eq!(size, dropped, "the gap is the number dropped");
+    assert!(
+        matches!(events[at].1, Event::Fault { cause: FaultCause::EventOverflow, .. }),
+        "the overflow fault follows the gap: {:?}",
+        events[at]
+    );
 }

@@ -55,6 +55,11 @@ pub struct ResumeArgs {
     /// `meta.host`) as done, without asking: for scripts on a rig set up beforehand.
     #[arg(long)]
     pub yes: bool,
+    /// Go on even though the journal is damaged inside (intact records after the damage):
+    /// drop it from the first damaged line, keeping the dropped bytes in
+    /// journal.jsonl.dropped.N. Without it such a session is refused, to be looked at first.
+    #[arg(long)]
+    pub drop_damaged_tail: bool,
 }
 
 fn connect_spec(rig: &RigFile, over: Option<&Connect>) -> Connect {
@@ -374,16 +379,14 @@ pub fn acquire(
     run(client, &rig, &spec, &mut session, &plan, input.as_mut(), &mut prep)
 }
 
-/// `lightrig resume DIR [--rig RIG] [--yes]`: the session's own rig file (the copy in its
+/// `lightrig resume DIR [--rig RIG] [--yes] [--drop-damaged-tail]`: the session's own rig file (the copy in its
 /// manifest; `rig` says where the original lives, for its relative paths, and must be
 /// unchanged), planned again and checked against the manifest, then the steps not yet done.
-pub fn resume(
-    dir: &Path,
-    rig_path: Option<&Path>,
-    over: Option<&Connect>,
-    assume_done: bool,
-) -> Result<(), CliError> {
-    let (mut session, recovery) = Session::open(dir).map_err(|e| err(INPUT, e.to_string()))?;
+pub fn resume(args: &ResumeArgs) -> Result<(), CliError> {
+    let (dir, rig_path, over, assume_done) =
+        (args.session.as_path(), args.rig.as_deref(), args.connect.as_ref(), args.yes);
+    let opened = if args.drop_damaged_tail { Session::open_dropping_damage(dir) } else { Session::open(dir) };
+    let (mut session, recovery) = opened.map_err(|e| err(INPUT, e.to_string()))?;
     eprintln!("resuming {}: {recovery}", dir.display());
     if session.is_done() {
         eprintln!("{}: the session is already complete", dir.display());

@@ -87,8 +87,27 @@ struct Heartbeat {
 
 /// Outgoing events, with room kept for the overflow fault.
 struct Events {
-    queue: Deque<Event, EVENT_QUEUE>,
+    /// Each event with the number dropped just before it, so that the event numbers the host
+    /// sees skip exactly where events were lost.
+    queue: Deque<(u32, Event), EVENT_QUEUE>,
     dropped: u32,
+    /// Dropped since the last event queued.
+    gap: u32,
+}
+
+impl Events {
+    fn drop_one(&mut self) {
+        self.dropped = self.dropped.saturating_add(1);
+        self.gap = self.gap.saturating_add(1);
+    }
+
+    fn push(&mut self, event: Event) -> bool {
+        let ok = self.queue.push_back((self.gap, event)).is_ok();
+        if ok {
+            self.gap = 0;
+        }
+        ok
+    }
 }
 
 /// Kinds of work in [`Rig::run_at`]'s order, one bit each (a bit per motor): what is due at
@@ -241,7 +260,7 @@ impl<B: Board> Rig<B> {
             armed: 0,
             fault: None,
             seq: Sequencer::new(),
-            events: Events { queue: Deque::new(), dropped: 0 },
+            events: Events { queue: Deque::new(), dropped: 0, gap: 0 },
             polled_at: 0,
             due: Due::NOTHING,
             due_fresh: false,
@@ -289,6 +308,12 @@ impl<B: Board> Rig<B> {
 
     /// Takes the oldest event for the host.
     pub fn pop_event(&mut self) -> Option<Event> {
+        self.pop_event_after_gap().map(|(_, e)| e)
+    }
+
+    /// The next event for the host and how many events were dropped just before it (the
+    /// queue was full): the controller skips that many event numbers.
+    pub fn pop_event_after_gap(&mut self) -> Option<(u32, Event)> {
         self.events.queue.pop_front()
     }
 
@@ -325,19 +350,19 @@ impl<B: Board> Rig<B> {
 
     fn emit(&mut self, event: Event, now: u64) {
         if self.events.queue.len() + EVENT_RESERVE >= EVENT_QUEUE {
-            self.events.dropped = self.events.dropped.saturating_add(1);
+            self.events.drop_one();
             if self.fault.is_none() {
                 self.enter_safe_state(FaultCause::EventOverflow, now);
             }
             return;
         }
-        let _ = self.events.queue.push_back(event);
+        self.events.push(event);
     }
 
     /// For the safe state's own events: may use the reserved slots.
     fn emit_reserved(&mut self, event: Event) {
-        if self.events.queue.push_back(event).is_err() {
-            self.events.dropped = self.events.dropped.saturating_add(1);
+        if !self.events.push(event) {
+            self.events.drop_one();
         }
     }
 

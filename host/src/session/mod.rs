@@ -113,6 +113,27 @@ pub enum SessionError {
         /// Why.
         detail: String,
     },
+    /// Something in the session directory does not belong in one: a symbolic link where its
+    /// own file or folder must be.
+    Foreign {
+        /// The path.
+        path: PathBuf,
+        /// What is wrong.
+        detail: String,
+    },
+    /// The journal is damaged inside, with intact records after the damage: not a torn write
+    /// at a crash, so it is not dropped without being asked to
+    /// ([`Session::open_dropping_damage`]).
+    Damaged {
+        /// The journal.
+        path: PathBuf,
+        /// Line (1-based) of the first damaged record.
+        line: u64,
+        /// Bytes from there to the end.
+        bytes: u64,
+        /// Intact-looking lines among them.
+        intact_after: usize,
+    },
 }
 
 impl fmt::Display for SessionError {
@@ -150,6 +171,18 @@ impl fmt::Display for SessionError {
             ),
             SessionError::Refused { detail } => write!(f, "record refused: {detail}"),
             SessionError::NotWritable { detail } => write!(f, "session not writable: {detail}"),
+            SessionError::Foreign { path, detail } => write!(
+                f,
+                "{}: {detail}; a session's files must be its own: put the file or folder itself there",
+                path.display()
+            ),
+            SessionError::Damaged { path, line, bytes, intact_after } => write!(
+                f,
+                "{} line {line}: damaged, and {intact_after} intact-looking line(s) follow in the {bytes} bytes from \
+                 there: not a torn write at a crash. Look at it first; `lightrig resume --drop-damaged-tail` goes \
+                 on from line {line}, keeping the dropped bytes in {JOURNAL}.dropped.N beside the journal",
+                path.display()
+            ),
         }
     }
 }
@@ -303,7 +336,7 @@ impl Session {
         json.push(b'\n');
         let path = dir.join(MANIFEST);
         fsutil::write_atomic(&path, &json).map_err(io_at(&path))?;
-        let (mut session, _) = Self::load(dir, true)?;
+        let (mut session, _) = Self::load(dir, Load::Write { drop_damage: false })?;
         session.sync()?;
         Ok(session)
     }
@@ -312,14 +345,22 @@ impl Session {
     /// dropped bytes beside the journal), rebuilds the state, removes partly written frame
     /// files, then (unless the session is done) appends `Resumed` and abandons the attempt that
     /// was open.
+    /// A journal damaged inside (intact records after the damage) is refused
+    /// ([`SessionError::Damaged`]): [`Self::open_dropping_damage`] drops it too.
     pub fn open(dir: impl AsRef<Path>) -> Result<(Session, Recovery)> {
-        Self::load(dir.as_ref().to_path_buf(), true)
+        Self::load(dir.as_ref().to_path_buf(), Load::Write { drop_damage: false })
+    }
+
+    /// [`Self::open`] that also drops a journal damaged inside, from its first damaged line on
+    /// (the bytes kept in `journal.jsonl.dropped.N`, the count in the `Resumed` record).
+    pub fn open_dropping_damage(dir: impl AsRef<Path>) -> Result<(Session, Recovery)> {
+        Self::load(dir.as_ref().to_path_buf(), Load::Write { drop_damage: true })
     }
 
     /// Opens a session for reading only: nothing on disk changes; a damaged tail is ignored
     /// (and reported) but not dropped.
     pub fn read(dir: impl AsRef<Path>) -> Result<(Session, Recovery)> {
-        Self::load(dir.as_ref().to_path_buf(), false)
+        Self::load(dir.as_ref().to_path_buf(), Load::Read)
     }
 
     /// [`Self::open`] if `dir` holds a manifest, else [`Self::create`] with `manifest`.
@@ -331,7 +372,16 @@ impl Session {
         }
     }
 
-    fn load(dir: PathBuf, write: bool) -> Result<(Session, Recovery)> {
+    fn load(dir: PathBuf, how: Load) -> Result<(Session, Recovery)> {
+        let write = how != Load::Read;
+        // Writing through a link would change files elsewhere (a linked journal truncated, a
+        // linked frames/ filled): the session's own files only.
+        for name in [MANIFEST, JOURNAL, FRAMES] {
+            let p = dir.join(name);
+            if fs::symlink_metadata(&p).is_ok_and(|m| m.file_type().is_symlink()) {
+                return Err(SessionError::Foreign { path: p, detail: "a symbolic link".into() });
+            }
+        }
         let manifest = read_manifest(&dir)?;
         let path = dir.join(JOURNAL);
         let file = if write {
@@ -376,6 +426,14 @@ impl Session {
             recovery.dropped_bytes = end.file_len - end.good_len;
             recovery.damage = end.damage;
             recovery.intact_after = end.intact_after;
+            if write && recovery.intact_after > 0 && how == (Load::Write { drop_damage: false }) {
+                return Err(SessionError::Damaged {
+                    path,
+                    line: state.records + 1,
+                    bytes: recovery.dropped_bytes,
+                    intact_after: recovery.intact_after,
+                });
+            }
             if write && recovery.dropped_bytes > 0 {
                 recovery.saved_to = Some(save_tail(&dir, f, end.good_len)?);
                 f.set_len(end.good_len).map_err(io_at(&path))?;
@@ -865,6 +923,11 @@ fn check_manifest(m: &Manifest) -> Result<(), String> {
     if m.format != FORMAT_VERSION {
         return Err(format!("manifest format {}, this host writes {FORMAT_VERSION}", m.format));
     }
+    check_plan(m)
+}
+
+/// What every manifest, of any format this host reads, must hold.
+fn check_plan(m: &Manifest) -> Result<(), String> {
     if m.session_id.is_empty() {
         return Err("the manifest has no session id".into());
     }
@@ -903,7 +966,16 @@ fn read_manifest(dir: &Path) -> Result<Manifest> {
     if format > FORMAT_VERSION {
         return Err(SessionError::Newer { dir: dir.to_path_buf(), format });
     }
-    serde_json::from_slice(&bytes).map_err(corrupt)
+    let m: Manifest = serde_json::from_slice(&bytes).map_err(corrupt)?;
+    check_plan(&m).map_err(|detail| SessionError::Corrupt { path: path.clone(), line: 0, detail })?;
+    Ok(m)
+}
+
+/// How [`Session::load`] opens.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Load {
+    Read,
+    Write { drop_damage: bool },
 }
 
 /// Copies the journal from `from` to its end into `journal.jsonl.dropped.N` (first free N).
@@ -937,6 +1009,12 @@ fn walk(dir: &Path, rel: &Path, out: &mut Vec<PathBuf>) -> Result<()> {
     for e in entries {
         let e = e.map_err(io_at(&abs))?;
         let kind = e.file_type().map_err(io_at(&abs))?;
+        if kind.is_symlink() {
+            return Err(SessionError::Foreign {
+                path: abs.join(e.file_name()),
+                detail: "a symbolic link".into(),
+            });
+        }
         names.push((e.file_name(), kind.is_dir()));
     }
     names.sort();

@@ -123,12 +123,14 @@ impl State {
             }
             Record::Frame(f) => {
                 self.check_answer(f.step, f.attempt, f.camera, f.frame, manifest, "Frame")?;
+                check_frame_file(&f.file, f.step, f.attempt)?;
             }
             Record::FrameMissing(m) => {
                 self.check_answer(m.step, m.attempt, m.camera, m.frame, manifest, "FrameMissing")?;
             }
             Record::FrameExtra(x) => {
                 self.check_open(x.step, x.attempt, "FrameExtra")?;
+                check_frame_file(&x.file, x.step, x.attempt)?;
             }
             Record::StepPrepared { step, attempt, .. } => {
                 self.check_open(*step, *attempt, "StepPrepared")?;
@@ -324,5 +326,21 @@ impl State {
                 a.frames.values().map(|f| f.file.as_str()).chain(a.extra.iter().map(|x| x.file.as_str()))
             })
             .collect()
+    }
+}
+
+/// A record's `file` must lie in its attempt's own folder, `frames/step-SSSSSS/attempt-AA/`,
+/// as one plain file name: never an absolute path, `..`, or a path elsewhere, which a reader
+/// would otherwise follow out of the session.
+fn check_frame_file(file: &str, step: StepId, attempt: u32) -> Result<(), String> {
+    let dir = super::attempt_dir(step, attempt);
+    let name = file.strip_prefix(&dir).and_then(|rest| rest.strip_prefix('/'));
+    let plain = name.is_some_and(|n| {
+        !n.is_empty() && n != "." && n != ".." && !n.contains(['/', '\\', '\0']) && !n.starts_with('.')
+    });
+    if plain {
+        Ok(())
+    } else {
+        Err(format!("file {file:?} is not a file of its attempt's folder {dir}/"))
     }
 }

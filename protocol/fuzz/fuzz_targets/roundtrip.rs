@@ -8,7 +8,8 @@
 //! (b) Raw: the input decoded as a message body (`link::decode::<HostMsg>` and `<DeviceMsg>`).
 //!     When it decodes, the message re-encodes (canonically, so no longer than the input),
 //!     decodes back equal, and re-encodes byte-identically. When it does not, the error is
-//!     `UnknownType` exactly when the message's tag is unknown, `BadPayload` otherwise.
+//!     `UnknownType` exactly when the message carries a whole tag this build does not know,
+//!     `BadPayload` otherwise (a body too short for its tag included).
 //!     The same for the link `Header` (prefix decoding; canonical encoding within
 //!     `HEADER_MIN..=HEADER_MAX` bytes).
 //! (c) Control frames: a `Sync` or `Confirm` with a `u32` body and a `SyncAck` with a
@@ -87,8 +88,8 @@ fn raw<T: Message + PartialEq>(data: &[u8]) {
                 assert_eq!(first, data, "same length, different bytes");
             }
         }
-        Err(FrameError::UnknownType) => assert!(!T::known_tag(data), "UnknownType for a known tag"),
-        Err(FrameError::BadPayload) => assert!(T::known_tag(data), "BadPayload for an unknown tag"),
+        Err(FrameError::UnknownType) => assert!(T::unknown_tag(data), "UnknownType without an unknown tag"),
+        Err(FrameError::BadPayload) => assert!(!T::unknown_tag(data), "BadPayload for an unknown tag"),
         Err(other) => panic!("decode returned {other:?}"),
     }
 }
