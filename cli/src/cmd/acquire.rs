@@ -365,18 +365,10 @@ pub fn acquire(
             format!("{} already holds a session; continue it with `lightrig resume {0}`", dir.display()),
         ));
     }
-    check_sources(&rig)?;
-    let spec = connect_spec(&rig, over);
-    let mut prep =
-        OperatorPrompt { virtual_rig: spec == Connect::Virtual, assume_done, interrupt: on_ctrl_c() };
-    let (transport, timeline) = open(&rig, &spec)?;
-    let client = bring_up_with(&rig, transport, &mut prep)?;
-    let plan = from_rig::plan(&rig, client.info()).map_err(|e| err(INPUT, e.to_string()))?;
-    print_summary(&plan, client.info());
-    let manifest = Manifest::new(text, client.info(), plan_summary(&plan));
+    let ready = bring_up(&rig, over, assume_done)?;
+    let manifest = Manifest::new(text, ready.client.info(), plan_summary(&ready.plan));
     let mut session = Session::create(dir, manifest).map_err(|e| err(INPUT, e.to_string()))?;
-    let mut input = frame_input(&rig, dir, timeline, client.info().tick_hz)?;
-    run(client, &rig, &spec, &mut session, &plan, input.as_mut(), &mut prep)
+    ready.run(&rig, &mut session)
 }
 
 /// `lightrig resume DIR [--rig RIG] [--yes] [--drop-damaged-tail]`: the session's own rig file (the copy in its
@@ -410,23 +402,48 @@ pub fn resume(args: &ResumeArgs) -> Result<(), CliError> {
         None => PathBuf::from("rig.toml"),
     };
     let rig = RigFile::parse(&text, &base).map_err(|e| err(INPUT, e.to_string()))?;
-    check_sources(&rig)?;
-    let spec = connect_spec(&rig, over);
-    let mut prep =
-        OperatorPrompt { virtual_rig: spec == Connect::Virtual, assume_done, interrupt: on_ctrl_c() };
-    let (transport, timeline) = open(&rig, &spec)?;
-    let client = bring_up_with(&rig, transport, &mut prep)?;
-    let plan = from_rig::plan(&rig, client.info()).map_err(|e| err(INPUT, e.to_string()))?;
-    if !same_steps(&plan_summary(&plan).steps, &session.manifest().plan.steps) {
+    let ready = bring_up(&rig, over, assume_done)?;
+    if !same_steps(&plan_summary(&ready.plan).steps, &session.manifest().plan.steps) {
         return Err(err(
             INPUT,
             "the rig file's plan no longer matches the session's (a different device tick rate or a changed \
              planner); finish it with the host version that started it",
         ));
     }
-    print_summary(&plan, client.info());
-    let mut input = frame_input(&rig, dir, timeline, client.info().tick_hz)?;
-    run(client, &rig, &spec, &mut session, &plan, input.as_mut(), &mut prep)
+    ready.run(&rig, &mut session)
+}
+
+/// A rig brought up for `acquire` or `resume`: the device connected, configured and homed,
+/// the plan made for it.
+struct Ready {
+    spec: Connect,
+    prep: OperatorPrompt,
+    client: Client<Box<dyn Transport>>,
+    timeline: Option<Timeline>,
+    plan: Plan,
+}
+
+/// Checks the rig's frame sources, connects where `over` (else the rig file) says, brings the
+/// device up and plans.
+fn bring_up(rig: &RigFile, over: Option<&Connect>, assume_done: bool) -> Result<Ready, CliError> {
+    check_sources(rig)?;
+    let spec = connect_spec(rig, over);
+    let mut prep =
+        OperatorPrompt { virtual_rig: spec == Connect::Virtual, assume_done, interrupt: on_ctrl_c() };
+    let (transport, timeline) = open(rig, &spec)?;
+    let client = bring_up_with(rig, transport, &mut prep)?;
+    let plan = from_rig::plan(rig, client.info()).map_err(|e| err(INPUT, e.to_string()))?;
+    Ok(Ready { spec, prep, client, timeline, plan })
+}
+
+impl Ready {
+    /// Runs the plan's unfinished steps into `session`.
+    fn run(mut self, rig: &RigFile, session: &mut Session) -> Result<(), CliError> {
+        print_summary(&self.plan, self.client.info());
+        let tick_hz = self.client.info().tick_hz;
+        let mut input = frame_input(rig, session.dir(), self.timeline.take(), tick_hz)?;
+        run(self.client, rig, &self.spec, session, &self.plan, input.as_mut(), &mut self.prep)
+    }
 }
 
 /// Whether a re-made plan is the one a session started with: the same steps (ids, names,
