@@ -18,8 +18,9 @@ use lightrig_protocol::{Command, Event, Reply};
 use crate::client::{Client, ClientError};
 use crate::frames::{DirectorySource, Pattern};
 use crate::plan::{Plan, Step};
-use crate::session::{pair, Arrival, CameraTriggers, Pairing, PlanStep, PlanSummary, StepId, Trigger};
+use crate::session::{pair, Arrival, CameraTriggers, Extra, ExtraReason, Pairing, PlanStep, PlanSummary};
 use crate::session::{Session, SessionError};
+use crate::session::{StepId, Trigger};
 use crate::transport::Transport;
 
 /// A frame as a source delivers it.
@@ -27,7 +28,8 @@ use crate::transport::Transport;
 pub struct Captured {
     /// Camera.
     pub camera: u8,
-    /// Frame number counted from the step's start on this camera, if the source knows it.
+    /// Frame number counted from the step's start on this camera, if the source knows it (for
+    /// a frame made [`Self::before_step`], the camera's own number, for the record).
     pub frame: Option<u32>,
     /// File extension to store it under (`png`, `exr`, `pgm`…).
     pub ext: String,
@@ -35,6 +37,9 @@ pub struct Captured {
     pub data: Vec<u8>,
     /// Host time of arrival, µs on the transport's clock.
     pub host_us: f64,
+    /// The source knows the frame was made before the step began (a straggler of an earlier
+    /// attempt): kept as an extra, never paired.
+    pub before_step: bool,
 }
 
 /// Where a camera's frames come from. Inputs are `Send`: the engine polls them on another
@@ -92,13 +97,31 @@ impl StepPreparation for Unattended {
 }
 
 /// A camera whose software writes numbered files into a directory.
+///
+/// A step's frame 0 is the first file written after the step began. A file the camera wrote
+/// before (a straggler of an attempt that was cut short, a test shot) would otherwise take
+/// that place and shift every pairing of the step by one: it is handed over marked
+/// [`Captured::before_step`], and the session keeps it as an extra (`BeforeStep`). A file is
+/// from before the step if it was in the directory when the step began, or if its
+/// modification time is older than the step by the directory's own clock: at each step's
+/// start a mark file is written there and its modification time read back, so a network
+/// share's clock or a file system's coarse timestamps (FAT: 2 s) never make a frame of the
+/// step look older than the step.
 pub struct DirectoryInput {
     camera: u8,
+    dir: std::path::PathBuf,
     source: DirectorySource,
     ext: String,
     /// File number of the step's first frame.
     base: Option<u64>,
+    /// When the step began, on the directory's clock.
+    began: Option<std::time::SystemTime>,
+    /// Files (not yet reported) that were there when the step began.
+    there_before: std::collections::HashSet<std::path::PathBuf>,
 }
+
+/// The mark file [`DirectoryInput`] writes (and removes) to read the directory's clock.
+pub const STEP_MARK: &str = ".lightrig-step-mark";
 
 impl DirectoryInput {
     /// Watches `dir` for `pattern` (e.g. `img_{frame:06}.png`) for `camera`.
@@ -107,24 +130,58 @@ impl DirectoryInput {
             pattern.rsplit_once('.').map(|(_, e)| e.to_ascii_lowercase()).unwrap_or_else(|| "raw".into());
         let pattern = Pattern::parse(pattern)?;
         let source = DirectorySource::new(dir, pattern).map_err(|e| format!("{}: {e}", dir.display()))?;
-        Ok(Self { camera, source, ext, base: None })
+        Ok(Self {
+            camera,
+            dir: dir.to_path_buf(),
+            source,
+            ext,
+            base: None,
+            began: None,
+            there_before: Default::default(),
+        })
+    }
+
+    /// Now on the directory's clock: the modification time of a file written there now. A
+    /// directory the host cannot write to falls back on the host's clock.
+    fn directory_now(&self) -> std::time::SystemTime {
+        let mark = self.dir.join(STEP_MARK);
+        let written = std::fs::write(&mark, b"").and_then(|()| std::fs::metadata(&mark)?.modified());
+        let _ = std::fs::remove_file(&mark);
+        written.unwrap_or_else(|_| std::time::SystemTime::now())
     }
 }
 
 impl FrameInput for DirectoryInput {
     fn begin_step(&mut self, _step: &Step) -> io::Result<()> {
-        // The camera numbers its files on; the step's first new file is its frame 0.
+        // The camera numbers its files on; the step's first file written from now on is its
+        // frame 0.
         self.base = None;
+        self.there_before = self.source.unreported()?;
+        self.began = Some(self.directory_now());
         Ok(())
     }
 
     fn poll(&mut self, now_us: f64) -> io::Result<Vec<Captured>> {
         let mut out = Vec::new();
         for a in self.source.poll()? {
-            let base = *self.base.get_or_insert(a.frame);
             let data = std::fs::read(&a.path)?;
-            let frame = a.frame.checked_sub(base).and_then(|f| u32::try_from(f).ok());
-            out.push(Captured { camera: self.camera, frame, ext: self.ext.clone(), data, host_us: now_us });
+            let written = std::fs::metadata(&a.path)?.modified().ok();
+            let before_step = self.there_before.remove(&a.path)
+                || matches!((written, self.began), (Some(w), Some(b)) if w < b);
+            let frame = if before_step {
+                u32::try_from(a.frame).ok()
+            } else {
+                let base = *self.base.get_or_insert(a.frame);
+                a.frame.checked_sub(base).and_then(|f| u32::try_from(f).ok())
+            };
+            out.push(Captured {
+                camera: self.camera,
+                frame,
+                ext: self.ext.clone(),
+                data,
+                host_us: now_us,
+                before_step,
+            });
         }
         Ok(out)
     }
@@ -386,6 +443,12 @@ pub fn run_prepared<T: Transport>(
         session.record_event(&e)?;
     }
     recover(client, &mut |c: &FaultCause| !needs_a_person(c)).map_err(AcquireError::Device)?;
+    // Faults cleared by asking the device's status (at bring-up or just now): their event may
+    // have gone to an earlier host.
+    let boot_id = client.info().boot_id;
+    for cause in client.take_cleared() {
+        session.fault_cleared(boot_id, &cause, needs_a_person(&cause))?;
+    }
     let result = run_steps(client, session, plan, input, prep, &mut progress);
     if result.is_err() {
         // Whatever stopped the run, the lasers are left disarmed where the device still
@@ -473,6 +536,7 @@ pub fn recover<T: Transport>(
                     });
                 }
                 client.request(Command::ClearFault)?;
+                client.note_cleared(cause);
                 found.cleared = Some(cause);
             }
             DeviceState::AwaitingHello | DeviceState::Ready => {}
@@ -614,9 +678,18 @@ fn run_step<T: Transport>(
         }
         client.idle(10_000).map_err(AcquireError::Device)?;
     }
+    // Frames made before the step began are no frames of it: the others are paired, those
+    // kept as extras.
+    arrivals.sort_by_key(|c| c.before_step);
+    let fresh = arrivals.iter().take_while(|c| !c.before_step);
     let numbered: Vec<Arrival> =
-        arrivals.iter().map(|c| Arrival { camera: c.camera, frame: c.frame, host_us: c.host_us }).collect();
-    let pairing = pair(&triggers, &numbered, LATE_US);
+        fresh.map(|c| Arrival { camera: c.camera, frame: c.frame, host_us: c.host_us }).collect();
+    let mut pairing = pair(&triggers, &numbered, LATE_US);
+    for (i, c) in arrivals.iter().enumerate().skip(numbered.len()) {
+        let reason = ExtraReason::BeforeStep;
+        let frame = c.frame.unwrap_or(0);
+        pairing.extra.push(Extra { arrival: i, camera: c.camera, frame, arrived_us: c.host_us, reason });
+    }
     // Each frame is written and fsynced with its record (hundreds in a pass): the link stays
     // alive meanwhile.
     client.busy(|| store(session, &pairing, &arrivals))
@@ -668,6 +741,7 @@ mod tests {
                     ext: "raw".into(),
                     data,
                     host_us,
+                    before_step: false,
                 });
             }
             Ok(())
@@ -758,5 +832,42 @@ mod tests {
             error = bg.poll(0.0).err();
         }
         assert!(error.unwrap().to_string().contains("no go-ahead"));
+    }
+
+    #[test]
+    fn a_file_written_before_the_step_is_a_straggler_not_its_frame_0() {
+        let dir = std::env::temp_dir().join(format!("lightrig-stragglers-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let mut input = DirectoryInput::new(2, &dir, "f_{frame:04}.raw").unwrap();
+        // The camera was still writing frame 7 of an attempt that was cut short: the file is
+        // dated a second before the next step begins, and the engine first sees it after.
+        let straggler = dir.join("f_0007.raw");
+        std::fs::write(&straggler, b"old").unwrap();
+        let a_second_ago = std::time::SystemTime::now() - std::time::Duration::from_secs(1);
+        std::fs::File::options().write(true).open(&straggler).unwrap().set_modified(a_second_ago).unwrap();
+        let step = Step::new(0, "s", serde_json::Value::Null, |_| {});
+        input.begin_step(&step).unwrap();
+        assert!(!dir.join(STEP_MARK).exists(), "the mark is removed");
+        std::fs::write(dir.join("f_0008.raw"), b"new0").unwrap();
+        std::fs::write(dir.join("f_0009.raw"), b"new1").unwrap();
+        // A file that arrives during the step but was made before it (copied with its date).
+        let copied = dir.join("f_0010.raw");
+        std::fs::write(&copied, b"copied").unwrap();
+        std::fs::File::options().write(true).open(&copied).unwrap().set_modified(a_second_ago).unwrap();
+        let mut got = Vec::new();
+        for _ in 0..2 {
+            got.extend(input.poll(1.0).unwrap());
+        }
+        let seen: Vec<_> = got.iter().map(|c| (c.camera, c.frame, c.before_step, c.data.clone())).collect();
+        assert_eq!(
+            seen,
+            [
+                (2, Some(7), true, b"old".to_vec()),
+                (2, Some(0), false, b"new0".to_vec()),
+                (2, Some(1), false, b"new1".to_vec()),
+                (2, Some(10), true, b"copied".to_vec()),
+            ]
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -247,6 +247,8 @@ pub struct Client<T: Transport> {
     interrupt: Option<Arc<Interrupt>>,
     /// The handshake is done: a `HandshakeRequired` from now on means the session was lost.
     open: bool,
+    /// Faults the host cleared on this device, for the session to journal.
+    cleared: Vec<FaultCause>,
 }
 
 impl<T: Transport> Client<T> {
@@ -282,6 +284,7 @@ impl<T: Transport> Client<T> {
             fence_tick: 0,
             interrupt: None,
             open: false,
+            cleared: Vec::new(),
         };
         let hello = Command::Hello { protocol_version: version, schema_hash: schema };
         let info = match client.request_timeout(hello, 3_000_000) {
@@ -584,6 +587,16 @@ impl<T: Transport> Client<T> {
     /// The events received and not yet taken, oldest first.
     pub fn queued(&self) -> &VecDeque<EventRecord> {
         &self.events
+    }
+
+    /// Notes that the host cleared the device's latched fault `cause` (for the journal).
+    pub fn note_cleared(&mut self, cause: FaultCause) {
+        self.cleared.push(cause);
+    }
+
+    /// Takes the faults cleared since the last call, oldest first (to journal them).
+    pub fn take_cleared(&mut self) -> Vec<FaultCause> {
+        std::mem::take(&mut self.cleared)
     }
 
     /// Takes every event received so far (to journal them).

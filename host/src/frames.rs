@@ -101,6 +101,12 @@ impl DirectorySource {
         Ok(out)
     }
 
+    /// The files of the pattern in the directory now that [`Self::poll`] has not reported yet
+    /// (complete or still being written).
+    pub fn unreported(&self) -> std::io::Result<HashSet<PathBuf>> {
+        Ok(self.list()?.into_iter().map(|(p, _, _)| p).filter(|p| !self.seen.contains(p)).collect())
+    }
+
     /// Frames complete since the last poll, in frame order.
     pub fn poll(&mut self) -> std::io::Result<Vec<Arrived>> {
         let mut done = Vec::new();

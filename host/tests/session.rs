@@ -12,8 +12,8 @@ use lightrig_firmware::sim::virtual_device_info;
 use lightrig_host::client::EventRecord;
 use lightrig_host::session::{
     crc32, crc_of_file, decode_line, encode_line, pair, Arrival, CameraTriggers, Damage, Extra, ExtraReason,
-    Manifest, Pair, Pairing, PlanStep, PlanSummary, Record, Session, SessionError, State, Trigger, JOURNAL,
-    MANIFEST,
+    Manifest, Pair, Pairing, PlanStep, PlanSummary, Record, Session, SessionError, State, Trigger,
+    FORMAT_VERSION, JOURNAL, MANIFEST,
 };
 use lightrig_protocol::config::Xy;
 use lightrig_protocol::event::{Snapshot, TriggerEvent};
@@ -486,7 +486,26 @@ fn the_examples_in_the_format_doc_parse() {
             _ => {}
         }
     }
-    assert_eq!((manifests, records, lines), (1, 13, 4));
+    assert_eq!((manifests, records, lines), (1, 14, 4));
+}
+
+#[test]
+fn going_on_with_an_older_hosts_session_raises_its_format_and_reading_it_does_not() {
+    let dir = scratch("older", false);
+    drop(Session::create(&dir, manifest(plan(1, 1, 1))).unwrap());
+    let path = dir.join("manifest.json");
+    let mut m: serde_json::Value = serde_json::from_slice(&fs::read(&path).unwrap()).unwrap();
+    m["format"] = 2.into();
+    fs::write(&path, serde_json::to_vec_pretty(&m).unwrap()).unwrap();
+    let format =
+        || serde_json::from_slice::<serde_json::Value>(&fs::read(&path).unwrap()).unwrap()["format"].clone();
+    drop(Session::read(&dir).unwrap());
+    assert_eq!(format(), 2, "reading changes nothing");
+    let (s, _) = Session::open(&dir).unwrap();
+    assert_eq!(format(), FORMAT_VERSION, "the journal may now hold this format's records");
+    assert_eq!(s.manifest().format, FORMAT_VERSION);
+    drop(s);
+    fs::remove_dir_all(&dir).unwrap();
 }
 
 // ---------------------------------------------------------------------------------------------

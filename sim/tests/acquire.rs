@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 use lightrig_firmware::sim::virtual_device_info;
 use lightrig_firmware::sim::SimBoard;
-use lightrig_host::acquire::{self, plan_summary, AcquireError, Captured, FrameInput};
+use lightrig_host::acquire::{self, plan_summary, AcquireError, Captured, DirectoryInput, FrameInput};
 use lightrig_host::client::Client;
 use lightrig_host::plan::{lls, Plan};
 use lightrig_host::session::{Manifest, Session};
@@ -49,6 +49,7 @@ impl FrameInput for TestCamera {
             ext: "txt".into(),
             data: data.into_bytes(),
             host_us: host_us.unwrap_or(0.0) + 500.0,
+            before_step: false,
         };
         if self.duplicate.contains(&n) {
             self.ready.push(c.clone());
@@ -61,6 +62,45 @@ impl FrameInput for TestCamera {
 
     fn poll(&mut self, _now: f64) -> std::io::Result<Vec<Captured>> {
         Ok(std::mem::take(&mut self.ready))
+    }
+}
+
+/// A camera whose own software writes one numbered file per trigger into a directory (the
+/// same text as [`TestCamera`]'s frames), read back through the host's [`DirectoryInput`], as
+/// a real camera's frames are.
+struct FileCamera {
+    dir: PathBuf,
+    next: u64,
+    input: DirectoryInput,
+}
+
+impl FileCamera {
+    fn new(dir: &Path) -> Self {
+        let input = DirectoryInput::new(0, dir, "img_{frame:06}.txt").unwrap();
+        FileCamera { dir: dir.to_path_buf(), next: 0, input }
+    }
+
+    fn write(&mut self, text: &str) -> PathBuf {
+        let path = self.dir.join(format!("img_{:06}.txt", self.next));
+        self.next += 1;
+        std::fs::write(&path, text).unwrap();
+        path
+    }
+}
+
+impl FrameInput for FileCamera {
+    fn begin_step(&mut self, step: &lightrig_host::plan::Step) -> std::io::Result<()> {
+        self.input.begin_step(step)
+    }
+
+    fn on_trigger(&mut self, t: &TriggerEvent, _host_us: Option<f64>) -> std::io::Result<()> {
+        let x = t.snapshot.axes[0];
+        self.write(&format!("seq {} item {} frame {} tick {} x {x}\n", t.sequence, t.item, t.frame, t.tick));
+        Ok(())
+    }
+
+    fn poll(&mut self, now: f64) -> std::io::Result<Vec<Captured>> {
+        self.input.poll(now)
     }
 }
 
@@ -158,6 +198,41 @@ fn an_unplug_mid_step_abandons_it_and_resume_completes_the_session() {
     acquire::run(&mut client, &mut session, &plan, &mut cam, |_| {}).unwrap();
     let attempts = session.state().steps[&interrupted].len();
     assert_eq!(attempts, 2, "the interrupted pass took two attempts");
+    drop(session);
+    check_complete(&dir, &plan);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn a_straggler_of_a_cut_short_attempt_is_kept_as_an_extra_and_shifts_no_pairing() {
+    use lightrig_host::session::ExtraReason;
+    let dir = temp_dir("straggler");
+    let plan = lls_plan();
+    let mut session = new_session(&dir, &plan);
+    let mut client = connect(SimBoard::default());
+    let now = lightrig_host::transport::Transport::now_us(client.transport());
+    client.transport_mut().unplug_at(now + 400_000);
+    let mut cam = FileCamera::new(&dir.join("camera"));
+    acquire::run(&mut client, &mut session, &plan, &mut cam, |_| {}).unwrap_err();
+    let interrupted = plan.steps.iter().find(|s| !session.steps_done().contains(&s.id)).unwrap().id;
+    // The camera was still reading out the last exposure of the cut-short attempt: its file
+    // lands after the host gave up on the step, dated when the exposure was made.
+    let number = cam.next as u32;
+    let straggler = cam.write("straggler\n");
+    let then = std::time::SystemTime::now() - std::time::Duration::from_secs(1);
+    std::fs::File::options().write(true).open(&straggler).unwrap().set_modified(then).unwrap();
+    let mut transport = client.into_transport();
+    transport.replug();
+    let mut client = Client::connect(transport, 6).unwrap();
+    acquire::run(&mut client, &mut session, &plan, &mut cam, |_| {}).unwrap();
+    // Every frame is its own trigger's (check_complete reads each one's gantry position), and
+    // the straggler is kept, named for what it is.
+    let (_, attempt) = session.state().done_attempt(interrupted).unwrap();
+    // The cut-short attempt's frames that were never collected are kept the same way.
+    let extra: Vec<_> = attempt.extra.iter().map(|x| (x.reason, x.frame)).collect();
+    assert_eq!(extra, (0..=number).map(|n| (ExtraReason::BeforeStep, n)).collect::<Vec<_>>());
+    let kept = std::fs::read_to_string(dir.join(&attempt.extra[number as usize].file)).unwrap();
+    assert_eq!(kept, "straggler\n");
     drop(session);
     check_complete(&dir, &plan);
     std::fs::remove_dir_all(&dir).unwrap();
@@ -370,6 +445,16 @@ fn ctrl_c_stops_the_device_at_once_leaves_it_disarmed_and_resume_completes_the_s
     acquire::run(&mut client, &mut session, &plan, &mut cam.cam, |_| {}).unwrap();
     drop(session);
     check_complete(&dir, &plan);
+    // The fault it cleared is in the journal, with who cleared it.
+    let cleared: Vec<_> = lightrig_host::session::journal_records(&dir)
+        .unwrap()
+        .into_iter()
+        .filter_map(|r| match r {
+            lightrig_host::session::Record::FaultCleared { cause, by, .. } => Some((cause, by)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(cleared, [(FaultCause::EmergencyStop, "automatic".to_string())]);
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

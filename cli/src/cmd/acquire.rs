@@ -341,7 +341,46 @@ fn run(
         std::fs::remove_dir_all(&scratch).map_err(|e| err(FAILURE, format!("{}: {e}", scratch.display())))?;
     }
     eprintln!("session complete: {}", session.dir().display());
+    eprintln!("{}", tally(session));
     Ok(())
+}
+
+/// What the session holds, in words: frames, missing frames, and frames without a trigger by
+/// why (a shift in a camera's numbering shows as those).
+fn tally(session: &Session) -> String {
+    use lightrig_host::session::ExtraReason;
+    let st = session.state();
+    let (mut frames, mut missing, mut duplicate, mut no_trigger, mut before) = (0, 0, 0, 0, 0);
+    for step in st.steps_done() {
+        let (_, a) = st.done_attempt(step).expect("a done step has its attempt");
+        frames += a.frames.len();
+        missing += a.missing.len();
+        for x in &a.extra {
+            match x.reason {
+                ExtraReason::Duplicate => duplicate += 1,
+                ExtraReason::NoTrigger => no_trigger += 1,
+                ExtraReason::BeforeStep => before += 1,
+            }
+        }
+    }
+    let mut out = format!("  {frames} frames paired with their triggers, {missing} missing");
+    if duplicate > 0 {
+        out += &format!("\n  {duplicate} duplicate frames (a trigger's second frame), kept as extra-* files");
+    }
+    if before > 0 {
+        out += &format!(
+            "\n  {before} frames made before their step began (stragglers of a cut-short attempt), kept \
+             as extra-* files and not paired"
+        );
+    }
+    if no_trigger > 0 {
+        out += &format!(
+            "\n  {no_trigger} frames matched no trigger, kept as extra-* files: if a camera's files were \
+             numbered on from an earlier shot, that step's frames may be shifted; compare the extra \
+             files with their neighbours"
+        );
+    }
+    out
 }
 
 /// A bring-up failure during reconnection, as the client error the engine reports.

@@ -35,6 +35,7 @@ use std::io::{self, Read, Write};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
+use lightrig_protocol::event::FaultCause;
 use lightrig_protocol::session::DeviceInfo;
 
 use crate::client::EventRecord;
@@ -50,7 +51,7 @@ pub use state::{Attempt, Outcome, State};
 
 /// Version of the session format this host writes (and the newest it reads). 2 added the
 /// `StepPrepared` record.
-pub const FORMAT_VERSION: u32 = 2;
+pub const FORMAT_VERSION: u32 = 3;
 /// The manifest's file name.
 pub const MANIFEST: &str = "manifest.json";
 /// The journal's file name.
@@ -453,6 +454,15 @@ impl Session {
             dirs: HashSet::new(),
         };
         session.check_files(write, &mut recovery)?;
+        if write && !session.state.done && session.manifest.format < FORMAT_VERSION {
+            // Going on with a session an older host began: it now holds this format's records,
+            // and says so.
+            session.manifest.format = FORMAT_VERSION;
+            let mut json = serde_json::to_vec_pretty(&session.manifest).expect("a manifest serializes");
+            json.push(b'\n');
+            let path = session.dir.join(MANIFEST);
+            fsutil::write_atomic(&path, &json).map_err(io_at(&path))?;
+        }
         if write {
             if session.state.records == 0 {
                 let id = session.manifest.session_id.clone();
@@ -689,6 +699,13 @@ impl Session {
             host_time: now_rfc3339(),
         })
         .map(|_| ())
+    }
+
+    /// Journals a fault the host cleared; `confirmed`: a person's word was needed.
+    pub fn fault_cleared(&mut self, boot_id: u32, cause: &FaultCause, confirmed: bool) -> Result<()> {
+        let by = if confirmed { "confirmed" } else { "automatic" }.to_string();
+        self.append(&Record::FaultCleared { boot_id, cause: *cause, by, host_time: now_rfc3339() })
+            .map(|_| ())
     }
 
     /// Journals a device event; `Ok(false)` if `(boot_id, index)` is journaled already.

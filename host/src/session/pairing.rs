@@ -85,6 +85,9 @@ pub enum ExtraReason {
     Duplicate,
     /// No trigger of this step has the frame's camera and number.
     NoTrigger,
+    /// The camera made it before the step began: a straggler of an earlier attempt (its
+    /// `frame` is the camera's own number). Never paired (format 3).
+    BeforeStep,
 }
 
 /// A frame without a trigger.

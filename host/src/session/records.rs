@@ -254,6 +254,19 @@ pub enum Record {
         /// Wall clock.
         host_time: String,
     },
+    /// The host cleared a fault the device had latched, found by asking its status: one
+    /// latched while no host was there, or whose `Fault` event an earlier host took (format 3).
+    FaultCleared {
+        /// Boot id of the device.
+        boot_id: u32,
+        /// The fault.
+        cause: lightrig_protocol::event::FaultCause,
+        /// `automatic` (a fault that needs no person's word) or `confirmed` (an opened
+        /// interlock: a person said the beam path was clear, or `--yes` took it as so).
+        by: String,
+        /// Wall clock.
+        host_time: String,
+    },
     /// An attempt at a step began.
     StepStarted {
         /// Step.
@@ -339,6 +352,7 @@ impl Record {
             Record::SessionStarted { .. } => "SessionStarted",
             Record::Resumed { .. } => "Resumed",
             Record::DeviceConnected { .. } => "DeviceConnected",
+            Record::FaultCleared { .. } => "FaultCleared",
             Record::StepStarted { .. } => "StepStarted",
             Record::StepPrepared { .. } => "StepPrepared",
             Record::Event { .. } => "Event",

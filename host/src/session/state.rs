@@ -97,7 +97,7 @@ impl State {
                     return Err(format!("Resumed attempt {attempt}, expected {}", self.resumes + 1));
                 }
             }
-            Record::DeviceConnected { .. } => {}
+            Record::DeviceConnected { .. } | Record::FaultCleared { .. } => {}
             Record::StepStarted { step, attempt, .. } => {
                 if let Some((s, a)) = self.open {
                     return Err(format!(
@@ -245,7 +245,7 @@ impl State {
                 self.attempt_mut(m.step, m.attempt).missing.insert((m.camera, m.frame), m.clone());
             }
             Record::FrameExtra(x) => self.attempt_mut(x.step, x.attempt).extra.push(x.clone()),
-            Record::StepPrepared { .. } => {}
+            Record::StepPrepared { .. } | Record::FaultCleared { .. } => {}
             Record::StepDone { step, attempt, .. } => {
                 self.attempt_mut(*step, *attempt).outcome = Outcome::Done;
                 self.open = None;
