@@ -4,7 +4,7 @@
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
-use lightrig_cli::cmd::{self, acquire, calibrate, device, fit, hdr, selfcheck, sim};
+use lightrig_cli::cmd::{self, acquire, calibrate, device, fit, hdr, selfcheck, sim, soak};
 use lightrig_cli::demo;
 
 #[derive(Parser)]
@@ -24,6 +24,9 @@ enum Cmd {
     Fit(fit::Args),
     /// Run the host link against the firmware controller in-process over a lossy simulated wire.
     Selfcheck(selfcheck::Args),
+    /// A long acquisition (10^6 triggers) through the whole virtual rig over a wire that drops,
+    /// flips and duplicates bytes: every frame must be paired with its trigger once.
+    Soak(soak::Args),
     /// Print this build's protocol version, schema hash and frame limits.
     Schema,
     /// List serial ports and USB controllers; with --probe, ask each what it is.
@@ -51,6 +54,7 @@ fn main() -> ExitCode {
         Cmd::Demo(args) => demo::run(&args),
         Cmd::Fit(args) => fit::run(&args),
         Cmd::Selfcheck(args) => selfcheck::run(&args),
+        Cmd::Soak(args) => soak::run(&args),
         Cmd::Schema => device::schema(),
         Cmd::Devices(args) => device::devices(&args),
         Cmd::Acquire(a) => cmd::exit(acquire::acquire(&a.rig, &a.session, a.connect.as_ref(), a.yes)),

@@ -436,19 +436,21 @@ pub fn run_prepared<T: Transport>(
     prep: &mut dyn StepPreparation,
     mut progress: impl FnMut(Progress),
 ) -> Result<(), AcquireError> {
-    session.device_connected(client.info())?;
+    // Every session write outside the link loop goes through `busy`: an fsync on a slow disk
+    // must not hold up a real-time device's heartbeat.
+    let info = *client.info();
+    client.busy(|| session.device_connected(&info))?;
     // What arrived since the connection (an earlier run's last events, a fault from while no
     // host was there, homing) is journaled before anything else.
-    for e in client.take_events() {
-        session.record_event(&e)?;
-    }
+    let events = client.take_events();
+    client.busy(|| events.iter().try_for_each(|e| session.record_event(e).map(|_| ())))?;
     recover(client, &mut |c: &FaultCause| !needs_a_person(c)).map_err(AcquireError::Device)?;
     // Faults cleared by asking the device's status (at bring-up or just now): their event may
     // have gone to an earlier host.
-    let boot_id = client.info().boot_id;
-    for cause in client.take_cleared() {
-        session.fault_cleared(boot_id, &cause, needs_a_person(&cause))?;
-    }
+    let cleared = client.take_cleared();
+    client.busy(|| {
+        cleared.iter().try_for_each(|c| session.fault_cleared(info.boot_id, c, needs_a_person(c)))
+    })?;
     let result = run_steps(client, session, plan, input, prep, &mut progress);
     if result.is_err() {
         // Whatever stopped the run, the lasers are left disarmed where the device still
@@ -494,7 +496,7 @@ fn run_steps<T: Transport>(
         progress(Progress { steps_done: session.steps_done().len(), steps: total, frames });
     }
     client.request(Command::Disarm).map_err(AcquireError::Device)?;
-    session.finish()?;
+    client.busy(|| session.finish())?;
     Ok(())
 }
 
@@ -625,10 +627,13 @@ fn run_step<T: Transport>(
     // them, and below ignore anything stamped before this attempt began.
     let start_us = client.transport().now_us() as f64;
     let _stale = input.poll(start_us).map_err(AcquireError::Frames)?;
-    session.start_step(step.id, seq)?;
-    if let Some((by, actions)) = prepared {
-        session.step_prepared(&by, actions)?;
-    }
+    client.busy(|| {
+        session.start_step(step.id, seq)?;
+        match prepared {
+            Some((by, actions)) => session.step_prepared(&by, actions),
+            None => Ok(()),
+        }
+    })?;
     input.begin_step(step).map_err(AcquireError::Frames)?;
     // Built now, dropped when the attempt ends: a plan holds no step's items for long.
     let items = step.items();
@@ -657,7 +662,8 @@ fn run_step<T: Transport>(
     }
     if let Err(e) = result {
         // The device is in its safe state (or gone): this attempt is void.
-        session.abandon_step(&e.to_string())?;
+        let why = e.to_string();
+        client.busy(|| session.abandon_step(&why))?;
         return Err(AcquireError::Device(e));
     }
     // Collect the frames: until every trigger has one, or none has come for FRAME_WAIT_US (a

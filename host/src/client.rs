@@ -589,6 +589,11 @@ impl<T: Transport> Client<T> {
         &self.events
     }
 
+    /// The host end's link counters (frames, retransmissions, rejected frames).
+    pub fn link_stats(&self) -> &lightrig_protocol::link::LinkStats {
+        self.link.stats()
+    }
+
     /// Notes that the host cleared the device's latched fault `cause` (for the journal).
     pub fn note_cleared(&mut self, cause: FaultCause) {
         self.cleared.push(cause);

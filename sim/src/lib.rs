@@ -30,5 +30,6 @@ pub mod pty;
 pub mod scenes;
 pub mod selfcheck;
 pub mod sensor;
+pub mod soak;
 pub mod timeline;
 pub mod transport;

@@ -25,6 +25,7 @@ pub struct VirtualTransport {
     pending: Vec<u8>,
     impairment: Impairment,
     rng: u64,
+    damage: Damage,
     /// Unplugged: every call fails until [`VirtualTransport::replug`].
     unplugged: bool,
     /// Pull the cable when the clock reaches this tick.
@@ -37,15 +38,15 @@ pub struct VirtualTransport {
     timeline: Option<Timeline>,
 }
 
-/// Byte-level damage on the virtual wire, per mille of bytes, each direction.
+/// Byte-level damage on the virtual wire, per million bytes, each direction.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct Impairment {
-    /// Bytes lost.
-    pub drop: u32,
-    /// Bytes with one bit flipped.
-    pub corrupt: u32,
-    /// Bytes sent twice.
-    pub duplicate: u32,
+    /// Bytes lost, per million.
+    pub drop_ppm: u32,
+    /// Bytes with one bit flipped, per million.
+    pub corrupt_ppm: u32,
+    /// Bytes sent twice, per million.
+    pub duplicate_ppm: u32,
     /// Seed of the damage pattern.
     pub seed: u64,
 }
@@ -58,20 +59,42 @@ fn splitmix(state: &mut u64) -> u64 {
     z ^ (z >> 31)
 }
 
-fn impair(bytes: &[u8], imp: &Impairment, rng: &mut u64) -> Vec<u8> {
-    if imp.drop == 0 && imp.corrupt == 0 && imp.duplicate == 0 {
+/// What the virtual wire did to the bytes it carried, both directions together.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Damage {
+    /// Bytes carried.
+    pub bytes: u64,
+    /// Bytes lost.
+    pub dropped: u64,
+    /// Bytes with a bit flipped.
+    pub flipped: u64,
+    /// Bytes sent twice.
+    pub duplicated: u64,
+}
+
+fn impair(bytes: &[u8], imp: &Impairment, rng: &mut u64, damage: &mut Damage) -> Vec<u8> {
+    damage.bytes += bytes.len() as u64;
+    let (drop, corrupt, duplicate) = (imp.drop_ppm, imp.corrupt_ppm, imp.duplicate_ppm);
+    if drop == 0 && corrupt == 0 && duplicate == 0 {
         return bytes.to_vec();
     }
     let mut out = Vec::with_capacity(bytes.len());
     for &b in bytes {
         let r = splitmix(rng);
-        let roll = (r % 1000) as u32;
-        if roll < imp.drop {
+        let roll = (r % 1_000_000) as u32;
+        if roll < drop {
+            damage.dropped += 1;
             continue;
         }
-        let b = if roll < imp.drop + imp.corrupt { b ^ (1 << ((r >> 20) % 8)) } else { b };
+        let b = if roll < drop + corrupt {
+            damage.flipped += 1;
+            b ^ (1 << ((r >> 40) % 8))
+        } else {
+            b
+        };
         out.push(b);
-        if roll >= imp.drop + imp.corrupt && roll < imp.drop + imp.corrupt + imp.duplicate {
+        if roll >= drop + corrupt && roll < drop + corrupt + duplicate {
+            damage.duplicated += 1;
             out.push(b);
         }
     }
@@ -101,6 +124,7 @@ impl VirtualTransport {
             pending: Vec::new(),
             impairment: Impairment::default(),
             rng: 0,
+            damage: Damage::default(),
             unplugged: false,
             unplug_at: None,
             reset_at: None,
@@ -126,6 +150,11 @@ impl VirtualTransport {
     /// would); by default it jumps to whatever is due next. See [`crate::pacing`].
     pub fn pace_in_real_time(&mut self) {
         self.real_time = Some(RealTime::starting_at(self.clock.now()));
+    }
+
+    /// What the wire has done to the bytes so far.
+    pub fn damage(&self) -> Damage {
+        self.damage
     }
 
     /// Damages bytes on the wire from now on.
@@ -201,7 +230,7 @@ impl VirtualTransport {
             t.take(self.device.rig_mut().board_mut(), self.clock.now());
         }
         while let Some(n) = self.device.poll_transmit(&mut out) {
-            let bytes = impair(&out[..n], &self.impairment, &mut self.rng);
+            let bytes = impair(&out[..n], &self.impairment, &mut self.rng, &mut self.damage);
             self.pending.extend_from_slice(&bytes);
         }
     }
@@ -210,7 +239,7 @@ impl VirtualTransport {
 impl Transport for VirtualTransport {
     fn send(&mut self, bytes: &[u8]) -> io::Result<()> {
         self.check_plugged()?;
-        let bytes = impair(bytes, &self.impairment, &mut self.rng);
+        let bytes = impair(bytes, &self.impairment, &mut self.rng, &mut self.damage);
         self.device.receive(&bytes);
         Ok(())
     }

@@ -169,7 +169,12 @@ fn link_damage_costs_retransmissions_not_frames() {
     let plan = lls_plan();
     let mut session = new_session(&dir, &plan);
     let mut client = connect(SimBoard::default());
-    client.transport_mut().impair(Impairment { drop: 3, corrupt: 3, duplicate: 3, seed: 42 });
+    client.transport_mut().impair(Impairment {
+        drop_ppm: 3000,
+        corrupt_ppm: 3000,
+        duplicate_ppm: 3000,
+        seed: 42,
+    });
     acquire::run(&mut client, &mut session, &plan, &mut TestCamera::default(), |_| {}).unwrap();
     drop(session);
     check_complete(&dir, &plan);

@@ -7,6 +7,7 @@ pub mod fit;
 pub mod hdr;
 pub mod selfcheck;
 pub mod sim;
+pub mod soak;
 
 use std::process::ExitCode;
 

@@ -27,6 +27,7 @@ mod journal;
 mod pairing;
 mod records;
 mod state;
+mod syncer;
 
 use std::collections::HashSet;
 use std::fmt;
@@ -200,8 +201,9 @@ fn io_at(path: &Path) -> impl Fn(io::Error) -> SessionError + '_ {
 /// When the journal is fsynced.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct SyncPolicy {
-    /// An `Event` record is fsynced if the last fsync is at least this old; every other record
-    /// is fsynced before `append` returns.
+    /// After an `Event` record, an fsync is started on the session's own thread if the last
+    /// one is at least this old (the caller, the link loop, never waits on the disk); every
+    /// other record is fsynced before `append` returns.
     pub event_interval: Duration,
 }
 
@@ -297,6 +299,10 @@ pub struct Session {
     poisoned: Option<String>,
     /// Frame directories known to exist durably.
     dirs: HashSet<PathBuf>,
+    /// Fsyncs for event records, off the caller's thread.
+    syncer: Option<syncer::Syncer>,
+    /// Extra time every fsync takes, µs ([`Session::simulate_slow_disk`]).
+    slow_disk: std::sync::Arc<std::sync::atomic::AtomicU64>,
 }
 
 impl fmt::Debug for Session {
@@ -452,7 +458,14 @@ impl Session {
             unsynced: false,
             poisoned: None,
             dirs: HashSet::new(),
+            syncer: None,
+            slow_disk: Default::default(),
         };
+        if let Some(f) = session.journal.as_ref().filter(|_| write) {
+            let syncer = syncer::Syncer::new(f.try_clone().map_err(io_at(&session.dir.join(JOURNAL)))?);
+            session.slow_disk = syncer.delay();
+            session.syncer = Some(syncer);
+        }
         session.check_files(write, &mut recovery)?;
         if write && !session.state.done && session.manifest.format < FORMAT_VERSION {
             // Going on with a session an older host began: it now holds this format's records,
@@ -655,8 +668,15 @@ impl Session {
         self.state.apply(rec, &self.manifest).expect("checked");
         self.unsynced = true;
         let event = matches!(rec, Record::Event { .. });
-        if !event || self.last_sync.elapsed() >= self.policy.event_interval {
+        if !event {
             self.sync()?;
+        } else if self.last_sync.elapsed() >= self.policy.event_interval {
+            // Durable within one fsync's time, without waiting for it here.
+            match &self.syncer {
+                Some(s) => s.request(),
+                None => self.sync()?,
+            }
+            self.last_sync = Instant::now();
         }
         Ok(true)
     }
@@ -667,6 +687,7 @@ impl Session {
             return Ok(());
         }
         let Some(file) = self.journal.as_ref() else { return Ok(()) };
+        syncer::slow_disk(&self.slow_disk);
         if let Err(e) = file.sync_data() {
             // After a failed fsync the kernel may have dropped the dirty pages: what is on disk
             // is unknown.
@@ -681,6 +702,11 @@ impl Session {
     fn writable(&self) -> Result<()> {
         if self.journal.is_none() {
             return Err(SessionError::NotWritable { detail: "opened read-only".into() });
+        }
+        if let Some(why) = self.syncer.as_ref().and_then(|s| s.failure()) {
+            return Err(SessionError::NotWritable {
+                detail: format!("{why}; open the session again to recover"),
+            });
         }
         if let Some(why) = &self.poisoned {
             return Err(SessionError::NotWritable {
@@ -827,8 +853,16 @@ impl Session {
         let path = self.dir.join(file);
         let parent = path.parent().expect("in a directory").to_path_buf();
         self.ensure_dir(&parent)?;
+        syncer::slow_disk(&self.slow_disk);
         fsutil::write_atomic(&path, data).map_err(io_at(&path))?;
         self.append(record).map(|_| ())
+    }
+
+    /// Makes every frame file and every journal fsync take `delay` longer, as on a slow or
+    /// busy disk: for tests of what must not stall meanwhile (a real-time device's link).
+    pub fn simulate_slow_disk(&mut self, delay: Duration) {
+        let us = u64::try_from(delay.as_micros()).unwrap_or(u64::MAX);
+        self.slow_disk.store(us, std::sync::atomic::Ordering::Relaxed);
     }
 
     /// Creates `dir` (inside the session) and its missing parents durably.
