@@ -49,6 +49,10 @@ fn acquire(rig: &Path, session: &Path) -> Session {
     assert_eq!(frames.len(), planned as usize, "one frame per trigger");
     assert!(s.verify().is_empty(), "{:?}", s.verify());
     assert!(!session.join("virtual-camera").exists(), "the camera's scratch files are removed");
+    let said = String::from_utf8_lossy(&out.stderr);
+    let tally = format!("{} frames paired with their triggers, 0 missing", frames.len());
+    assert!(said.contains(&tally), "the run ends with its tally: {said}");
+    assert!(!said.contains("extra-*"), "no extra frames to speak of: {said}");
     s
 }
 
