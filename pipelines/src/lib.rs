@@ -9,7 +9,9 @@
 //!   surface point integrated numerically over its width and length (the virtual camera
 //!   renders with it; the fit's faster [`lls::TraceModel`] is tested against it).
 //! - [`firs`]: fluorescent immersion range scanning (Hullin et al. 2008).
+//! - [`display`]: the BRDF display's wave maths (Hullin et al. 2011).
 
+pub mod display;
 pub mod firs;
 pub mod lls;
 pub mod quad;

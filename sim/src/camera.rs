@@ -41,7 +41,13 @@ pub struct RigState {
     /// Each voice coil's samples that play during the exposure, by channel (following a
     /// [`Timeline`] only; empty otherwise). The same in every state of one exposure.
     pub coils: Vec<Vec<i16>>,
+    /// Each voice coil's samples that played in the [`COIL_LEAD_S`] before the exposure, by
+    /// channel: what a scene whose response lasts (a liquid's waves) needs to start from.
+    pub coils_before: Vec<Vec<i16>>,
 }
+
+/// How much of each voice coil's output before an exposure [`RigState::coils_before`] holds, s.
+pub const COIL_LEAD_S: f64 = 0.1;
 
 /// Something the virtual camera can look at (rendered on the camera's threads).
 pub trait Scene: Send + Sync {
@@ -163,12 +169,17 @@ impl<S: Scene> VirtualCamera<S> {
         let Some((tl, _)) = &self.timeline else { return vec![(1.0, at_trigger.clone())] };
         let (t0, t1) = (t.tick, t.tick + u64::from(t.width.max(1)));
         let mut state = at_trigger.clone();
-        state.coils = (0..self.coil_rates.len())
-            .map(|c| match self.coil_rates[c] {
-                Some(rate) => tl.coil_samples(c as u8, rate, self.tick_hz, t0, t1),
-                None => Vec::new(),
-            })
-            .collect();
+        let samples = |from: u64, to: u64| -> Vec<Vec<i16>> {
+            (0..self.coil_rates.len())
+                .map(|c| match self.coil_rates[c] {
+                    Some(rate) => tl.coil_samples(c as u8, rate, self.tick_hz, from, to),
+                    None => Vec::new(),
+                })
+                .collect()
+        };
+        state.coils = samples(t0, t1);
+        let lead = (COIL_LEAD_S * f64::from(self.tick_hz)) as u64;
+        state.coils_before = samples(t0.saturating_sub(lead), t0);
         let changes = tl.between(t0, t1);
         if changes.is_empty() {
             return vec![(1.0, state)];
@@ -301,6 +312,7 @@ impl<S: Scene> VirtualCamera<S> {
             galvos: t.snapshot.galvos.iter().map(|g| [g.x, g.y]).collect(),
             meta: self.meta.clone(),
             coils: Vec::new(),
+            coils_before: Vec::new(),
         }
     }
 

@@ -2,11 +2,13 @@
 //!
 //! - [`lls`]: the linear-light-source sample and its ground truth.
 //! - [`firs`]: the fluorescent-immersion tank scene and its ground truth.
+//! - [`display`]: the BRDF display's liquid surface, driven by the coils' samples.
 //! - [`card`]: the test card for the rigs without a scene of their own yet (DISCO,
-//!   bispectral, BRDF display).
+//!   bispectral).
 //! - [`scene_for`]: a rig file's scene, for `lightrig acquire` with `source = { kind = "virtual" }`.
 
 pub mod card;
+pub mod display;
 pub mod firs;
 pub mod lls;
 

@@ -1,0 +1,17 @@
+//! BRDF display (Hullin et al. 2011; thesis chapter 5): travelling capillary waves on a
+//! liquid, excited by one voice coil per axis with sums of sines at prime frequency ratios,
+//! whose time-averaged slopes make the surface reflect a chosen Ward-like highlight.
+//!
+//! - [`liquid`]: the dispersion relation of capillary–gravity waves and their viscous damping
+//!   (water, and the gallium alloy of section 5.5.4).
+//! - [`mapping`]: Ward `α` → reflection variance → each partial's roughness → wave number →
+//!   surface amplitude → coil drive through the measured response, with the reachable range.
+//! - [`slopes`]: the single sine's arcsine law (Eq. 5.6) and the distance of a slope
+//!   distribution from a Gaussian.
+
+pub mod liquid;
+pub mod mapping;
+pub mod slopes;
+
+pub use liquid::Liquid;
+pub use mapping::{Axis, DisplayError, PartialDrive, Response};
