@@ -172,7 +172,7 @@ impl Axis {
 
     /// The partials that show `alpha` on this axis, or why not.
     pub fn solve(&self, alpha: f64, liquid: &Liquid) -> Result<Vec<PartialDrive>, DisplayError> {
-        if !(alpha >= 0.0) {
+        if alpha.is_nan() || alpha < 0.0 {
             return Err(DisplayError::Invalid { axis: self.name, alpha });
         }
         let (max, limit) = self.reachable(liquid)?;
