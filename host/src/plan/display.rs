@@ -63,7 +63,8 @@ pub struct DisplayParams {
     pub captures: u32,
     /// Exposure, ticks.
     pub exposure: u32,
-    /// Trigger to trigger, ticks.
+    /// Trigger to trigger, ticks (at least the exposure: a frame never sees the next
+    /// setting or the fade).
     pub frame_gap: u32,
     /// Bytes per frame.
     pub frame_bytes: u64,
@@ -102,7 +103,9 @@ pub fn plan(p: &DisplayParams) -> Result<Plan, PlanError> {
             b.wait(p.ramp.saturating_add(p.settle));
             for k in 0..p.captures {
                 b.shoot_all(&p.cameras, p.exposure, format!("capture {k}"));
-                b.wait(p.frame_gap);
+                // The next capture, or the fade, only once this exposure has ended: the
+                // frame must see the steady surface throughout.
+                b.wait(p.frame_gap.max(p.exposure));
             }
             for (channel, _) in &settings {
                 b.then(Action::VoiceCoil { channel: *channel, ramp: p.ramp, partials: heapless::Vec::new() });

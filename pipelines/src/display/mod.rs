@@ -6,10 +6,12 @@
 //!   (water, and the gallium alloy of section 5.5.4).
 //! - [`mapping`]: Ward `α` → reflection variance → each partial's roughness → wave number →
 //!   surface amplitude → coil drive through the measured response, with the reachable range.
+//! - [`lobe`]: the displayed lobe's spread read off a camera picture of the screen.
 //! - [`slopes`]: the single sine's arcsine law (Eq. 5.6) and the distance of a slope
 //!   distribution from a Gaussian.
 
 pub mod liquid;
+pub mod lobe;
 pub mod mapping;
 pub mod slopes;
 

@@ -59,6 +59,9 @@ impl Actuator {
     }
 }
 
+/// The screen picture's side, pixels (`scene_for`'s).
+pub const SCREEN_PIXELS: u32 = 192;
+
 /// The display scene.
 pub struct DisplayScene {
     /// The liquid.
@@ -82,11 +85,12 @@ pub struct DisplayScene {
 impl DisplayScene {
     /// The thesis's small setup 2 on water: efficiency peak near 200 Hz (coils of slightly
     /// different make, so each needs its own calibration), the spot 10 mm from each paddle;
-    /// a `width × height` view of the screen spanning ±0.6 rad on its wider side.
+    /// a `width × height` view of the screen spanning ±1.2 rad on its wider side (α = 0.14
+    /// spreads reflections with σ = 0.28 rad: the screen holds ±4σ of it).
     pub fn small_water(width: u32, height: u32) -> Self {
         let a = Actuator { gain_m: 5.0e-4, resonance_hz: 190.0, q: 2.0, distance_m: 0.010 };
         let b = Actuator { gain_m: 4.0e-4, resonance_hz: 215.0, q: 2.5, distance_m: 0.012 };
-        let pitch = 1.2 / f64::from(width.max(height));
+        let pitch = 2.4 / f64::from(width.max(height));
         DisplayScene {
             liquid: Liquid::WATER,
             actuators: [a, b],

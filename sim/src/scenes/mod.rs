@@ -27,7 +27,9 @@ use crate::sensor::Sensor;
 /// - fluorescent immersion: the demo's tank and sphere ([`firs::FirsScene`], 208 × 160),
 ///   the sheet from `[plan] laser` (else the first laser) on the first galvo pair, the
 ///   turntable on the first rotary axis;
-/// - DISCO, bispectral, BRDF display: the [`card::CardScene`] test card (160 × 120).
+/// - BRDF display: the liquid ([`display::DisplayScene::small_water`], 192 × 192 float
+///   frames), the coils at the rig file's sample rates;
+/// - DISCO, bispectral: the [`card::CardScene`] test card (160 × 120).
 pub fn scene_for(rig: &RigFile, seed: u64) -> (Box<dyn Scene + Send>, Sensor) {
     let laser = |names: &[&str]| {
         rig.lasers.iter().find(|l| l.name.as_deref().is_some_and(|n| names.contains(&n))).map(|l| l.channel)
@@ -57,7 +59,20 @@ pub fn scene_for(rig: &RigFile, seed: u64) -> (Box<dyn Scene + Send>, Sensor) {
             let sensor = Sensor { gain: 20_000.0 / (1.3 * 0.02), seed, ..Sensor::default() };
             (Box::new(firs::FirsScene::new(spec)), sensor)
         }
-        Method::Disco | Method::Bispectral | Method::BrdfDisplay => {
+        Method::BrdfDisplay => {
+            let mut scene =
+                display::DisplayScene::small_water(display::SCREEN_PIXELS, display::SCREEN_PIXELS);
+            for c in &rig.voice_coils {
+                if let Some(r) = scene.rates_hz.get_mut(usize::from(c.channel)) {
+                    *r = f64::from(c.sample_rate_hz);
+                }
+            }
+            // Float frames: the lobe's tails carry its variance and must not be clipped.
+            let sensor =
+                Sensor { gain: 200_000.0, depth: crate::sensor::Depth::Float, seed, ..Sensor::default() };
+            (Box::new(scene), sensor)
+        }
+        Method::Disco | Method::Bispectral => {
             let card = card::CardScene::new(rig, 160, 120);
             // A laser spot on white fills half the well at the camera's own pulse width.
             let pulse_s = rig.cameras.first().map_or(1e-3, |c| c.pulse_us * 1e-6).max(1e-6);
