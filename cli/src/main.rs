@@ -4,7 +4,7 @@
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
-use lightrig_cli::cmd::{self, acquire, calibrate, device, fit, hdr, selfcheck, sim, soak};
+use lightrig_cli::cmd::{self, acquire, calibrate, device, display, fit, hdr, selfcheck, sim, soak};
 use lightrig_cli::demo;
 
 #[derive(Parser)]
@@ -19,8 +19,9 @@ enum Cmd {
     /// Run a whole acquisition and fit on the virtual rig and compare the fit with the ground
     /// truth (the default method is the linear light source).
     Demo(demo::Args),
-    /// Fit a session: `lightrig fit lls SESSION --out DIR [--calibration cam.toml]`, or
-    /// `lightrig fit firs-surface|firs-volume SESSION --out DIR`.
+    /// Fit a session: `lightrig fit lls SESSION --out DIR [--calibration cam.toml]`,
+    /// `lightrig fit firs-surface|firs-volume SESSION --out DIR`, or
+    /// `lightrig fit display SESSION --out DIR [--calibration display-calibration.json]`.
     Fit(fit::Args),
     /// Run the host link against the firmware controller in-process over a lossy simulated wire.
     Selfcheck(selfcheck::Args),
@@ -45,6 +46,9 @@ enum Cmd {
     Sim(sim::Args),
     /// Connect to a device and print what it says about itself and how its clock maps.
     Info(device::InfoArgs),
+    /// Show a Ward roughness on a BRDF display, live: `lightrig display RIG --alpha 0.08,0.04`;
+    /// new values from standard input change it over the controller's ramps.
+    Display(display::Args),
     /// Emergency stop: lasers off, motors stopped at once, galvos parked, the fault latched.
     Stop(device::StopArgs),
 }
@@ -64,5 +68,6 @@ fn main() -> ExitCode {
         Cmd::Sim(args) => sim::run(&args),
         Cmd::Info(args) => device::info(&args),
         Cmd::Stop(args) => device::stop(&args),
+        Cmd::Display(args) => cmd::exit(display::run(&args)),
     }
 }

@@ -75,15 +75,53 @@ fn the_immersion_and_display_examples_plan() {
     // Calibration (a dark frame and one sweep), then 36 orientations of 400 sheets.
     assert_eq!(plan.summary().steps, 37);
     assert_eq!(plan.summary().triggers, (1 + 400) + 36 * 400);
-    let rig = RigFile::load(&example("brdf-display.toml")).unwrap();
+    // The display ships as its calibration: a still surface, then one sine per coil per step.
+    let path = example("brdf-display.toml");
+    let rig = RigFile::load(&path).unwrap();
     let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
-    assert_eq!(plan.steps.len(), 2, "one step per pattern");
+    assert_eq!(plan.steps.len(), 1 + 7);
+    let sounding = |step: usize| -> Vec<(u8, Vec<u32>)> {
+        plan.steps[step]
+            .items()
+            .iter()
+            .filter_map(|i| match &i.action {
+                Action::VoiceCoil { channel, partials, .. } if !partials.is_empty() => {
+                    Some((*channel, partials.iter().map(|p| p.freq_mhz).collect()))
+                }
+                _ => None,
+            })
+            .collect()
+    };
+    assert_eq!(sounding(0), vec![], "the still surface");
+    assert_eq!(sounding(1), vec![(0, vec![101_000]), (1, vec![113_000])], "one sine per coil");
+    assert_eq!(plan.steps[1].meta["kind"], "sine");
+    assert_eq!(plan.meta["liquid"], "water");
+    // Raw patterns instead: every coil gets each pattern.
+    let text = std::fs::read_to_string(&path).unwrap().replace(
+        "[plan.calibrate]\ndrive = 0.03",
+        "[plan.patterns]\nglossy = { frequencies_hz = [40, 55, 70], amplitudes = [0.2, 0.15, 0.1] }\n#",
+    );
+    let rig = RigFile::parse(&text, &path).unwrap();
+    let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
+    assert_eq!(plan.steps.len(), 1, "one step per pattern");
     let coils = plan.steps[0]
         .items()
         .iter()
         .filter(|i| matches!(i.action, Action::VoiceCoil { ref partials, .. } if !partials.is_empty()))
         .count();
     assert_eq!(coils, rig.voice_coils.len(), "every coil gets the pattern");
+    // Both, or neither: the planner says what it takes.
+    let both = text.replace("[plan.patterns]", "alphas = [[0.1, 0.1]]\n[plan.patterns]");
+    let rig = RigFile::parse(&both, &path).unwrap();
+    let e = from_rig::plan(&rig, &virtual_device_info()).unwrap_err().to_string();
+    assert!(e.contains("give exactly one of `[plan.calibrate]`"), "{e}");
+    // α without a calibration file: what to run to make one.
+    let text = std::fs::read_to_string(&path)
+        .unwrap()
+        .replace("[plan.calibrate]\ndrive = 0.03", "alphas = [[0.1, 0.1]]");
+    let rig = RigFile::parse(&text, &path).unwrap();
+    let e = from_rig::plan(&rig, &virtual_device_info()).unwrap_err().to_string();
+    assert!(e.contains("plan.calibration") && e.contains("lightrig fit display"), "{e}");
 }
 
 #[test]

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use lightrig_firmware::sim::virtual_device_info;
 use lightrig_host::acquire::{self, plan_summary};
 use lightrig_host::bringup::bring_up_on;
-use lightrig_host::plan::display::{self, DisplayParams, Target};
+use lightrig_host::plan::display::{self, partial, DisplayParams, Target};
 use lightrig_host::rigfile::RigFile;
 use lightrig_host::session::{Manifest, Session};
 use lightrig_host::transport::Transport;
@@ -20,7 +20,6 @@ use lightrig_pipelines::display::mapping::{
     alpha_of_variance, golden_phase, Axis, Response, X_FREQUENCIES, Y_FREQUENCIES,
 };
 use lightrig_pipelines::display::Liquid;
-use lightrig_protocol::sequence::Partial;
 use lightrig_sim::camera::VirtualCamera;
 use lightrig_sim::scenes::display::{DisplayScene, SCREEN_PIXELS};
 use lightrig_sim::scenes::scene_for;
@@ -34,14 +33,6 @@ fn temp_dir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("lightrig-display-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     d
-}
-
-fn partial(f: f64, drive: f64, phase_turns: f64) -> Partial {
-    Partial {
-        freq_mhz: (f * 1000.0).round() as u32,
-        amplitude: (drive * f64::from(u16::MAX)).round() as u16,
-        phase: (phase_turns * 65536.0) as u16,
-    }
 }
 
 /// Shows each target (one step, one 0.5 s exposure each) on the virtual rig and returns each
@@ -58,6 +49,7 @@ fn show(rig: &RigFile, dir: &Path, targets: Vec<Target>) -> Vec<Spread> {
         frame_gap: 20_000,
         frame_bytes: u64::from(SCREEN_PIXELS * SCREEN_PIXELS) * 4,
         tick_hz: info.tick_hz,
+        meta: serde_json::Value::Null,
     };
     let plan = display::plan(&params).unwrap();
     let (transport, timeline) = connect_for_camera(rig, info, false);
@@ -87,6 +79,7 @@ fn targets(axes: &[Axis; 2], liquid: &Liquid, alphas: &[[f64; 2]]) -> Vec<Target
     alphas
         .iter()
         .map(|a| Target {
+            meta: serde_json::Value::Null,
             name: format!("alpha {} x {}", a[0], a[1]),
             channels: (0..2)
                 .map(|c| {
@@ -107,16 +100,8 @@ fn calibrated_by_camera_the_display_shows_each_asked_alpha_within_5_percent() {
     let liquid = Liquid::WATER;
     // Calibration: a still surface (the beam's own spread), then partial i of each axis alone
     // on its coil.
-    let mut cal = vec![Target { name: "still".into(), channels: vec![(0, vec![]), (1, vec![])] }];
-    for i in 0..X_FREQUENCIES.len() {
-        cal.push(Target {
-            name: format!("sine {i}"),
-            channels: vec![
-                (0, vec![partial(X_FREQUENCIES[i], CAL_DRIVE, 0.0)]),
-                (1, vec![partial(Y_FREQUENCIES[i], CAL_DRIVE, 0.0)]),
-            ],
-        });
-    }
+    let cal =
+        display::calibration_targets(&[(0, X_FREQUENCIES.to_vec()), (1, Y_FREQUENCIES.to_vec())], CAL_DRIVE);
     let seen = show(&rig, &dir.join("calibration"), cal);
     let still = seen[0];
     let mut points = [Vec::new(), Vec::new()];
@@ -168,4 +153,72 @@ fn calibrated_by_camera_the_display_shows_each_asked_alpha_within_5_percent() {
         }
     }
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A calibration holding the scene's true responses (what a perfect calibration measures).
+fn true_calibration(rig: &RigFile) -> lightrig_pipelines::display::Calibration {
+    use lightrig_pipelines::display::calibration::{AxisCalibration, Calibration, FORMAT};
+    let truth = DisplayScene::small_water(SCREEN_PIXELS, SCREEN_PIXELS);
+    let axis = |k: usize, freqs: &[f64]| AxisCalibration {
+        coil: rig.voice_coils[k].name.clone().unwrap(),
+        channel: rig.voice_coils[k].channel,
+        max_drive: rig.voice_coils[k].max_amplitude,
+        frequencies_hz: freqs.to_vec(),
+        response_m: freqs.iter().map(|&f| truth.actuators[k].response(&truth.liquid, f).norm()).collect(),
+        seen: Vec::new(),
+    };
+    Calibration {
+        format: FORMAT,
+        liquid: "water".into(),
+        drive: 0.03,
+        pitch_rad: truth.pitch,
+        beam_var: [0.0; 2],
+        axes: [axis(0, &X_FREQUENCIES), axis(1, &Y_FREQUENCIES)],
+    }
+}
+
+#[test]
+fn a_live_change_of_alpha_ramps_without_a_click_and_takes_effect() {
+    use lightrig_host::client::Client;
+    use lightrig_host::plan::display::{coil_actions, partials_for};
+    use lightrig_protocol::Command;
+    let rig = RigFile::parse(RIG, Path::new("brdf-display.toml")).unwrap();
+    let info = virtual_device_info();
+    let (transport, _) = connect_for_camera(&rig, info, false);
+    let mut c = Client::connect(transport, 11).unwrap();
+    c.set_heartbeat_us(25_000); // the rig file's 100 ms timeout, as bring-up sets it
+    for item in rig.config_items(c.info()).unwrap() {
+        c.request(Command::Configure(item)).unwrap();
+    }
+    let cal = true_calibration(&rig);
+    let ramp = 200_000; // 0.2 s
+    let mut amplitudes = Vec::new();
+    for alpha in [[0.04, 0.04], [0.12, 0.06]] {
+        let channels = partials_for(&cal, alpha).unwrap();
+        amplitudes.push(channels[0].1.clone());
+        for a in coil_actions(&channels, ramp).unwrap() {
+            c.request(Command::Immediate(a)).unwrap();
+        }
+        c.idle(600_000).unwrap();
+    }
+    let samples = &c.transport().device().rig().board().samples[0];
+    // No step between samples larger than the steepest the two settings' sines allow.
+    let steepest = |ps: &[lightrig_protocol::sequence::Partial]| -> f64 {
+        ps.iter()
+            .map(|p| {
+                2.0 * std::f64::consts::PI * f64::from(p.freq_mhz) / 1000.0 / 48_000.0
+                    * f64::from(p.amplitude)
+                    / 2.0
+            })
+            .sum()
+    };
+    let bound = steepest(&amplitudes[0]).max(steepest(&amplitudes[1])) + 2.0;
+    let worst = samples.windows(2).map(|w| (f64::from(w[1]) - f64::from(w[0])).abs()).fold(0.0, f64::max);
+    assert!(worst <= bound, "a step of {worst} LSB, the sines allow {bound}");
+    // Each setting played at its own level: αx 0.04 then 0.12, three times the drive.
+    let rms = |s: &[i16]| (s.iter().map(|&v| f64::from(v).powi(2)).sum::<f64>() / s.len() as f64).sqrt();
+    let n = samples.len();
+    // Each setting held 0.6 s (28 800 samples), the last 0.25 s of each steady.
+    let (first, second) = (rms(&samples[n - 28_800 - 12_000..n - 28_800]), rms(&samples[n - 12_000..]));
+    assert!((second / first / 3.0 - 1.0).abs() < 0.1, "{first} then {second}");
 }

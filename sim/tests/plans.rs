@@ -265,7 +265,7 @@ fn bispectral_takes_an_exposure_series_per_pair_with_the_right_slot() {
 
 #[test]
 fn brdf_display_ramps_the_coils_then_captures_then_fades() {
-    use lightrig_host::plan::display::{self, ward_partials, Target};
+    use lightrig_host::plan::display::{self, partial, Target};
     let mut c = rig_client();
     for ch in 0..2 {
         let coil = VoiceCoilConfig { channel: ch, sample_rate_hz: 48_000, max_amplitude: u16::MAX };
@@ -273,19 +273,22 @@ fn brdf_display_ramps_the_coils_then_captures_then_fades() {
     }
     let targets: Vec<Target> = [0.05, 0.2]
         .iter()
-        .map(|&alpha| Target {
-            name: format!("alpha {alpha}"),
+        .map(|&drive| Target {
+            name: format!("drive {drive}"),
             channels: (0..2)
-                .map(|ch| (ch, ward_partials(alpha, 7_000 + 1_000 * u32::from(ch), 8, 2.0)))
+                .map(|ch| {
+                    (
+                        ch,
+                        [101.0, 103.0, 109.0]
+                            .iter()
+                            .map(|&f| partial(f + f64::from(ch), drive, 0.0))
+                            .collect(),
+                    )
+                })
                 .collect(),
+            meta: serde_json::json!({ "drive": drive }),
         })
         .collect();
-    // Rougher target, larger amplitudes; frequencies at prime ratios.
-    assert!(targets[1].channels[0].1[0].amplitude > targets[0].channels[0].1[0].amplitude);
-    assert_eq!(
-        targets[0].channels[0].1.iter().map(|p| p.freq_mhz).collect::<Vec<_>>()[..3],
-        [14_000, 21_000, 35_000]
-    );
     let p = display::DisplayParams {
         targets,
         ramp: 50_000,
@@ -296,8 +299,10 @@ fn brdf_display_ramps_the_coils_then_captures_then_fades() {
         frame_gap: 10_000,
         frame_bytes: 1 << 20,
         tick_hz: 1_000_000,
+        meta: serde_json::Value::Null,
     };
     let plan = display::plan(&p).unwrap();
+    assert_eq!(plan.steps[1].meta["drive"], 0.2, "the target's meta is the step's");
     let triggers = run(&mut c, &plan);
     assert_eq!(triggers.len(), 6);
     // Samples leave with a fixed latency of two blocks: let the last ones out.

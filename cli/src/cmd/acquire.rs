@@ -62,7 +62,7 @@ pub struct ResumeArgs {
     pub drop_damaged_tail: bool,
 }
 
-fn connect_spec(rig: &RigFile, over: Option<&Connect>) -> Connect {
+pub(crate) fn connect_spec(rig: &RigFile, over: Option<&Connect>) -> Connect {
     over.cloned().unwrap_or_else(|| match &rig.connect {
         rigfile::Connect::Virtual => Connect::Virtual,
         rigfile::Connect::Serial { port, baud } => Connect::Serial { path: port.clone(), baud: *baud },
@@ -72,7 +72,10 @@ fn connect_spec(rig: &RigFile, over: Option<&Connect>) -> Connect {
 
 /// Opens the link `spec` names. The virtual device is wired as the rig file says (switch
 /// polarities, interlocks) and comes with its timeline, for a virtual camera to follow.
-fn open(rig: &RigFile, spec: &Connect) -> Result<(Box<dyn Transport>, Option<Timeline>), CliError> {
+pub(crate) fn open(
+    rig: &RigFile,
+    spec: &Connect,
+) -> Result<(Box<dyn Transport>, Option<Timeline>), CliError> {
     Ok(match spec {
         Connect::Virtual => {
             let (t, timeline) = connect_for_camera(rig, virtual_device_info(), false);
@@ -228,7 +231,7 @@ impl BringUpHooks for OperatorPrompt {
 /// lets the run end (its step abandoned, to be acquired again by `lightrig resume`); if the
 /// run has not ended 5 s after the stop went out (a prompt waiting on the terminal), or at a
 /// second Ctrl-C, the process ends at once with code 130. The device is safe either way.
-fn on_ctrl_c() -> Option<Arc<Interrupt>> {
+pub(crate) fn on_ctrl_c() -> Option<Arc<Interrupt>> {
     let interrupt = Arc::new(Interrupt::default());
     let i = interrupt.clone();
     let installed = ctrlc::set_handler(move || {

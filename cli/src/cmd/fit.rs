@@ -4,22 +4,23 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use lightrig_host::fit::{firs, lls};
+use lightrig_host::fit::{display, firs, lls};
 
 use crate::error::{FAILURE, USAGE};
 
 /// Arguments of `lightrig fit`.
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Pipeline: `lls`, `firs-surface` or `firs-volume`.
+    /// Pipeline: `lls`, `firs-surface`, `firs-volume` or `display`.
     pub pipeline: String,
     /// Session directory.
     pub session: PathBuf,
     /// Output directory for the maps.
     #[arg(long)]
     pub out: PathBuf,
-    /// The camera's calibration file from `lightrig calibrate` (else the rig file's
-    /// `[plan.fit].camera`).
+    /// `lls`: the camera's calibration file from `lightrig calibrate` (else the rig file's
+    /// `[plan.fit].camera`). `display`: the display calibration a display session's plan was
+    /// solved with.
     #[arg(long)]
     pub calibration: Option<PathBuf>,
 }
@@ -30,8 +31,11 @@ pub fn run(args: &Args) -> ExitCode {
         "lls" => fit_lls(&args.session, args.calibration.as_deref(), &args.out),
         "firs-surface" => fit_firs_surface(&args.session, &args.out),
         "firs-volume" => fit_firs_volume(&args.session, &args.out),
+        "display" | "brdf-display" => fit_display(&args.session, args.calibration.as_deref(), &args.out),
         other => {
-            eprintln!("error: `lightrig fit {other}`: the pipelines are: lls, firs-surface, firs-volume");
+            eprintln!(
+                "error: `lightrig fit {other}`: the pipelines are: lls, firs-surface, firs-volume, display"
+            );
             ExitCode::from(USAGE)
         }
     }
@@ -85,6 +89,45 @@ fn fit_firs_volume(session: &Path, out: &Path) -> ExitCode {
             v.enclosed_mm3
         );
         firs::write_volume_outputs(&v, out)
+    }))
+}
+
+/// `lightrig fit display SESSION --out DIR [--calibration FILE]`.
+fn fit_display(session: &Path, calibration: Option<&Path>, out: &Path) -> ExitCode {
+    report_files(display::fit_session(session, calibration, out).map(|(fitted, files)| {
+        match fitted {
+            display::Fitted::Calibration(c) => {
+                for (k, a) in c.axes.iter().enumerate() {
+                    let peak = a.response_m.iter().copied().fold(0.0, f64::max);
+                    println!(
+                        "axis {} ({}): |H| measured at {} frequencies, {:.0}–{:.0} Hz, peak {:.3} mm per full scale",
+                        ["x", "y"][k],
+                        a.coil,
+                        a.frequencies_hz.len(),
+                        a.frequencies_hz.iter().copied().fold(f64::INFINITY, f64::min),
+                        a.frequencies_hz.iter().copied().fold(0.0, f64::max),
+                        peak * 1e3
+                    );
+                }
+            }
+            display::Fitted::Shown(shown, _) => {
+                println!("step  target αx, αy    shown αx, αy    error");
+                for s in &shown {
+                    let e = s.error();
+                    println!(
+                        "{:>4}  {:.4}, {:.4}  {:.4}, {:.4}  {:+.1} %, {:+.1} %",
+                        s.step,
+                        s.target[0],
+                        s.target[1],
+                        s.shown[0],
+                        s.shown[1],
+                        100.0 * e[0],
+                        100.0 * e[1]
+                    );
+                }
+            }
+        }
+        files
     }))
 }
 

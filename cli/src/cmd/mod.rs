@@ -3,6 +3,7 @@
 pub mod acquire;
 pub mod calibrate;
 pub mod device;
+pub mod display;
 pub mod fit;
 pub mod hdr;
 pub mod selfcheck;

@@ -4,6 +4,7 @@
 //! on the virtual rig exactly as `lightrig acquire` runs it ([`DemoRig::acquire`]), the
 //! ground truth's scene file, progress bars and the report's tables ([`Report`]).
 
+pub mod display;
 pub mod firs;
 pub mod lls;
 
@@ -29,7 +30,8 @@ use crate::error::{err, failure, io, CliError, FAILURE, INPUT, USAGE};
 /// Arguments of `lightrig demo`.
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Method: `lls` (linear light source) or `firs` (fluorescent immersion).
+    /// Method: `lls` (linear light source), `firs` (fluorescent immersion) or `display` (BRDF
+    /// display).
     #[arg(default_value = "lls")]
     pub method: String,
     /// A small scene for a quick check (about half a minute).
@@ -66,7 +68,24 @@ pub fn run(args: &Args) -> ExitCode {
         eprintln!("error: --step-mm {step}: give a gantry step from 0.1 to 5 mm");
         return ExitCode::from(USAGE);
     }
-    let missed = if firs {
+    let display = args.method == "display" || args.method == "brdf-display";
+    if let Some(step) = args.step_mm.filter(|_| display) {
+        eprintln!("error: --step-mm {step}: the display demo has no gantry; it is for `lightrig demo lls`");
+        return ExitCode::from(USAGE);
+    }
+    let missed = if display {
+        let opts = display::DisplayDemoOptions {
+            quick: args.quick,
+            out: args.out.join("display"),
+            seed: args.seed,
+            progress: true,
+            real_time: args.real_time,
+        };
+        display::run_display(&opts).map(|r| {
+            eprintln!("report: {}", r.report.display());
+            r.missed()
+        })
+    } else if firs {
         let opts = firs::FirsDemoOptions {
             objects: vec![firs::FirsDemoObject::Sphere, firs::FirsDemoObject::Faceted],
             volume: true,
@@ -90,7 +109,7 @@ pub fn run(args: &Args) -> ExitCode {
             acc.targets().into_iter().filter(|t| !t.3).map(|t| t.0.to_string()).collect::<Vec<_>>()
         })
     } else {
-        eprintln!("error: `lightrig demo {}`: the methods with a demo are: lls, firs", args.method);
+        eprintln!("error: `lightrig demo {}`: the methods with a demo are: lls, firs, display", args.method);
         return ExitCode::from(USAGE);
     };
     match missed {

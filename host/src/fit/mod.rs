@@ -3,12 +3,15 @@
 //!
 //! - [`lls`]: `lightrig fit lls`: frames with their trigger snapshots → maps, previews, relit
 //!   check; [`lls::stack`] streams the passes into per-pixel traces.
+//! - [`display`]: `lightrig fit display`: a BRDF display's calibration (the coils' responses)
+//!   or what its targets showed.
 //! - [`firs`]: `lightrig fit firs-surface` and `firs-volume`: calibration through the tank
 //!   wall, surface meshes and points, or the volume and its isosurface.
 //!
 //! Both return a [`FitError`]: one message that says what was wrong, where (file, step,
 //! field) and what to do.
 
+pub mod display;
 pub mod firs;
 pub mod lls;
 

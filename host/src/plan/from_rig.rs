@@ -369,17 +369,167 @@ fn targets(rig: &RigFile) -> Result<Vec<serde_json::Value>, RigError> {
 }
 
 fn display_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
-    use lightrig_protocol::sequence::Partial;
+    use lightrig_pipelines::display::mapping::{X_FREQUENCIES, Y_FREQUENCIES};
+    use lightrig_pipelines::display::Liquid;
     let hz = info.tick_hz;
+    if rig.voice_coils.is_empty() {
+        return Err(rig.error("voice_coil", "a BRDF display needs at least one [[voice_coil]]"));
+    }
+    let modes = ["patterns", "calibrate", "alphas"].into_iter().filter(|k| rig.plan.contains_key(*k));
+    let modes: Vec<&str> = modes.collect();
+    if modes.len() != 1 {
+        return Err(rig.error(
+            "plan",
+            "give exactly one of `[plan.calibrate]` (measure the coils' responses), `alphas = [[αx, αy], …]` \
+             with `calibration = \"FILE\"` (show Ward roughnesses), or `[plan.patterns]` (raw partials)",
+        ));
+    }
+    let liquid_name = rig.plan.get("liquid").and_then(|v| v.as_str()).unwrap_or("water");
+    if Liquid::preset(liquid_name).is_none() {
+        return Err(rig.error("plan.liquid", format!("`{liquid_name}`: known liquids are water, galinstan")));
+    }
+    let pitch_rad = num(rig, "screen_mrad_per_px", Some(12.5))? / 1000.0;
+    let meta = serde_json::json!({ "liquid": liquid_name, "screen_rad_per_px": pitch_rad });
+    let targets = match modes[0] {
+        "patterns" => pattern_targets(rig)?,
+        "calibrate" => {
+            let cal = rig.plan.get("calibrate").and_then(|v| v.as_table());
+            let field = |k: &str| cal.and_then(|c| c.get(k));
+            let drive = match field("drive") {
+                None => 0.03,
+                Some(v) => v.as_float().filter(|d| (0.0..=1.0).contains(d) && *d > 0.0).ok_or_else(|| {
+                    rig.error("plan.calibrate.drive", "must be a fraction of full scale, 0 < drive ≤ 1")
+                })?,
+            };
+            let coils = display_coils(rig)?;
+            for c in &coils {
+                if drive > c.max_amplitude {
+                    return Err(rig.error(
+                        "plan.calibrate.drive",
+                        format!("{drive} is above coil {}'s max_amplitude {}", coil_name(c), c.max_amplitude),
+                    ));
+                }
+            }
+            let axes =
+                [(coils[0].channel, X_FREQUENCIES.to_vec()), (coils[1].channel, Y_FREQUENCIES.to_vec())];
+            display::calibration_targets(&axes, drive)
+        }
+        _ => {
+            let cal = display_calibration(rig)?;
+            let bad = || rig.error("plan.alphas", "must be a list of [αx, αy] pairs, e.g. [[0.08, 0.04]]");
+            let list = rig.plan.get("alphas").and_then(|v| v.as_array()).ok_or_else(bad)?;
+            let mut alphas = Vec::new();
+            for pair in list {
+                let pair = pair.as_array().filter(|p| p.len() == 2).ok_or_else(bad)?;
+                let v = |x: &toml::Value| {
+                    x.as_float().or_else(|| x.as_integer().map(|i| i as f64)).ok_or_else(bad)
+                };
+                alphas.push([v(&pair[0])?, v(&pair[1])?]);
+            }
+            display::alpha_targets(&cal, &alphas).map_err(|e| rig.error("plan.alphas", e.to_string()))?
+        }
+    };
+    let cameras = plan_cameras(rig)?;
+    let exposure = exposure(rig, &cameras, hz)?;
+    let ms = |key: &str, default: f64| -> Result<u32, RigError> {
+        let v = num(rig, key, Some(default))?;
+        ticks_from_ms(v, hz)
+            .ok_or_else(|| rig.error(&format!("plan.{key}"), format!("{v} ms is out of range")))
+    };
+    let p = display::DisplayParams {
+        targets,
+        ramp: ms("ramp_ms", 200.0)?,
+        settle: ms("settle_ms", 2000.0)?,
+        cameras: indices(&cameras),
+        captures: num(rig, "captures", Some(3.0))? as u32,
+        exposure,
+        frame_gap: frame_gap(rig, &cameras, exposure, hz)?,
+        frame_bytes: frame_bytes(rig)?,
+        tick_hz: hz,
+        meta,
+    };
+    display::plan(&p).map_err(|e| rig.error("plan", e.0))
+}
+
+/// The x and y axes' coils: `[plan] coils = ["NAME", "NAME"]`, else the first two
+/// `[[voice_coil]]`s.
+pub fn display_coils(rig: &RigFile) -> Result<[&crate::rigfile::VoiceCoil; 2], RigError> {
+    let coils: Vec<&crate::rigfile::VoiceCoil> = match names(rig, "coils")? {
+        Some(n) => {
+            n.iter()
+                .map(|name| {
+                    rig.voice_coils.iter().find(|c| c.name.as_deref() == Some(name.as_str())).ok_or_else(
+                        || rig.error("plan.coils", format!("no [[voice_coil]] is named `{name}`")),
+                    )
+                })
+                .collect::<Result<_, _>>()?
+        }
+        None => rig.voice_coils.iter().take(2).collect(),
+    };
+    match coils[..] {
+        [x, y] => Ok([x, y]),
+        _ => Err(rig.error(
+            "plan.coils",
+            "a display driven by Ward roughness needs two coils, one per axis (x then y)",
+        )),
+    }
+}
+
+fn coil_name(c: &crate::rigfile::VoiceCoil) -> String {
+    c.name.as_ref().map_or_else(|| format!("channel {}", c.channel), |n| format!("`{n}`"))
+}
+
+/// The calibration file `[plan] calibration` names (relative to the rig file), checked against
+/// the rig's coils.
+pub fn display_calibration(rig: &RigFile) -> Result<lightrig_pipelines::display::Calibration, RigError> {
+    let name = rig.plan.get("calibration").and_then(|v| v.as_str()).ok_or_else(|| {
+        rig.error(
+            "plan.calibration",
+            "`alphas` needs `calibration = \"FILE\"`: the file `lightrig fit display` writes from a \
+             calibration session (a rig file with `[plan.calibrate]`)",
+        )
+    })?;
+    let path = rig.path.parent().unwrap_or(std::path::Path::new(".")).join(name);
+    display_calibration_at(rig, &path)
+}
+
+/// The display calibration at `path`, checked against the rig's coils.
+pub fn display_calibration_at(
+    rig: &RigFile,
+    path: &std::path::Path,
+) -> Result<lightrig_pipelines::display::Calibration, RigError> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| rig.error("plan.calibration", format!("{}: {e}", path.display())))?;
+    let cal: lightrig_pipelines::display::Calibration = serde_json::from_str(&text).map_err(|e| {
+        rig.error("plan.calibration", format!("{}: not a display calibration: {e}", path.display()))
+    })?;
+    let coils = display_coils(rig)?;
+    for (k, c) in coils.iter().enumerate() {
+        if cal.axes[k].channel != c.channel {
+            return Err(rig.error(
+                "plan.calibration",
+                format!(
+                    "{}: axis {} was calibrated on channel {}, the rig drives it with {} on channel {}: calibrate again",
+                    path.display(),
+                    ["x", "y"][k],
+                    cal.axes[k].channel,
+                    coil_name(c),
+                    c.channel
+                ),
+            ));
+        }
+    }
+    Ok(cal)
+}
+
+fn pattern_targets(rig: &RigFile) -> Result<Vec<display::Target>, RigError> {
+    use lightrig_protocol::sequence::Partial;
     let patterns = rig.plan.get("patterns").and_then(|v| v.as_table()).ok_or_else(|| {
         rig.error(
             "plan",
             "`[plan.patterns]` is required: NAME = { frequencies_hz = [...], amplitudes = [...] }",
         )
     })?;
-    if rig.voice_coils.is_empty() {
-        return Err(rig.error("voice_coil", "a BRDF display needs at least one [[voice_coil]]"));
-    }
     let mut targets = Vec::new();
     for (name, v) in patterns {
         let key = format!("plan.patterns.{name}");
@@ -400,35 +550,14 @@ fn display_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
             .iter()
             .zip(&amps)
             .enumerate()
-            .map(|(i, (&f, &a))| Partial {
-                freq_mhz: (f * 1000.0).round().clamp(0.0, f64::from(u32::MAX)) as u32,
-                amplitude: (a.clamp(0.0, 1.0) * f64::from(u16::MAX)).round() as u16,
-                // Spread the starting phases (golden angle) so the partials do not peak together.
-                phase: ((i as f64 * 0.381_966_011_250_105).fract() * 65536.0) as u16,
+            .map(|(i, (&f, &a))| {
+                display::partial(f, a, lightrig_pipelines::display::mapping::golden_phase(i))
             })
             .collect();
         let channels = rig.voice_coils.iter().map(|c| (c.channel, partials.clone())).collect();
-        targets.push(display::Target { name: name.clone(), channels });
+        targets.push(display::Target { name: name.clone(), channels, meta: serde_json::Value::Null });
     }
-    let cameras = plan_cameras(rig)?;
-    let exposure = exposure(rig, &cameras, hz)?;
-    let ms = |key: &str, default: f64| -> Result<u32, RigError> {
-        let v = num(rig, key, Some(default))?;
-        ticks_from_ms(v, hz)
-            .ok_or_else(|| rig.error(&format!("plan.{key}"), format!("{v} ms is out of range")))
-    };
-    let p = display::DisplayParams {
-        targets,
-        ramp: ms("ramp_ms", 200.0)?,
-        settle: ms("settle_ms", 2000.0)?,
-        cameras: indices(&cameras),
-        captures: num(rig, "captures", Some(3.0))? as u32,
-        exposure,
-        frame_gap: frame_gap(rig, &cameras, exposure, hz)?,
-        frame_bytes: frame_bytes(rig)?,
-        tick_hz: hz,
-    };
-    display::plan(&p).map_err(|e| rig.error("plan", e.0))
+    Ok(targets)
 }
 
 fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {

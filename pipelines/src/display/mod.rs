@@ -2,6 +2,7 @@
 //! liquid, excited by one voice coil per axis with sums of sines at prime frequency ratios,
 //! whose time-averaged slopes make the surface reflect a chosen Ward-like highlight.
 //!
+//! - [`calibration`]: the calibration file: responses, the still beam, the closed loop's pairs.
 //! - [`liquid`]: the dispersion relation of capillary–gravity waves and their viscous damping
 //!   (water, and the gallium alloy of section 5.5.4).
 //! - [`mapping`]: Ward `α` → reflection variance → each partial's roughness → wave number →
@@ -10,10 +11,12 @@
 //! - [`slopes`]: the single sine's arcsine law (Eq. 5.6) and the distance of a slope
 //!   distribution from a Gaussian.
 
+pub mod calibration;
 pub mod liquid;
 pub mod lobe;
 pub mod mapping;
 pub mod slopes;
 
+pub use calibration::{AxisCalibration, Calibration};
 pub use liquid::Liquid;
 pub use mapping::{Axis, DisplayError, PartialDrive, Response};

@@ -1,0 +1,275 @@
+//! `lightrig demo display`: the BRDF display on the virtual rig, as a lab would run it with
+//! the shipped `docs/rigs/brdf-display.toml`: a calibration session (a still surface, then one
+//! sine per coil per step) fitted into the coils' responses; a display session showing a sweep
+//! of Ward roughnesses solved through them, measured by the camera; the same targets planned
+//! again from the calibration that learnt what the camera saw (the closed loop), measured again.
+//! The report compares the measured responses with the scene's true ones, each shown α with
+//! its target, and the simulated surface's slope statistics with Eq. 5.6 and a Gaussian.
+
+use std::path::{Path, PathBuf};
+
+use lightrig_firmware::synth::Synth;
+use lightrig_host::fit::display::{self as fit, Shown, CALIBRATION_FILE};
+use lightrig_pipelines::display::calibration::Calibration;
+use lightrig_pipelines::display::mapping::{golden_phase, partial_roughness, X_FREQUENCIES};
+use lightrig_pipelines::display::slopes::{arcsine_cdf, ks_distance, ks_to_gaussian};
+use lightrig_protocol::sequence::Partial;
+use lightrig_sim::scenes::display::DisplayScene;
+use lightrig_sim::scenes::scene_for;
+
+use super::{bar, DemoRig, Report, Target};
+use crate::error::{failure, io, CliError};
+
+/// How the demo runs.
+#[derive(Debug, Clone)]
+pub struct DisplayDemoOptions {
+    /// A shorter sweep.
+    pub quick: bool,
+    /// Output directory (`calibration/`, `display/`, `corrected/`, `report.md`).
+    pub out: PathBuf,
+    /// Noise seed.
+    pub seed: u64,
+    /// Progress bars.
+    pub progress: bool,
+    /// The virtual rig in real time.
+    pub real_time: bool,
+}
+
+/// The shown α's tolerance right after calibration (the issue's target), relative.
+pub const FIRST_TOLERANCE: f64 = 0.05;
+/// The tolerance once the loop has closed, relative.
+pub const CORRECTED_TOLERANCE: f64 = 0.01;
+/// The largest |H| error the calibration may make against the scene's truth, relative.
+pub const RESPONSE_TOLERANCE: f64 = 0.05;
+
+/// What the demo measured.
+#[derive(Debug, Clone)]
+pub struct DisplayDemoResult {
+    /// The calibration after the display session (with what the camera saw).
+    pub calibration: Calibration,
+    /// Largest relative error of the measured `|H|` against the truth, per axis.
+    pub response_error: [f64; 2],
+    /// The sweep, straight from the calibration.
+    pub first: Vec<Shown>,
+    /// The sweep again, planned from what the camera saw.
+    pub corrected: Vec<Shown>,
+    /// Kolmogorov–Smirnov distances measured on the simulated surface: one sine against
+    /// Eq. 5.6, then 1, 3, 5 and 7 partials against a Gaussian.
+    pub ks_one_sine: f64,
+    /// `(partials, KS to a Gaussian)`.
+    pub ks_gaussian: Vec<(usize, f64)>,
+    /// `report.md`.
+    pub report: PathBuf,
+}
+
+impl DisplayDemoResult {
+    /// The accuracy targets: `(name, value, limit, met)`.
+    pub fn targets(&self) -> Vec<Target> {
+        let worst = |v: &[Shown]| v.iter().flat_map(|s| s.error()).map(f64::abs).fold(0.0, f64::max);
+        let (h, a1, a2) =
+            (self.response_error[0].max(self.response_error[1]), worst(&self.first), worst(&self.corrected));
+        let bell = self.ks_gaussian.iter().find(|(n, _)| *n >= 5).map_or(1.0, |x| x.1);
+        vec![
+            ("calibrated |H| against the truth, worst", h, RESPONSE_TOLERANCE, h <= RESPONSE_TOLERANCE),
+            ("shown α after calibration, worst error", a1, FIRST_TOLERANCE, a1 <= FIRST_TOLERANCE),
+            ("shown α after one correction, worst error", a2, CORRECTED_TOLERANCE, a2 <= CORRECTED_TOLERANCE),
+            ("one sine against Eq. 5.6 (KS)", self.ks_one_sine, 0.01, self.ks_one_sine <= 0.01),
+            ("five or more partials against a Gaussian (KS)", bell, 0.03, bell <= 0.03),
+        ]
+    }
+
+    /// The names of the targets missed.
+    pub fn missed(&self) -> Vec<String> {
+        self.targets().into_iter().filter(|t| !t.3).map(|t| t.0.to_string()).collect()
+    }
+}
+
+/// The shipped rig file with its `[plan.calibrate]` (calibration) or the sweep `alphas` solved
+/// through `calibration` (display).
+fn rig_text(alphas: Option<(&[[f64; 2]], &str)>) -> String {
+    let shipped = include_str!("../../../docs/rigs/brdf-display.toml");
+    match alphas {
+        None => shipped.to_string(),
+        Some((alphas, cal)) => {
+            let list: Vec<String> = alphas.iter().map(|a| format!("[{}, {}]", a[0], a[1])).collect();
+            let plan = format!("alphas = [{}]\ncalibration = \"{cal}\"\n", list.join(", "));
+            let cut = shipped.find("\n[plan.calibrate]").expect("the shipped rig file calibrates");
+            format!("{}\n{plan}", &shipped[..cut])
+        }
+    }
+}
+
+/// One session of the demo in `out/name`: the rig written, acquired on the virtual rig, read.
+fn session(
+    out: &Path,
+    name: &str,
+    text: String,
+    opts: &DisplayDemoOptions,
+) -> Result<fit::DisplaySession, CliError> {
+    let dir = out.join(name);
+    std::fs::create_dir_all(&dir).map_err(io(&dir))?;
+    let rig = DemoRig::write(&dir, text)?;
+    let (scene, sensor) = scene_for(&rig.rig, opts.seed);
+    let b = bar(opts.progress, rig.plan.summary().triggers as u64, name);
+    rig.acquire(&dir, scene, sensor, opts.real_time, &b)?;
+    b.finish_and_clear();
+    fit::read(&dir.join("session")).map_err(failure)
+}
+
+/// What the controller's synthesiser plays for `partials` `(Hz, drive)`: 0.1 s, then 1 s.
+fn played(partials: &[(f64, f64)]) -> (Vec<i16>, Vec<i16>) {
+    let mut synth = Synth::new(48_000);
+    let p: Vec<Partial> = partials
+        .iter()
+        .enumerate()
+        .map(|(i, &(f, d))| Partial {
+            freq_mhz: (f * 1000.0).round() as u32,
+            amplitude: (d * f64::from(u16::MAX)).round() as u16,
+            phase: (golden_phase(i) * 65536.0) as u16,
+        })
+        .collect();
+    synth.set(&p, 0).expect("valid partials");
+    let (mut before, mut now) = (vec![0i16; 4_800], vec![0i16; 48_000]);
+    synth.fill(&mut before);
+    synth.fill(&mut now);
+    (before, now)
+}
+
+/// Runs the demo.
+pub fn run_display(opts: &DisplayDemoOptions) -> Result<DisplayDemoResult, CliError> {
+    let out = &opts.out;
+    std::fs::create_dir_all(out).map_err(io(out))?;
+    // 1. Calibration.
+    let cal_session = session(out, "calibration", rig_text(None), opts)?;
+    let cal = fit::calibration(&cal_session).map_err(failure)?;
+    let cal_path = out.join("calibration").join(CALIBRATION_FILE);
+    let json = serde_json::to_string_pretty(&cal).map_err(failure)? + "\n";
+    std::fs::write(&cal_path, json).map_err(io(&cal_path))?;
+    let truth = DisplayScene::small_water(16, 16);
+    let mut response_error = [0.0f64; 2];
+    for (k, a) in cal.axes.iter().enumerate() {
+        for (&f, &h) in a.frequencies_hz.iter().zip(&a.response_m) {
+            let t = truth.actuators[k].response(&truth.liquid, f).norm();
+            response_error[k] = response_error[k].max((h / t - 1.0).abs());
+        }
+    }
+    // 2. The sweep: isotropic over the thesis's range, anisotropic up to 3:1 both ways.
+    let sweep: Vec<[f64; 2]> = if opts.quick {
+        vec![[0.02, 0.02], [0.08, 0.08], [0.14, 0.14], [0.12, 0.04], [0.03, 0.09]]
+    } else {
+        vec![
+            [0.02, 0.02],
+            [0.05, 0.05],
+            [0.08, 0.08],
+            [0.11, 0.11],
+            [0.14, 0.14],
+            [0.12, 0.04],
+            [0.04, 0.12],
+            [0.08, 0.04],
+            [0.03, 0.09],
+        ]
+    };
+    let rel = format!("../calibration/{CALIBRATION_FILE}");
+    let mut learnt = cal.clone();
+    let first = fit::measure(&session(out, "display", rig_text(Some((&sweep, &rel))), opts)?, &mut learnt)
+        .map_err(failure)?;
+    // 3. The closed loop: plan again from the calibration that saw the sweep.
+    let learnt_path = out.join("display").join(CALIBRATION_FILE);
+    let json = serde_json::to_string_pretty(&learnt).map_err(failure)? + "\n";
+    std::fs::write(&learnt_path, json).map_err(io(&learnt_path))?;
+    let rel = format!("../display/{CALIBRATION_FILE}");
+    let mut again = learnt.clone();
+    let corrected =
+        fit::measure(&session(out, "corrected", rig_text(Some((&sweep, &rel))), opts)?, &mut again)
+            .map_err(failure)?;
+    // 4. The simulated surface's slopes: one sine (Eq. 5.6), then 1, 3, 5, 7 partials.
+    let scene = DisplayScene::small_water(16, 16);
+    let k = |f: f64| scene.liquid.wave_number(f) * scene.actuators[0].response(&scene.liquid, f).norm();
+    let slopes = |partials: &[(f64, f64)]| -> Vec<f64> {
+        let (before, now) = played(partials);
+        // Reflection angles in the small-angle model of Eq. 5.6 and figure 5.8: δ = 2·slope.
+        scene.slopes(0, 48_000.0, &before, &now).iter().map(|s| 2.0 * s).collect()
+    };
+    let f1 = X_FREQUENCIES[4];
+    let one = slopes(&[(f1, 0.03)]);
+    let rho = k(f1) * 0.03;
+    let ks_one_sine = ks_distance(&one, |d| arcsine_cdf(d, rho, 0.0));
+    let mut ks_gaussian = Vec::new();
+    for n in [1usize, 3, 5, 7] {
+        // Equal roughness per partial for α = 0.08 over n partials.
+        let r = partial_roughness(0.08, n);
+        let p: Vec<(f64, f64)> = X_FREQUENCIES[..n].iter().map(|&f| (f, r / k(f))).collect();
+        ks_gaussian.push((n, ks_to_gaussian(&slopes(&p))));
+    }
+    let result = DisplayDemoResult {
+        calibration: again,
+        response_error,
+        first,
+        corrected,
+        ks_one_sine,
+        ks_gaussian,
+        report: out.join("report.md"),
+    };
+    write_report(&result, &cal, opts)?;
+    Ok(result)
+}
+
+fn write_report(r: &DisplayDemoResult, cal: &Calibration, opts: &DisplayDemoOptions) -> Result<(), CliError> {
+    let mut rep = Report::default();
+    rep.line("# BRDF display on the virtual rig");
+    rep.line("");
+    rep.line(format!(
+        "The shipped `docs/rigs/brdf-display.toml` on the virtual controller and the liquid scene \
+         (`sim/src/scenes/display.rs`: water 5 mm deep, paddle resonances 190 and 215 Hz){}. \
+         Sessions: `calibration/`, `display/`, `corrected/`.",
+        if opts.quick { ", quick sweep" } else { "" }
+    ));
+    rep.line("");
+    rep.targets(["target", "value", "limit"], "≤ ", &r.targets());
+    rep.line("");
+    rep.line("## Calibration");
+    rep.line("");
+    rep.line("| axis | coil | f (Hz) | measured |H| (µm per full scale) | reachable α |");
+    rep.line("|---|---|---|---|---|");
+    let liquid = cal.liquid().map_err(failure)?;
+    for (k, a) in cal.axes.iter().enumerate() {
+        let (max, limit) = a.axis(["x", "y"][k]).reachable(&liquid).map_err(failure)?;
+        for (i, (f, h)) in a.frequencies_hz.iter().zip(&a.response_m).enumerate() {
+            let reach = if i == 0 { format!("≤ {max:.3} ({limit})") } else { String::new() };
+            rep.line(format!("| {} | {} | {f} | {:.1} | {reach} |", ["x", "y"][k], a.coil, h * 1e6));
+        }
+    }
+    for (name, v) in [("After calibration", &r.first), ("After one correction", &r.corrected)] {
+        rep.line("");
+        rep.line(format!("## {name}"));
+        rep.line("");
+        rep.line("| target αx | target αy | asked αx | asked αy | shown αx | shown αy | error x | error y |");
+        rep.line("|---|---|---|---|---|---|---|---|");
+        for s in v.iter() {
+            let e = s.error();
+            rep.line(format!(
+                "| {} | {} | {:.4} | {:.4} | {:.4} | {:.4} | {:+.2} % | {:+.2} % |",
+                s.target[0],
+                s.target[1],
+                s.asked[0],
+                s.asked[1],
+                s.shown[0],
+                s.shown[1],
+                100.0 * e[0],
+                100.0 * e[1]
+            ));
+        }
+    }
+    rep.line("");
+    rep.line("## Slope statistics of the simulated surface (figure 5.8)");
+    rep.line("");
+    rep.line(format!("One sine at {} Hz against Eq. 5.6: KS {:.4}.", X_FREQUENCIES[4], r.ks_one_sine));
+    rep.line("");
+    rep.line("| partials | KS to a Gaussian |");
+    rep.line("|---|---|");
+    for (n, ks) in &r.ks_gaussian {
+        rep.line(format!("| {n} | {ks:.4} |"));
+    }
+    std::fs::write(&r.report, &rep.0).map_err(io(&r.report))?;
+    Ok(())
+}

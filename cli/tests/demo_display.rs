@@ -1,0 +1,76 @@
+//! The BRDF display end to end through the command line's pieces: the quick demo (calibration,
+//! a sweep of Ward roughnesses, the closed loop) against the scene's truth, and the planner's
+//! refusal of an α the calibrated display cannot reach.
+
+use lightrig_cli::demo::display::{run_display, DisplayDemoOptions};
+use lightrig_host::plan::from_rig;
+use lightrig_host::rigfile::RigFile;
+
+#[test]
+fn the_quick_display_demo_meets_its_targets_and_refuses_what_it_cannot_show() {
+    let out = std::env::temp_dir().join(format!("lightrig-display-demo-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let opts =
+        DisplayDemoOptions { quick: true, out: out.clone(), seed: 1, progress: false, real_time: false };
+    let r = run_display(&opts).unwrap();
+    for (name, value, limit, met) in r.targets() {
+        assert!(met, "{name}: {value} against {limit}");
+    }
+    // The sweep covers the thesis's range, both axes, and 3:1 either way.
+    let targets: Vec<[f64; 2]> = r.first.iter().map(|s| s.target).collect();
+    assert!(targets.contains(&[0.02, 0.02]) && targets.contains(&[0.14, 0.14]));
+    assert!(targets.contains(&[0.12, 0.04]) && targets.contains(&[0.03, 0.09]));
+    // The loop closed: every axis of every target nearer its goal the second time, or already
+    // within 0.2 %.
+    for (a, b) in r.first.iter().zip(&r.corrected) {
+        for k in 0..2 {
+            let (e1, e2) = (a.error()[k].abs(), b.error()[k].abs());
+            assert!(e2 < e1 || e2 < 0.002, "{:?} axis {k}: {e1} then {e2}", a.target);
+        }
+    }
+    let report = std::fs::read_to_string(&r.report).unwrap();
+    for heading in ["## Calibration", "## After calibration", "## After one correction", "figure 5.8"] {
+        assert!(report.contains(heading), "{heading}");
+    }
+    // A rig file asking for more than the calibrated coils reach is refused, with the range.
+    let shipped = include_str!("../../docs/rigs/brdf-display.toml");
+    let cut = shipped.find("\n[plan.calibrate]").unwrap();
+    let text = format!(
+        "{}\nalphas = [[0.08, 0.04], [0.3, 0.05]]\ncalibration = \"calibration/display-calibration.json\"\n",
+        &shipped[..cut]
+    );
+    let path = out.join("too-rough.toml");
+    std::fs::write(&path, &text).unwrap();
+    let rig = RigFile::parse(&text, &path).unwrap();
+    let e = from_rig::plan(&rig, &lightrig_firmware::sim::virtual_device_info()).unwrap_err().to_string();
+    assert!(e.contains("too-rough.toml") && e.contains("plan.alphas"), "{e}");
+    assert!(e.contains("αx = 0.3 cannot be shown: this display reaches 0 < αx ≤ 0.14"), "{e}");
+    // `lightrig display` on that rig: live changes from standard input, refusals with the
+    // range, a fade at the end; an unreachable α on the command line is a usage error.
+    let live = |alpha: &str, input: &str| {
+        use std::io::Write;
+        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_lightrig"))
+            .args(["display", path.to_str().unwrap(), "--alpha", alpha, "--ramp-ms", "50"])
+            .stdin(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        child.stdin.take().unwrap().write_all(input.as_bytes()).unwrap();
+        let o = child.wait_with_output().unwrap();
+        (o.status.code(), String::from_utf8_lossy(&o.stderr).into_owned())
+    };
+    let (code, said) = live("0.08,0.04", "0.05\n0.3,0.02\n");
+    assert_eq!(code, Some(0), "{said}");
+    for line in [
+        "showing αx = 0.08, αy = 0.04",
+        "showing αx = 0.05, αy = 0.05",
+        "refused: αx = 0.3 cannot be shown",
+        "faded to silence",
+    ] {
+        assert!(said.contains(line), "{line}: {said}");
+    }
+    let (code, said) = live("0.3", "");
+    assert_eq!(code, Some(2), "{said}");
+    assert!(said.contains("this display reaches 0 < αx ≤ 0.14"), "{said}");
+    std::fs::remove_dir_all(&out).unwrap();
+}

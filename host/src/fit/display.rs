@@ -1,0 +1,253 @@
+//! `lightrig fit display`: a BRDF display session's frames (the camera's pictures of the screen
+//! the reflected beam lands on) → each step's spread of reflection angles
+//! (`lightrig_pipelines::display::lobe`) → from a calibration session, each coil's response
+//! `|H(f)|` at its partials' frequencies; from a display session, the α each target showed,
+//! which the calibration keeps for the next plan (the closed loop).
+
+use std::path::Path;
+
+use lightrig_pipelines::display::calibration::{AxisCalibration, Calibration, FORMAT};
+use lightrig_pipelines::display::lobe::{single_sine_roughness, spread, surface_variance, Spread};
+use lightrig_pipelines::display::mapping::alpha_of_variance;
+use lightrig_pipelines::display::Liquid;
+use serde_json::Value;
+
+use super::{fail, FitError};
+use crate::plan::from_rig::display_coils;
+use crate::rigfile::RigFile;
+use crate::session::Session;
+
+/// One step as the camera saw it.
+#[derive(Debug, Clone)]
+pub struct Seen {
+    /// Step id.
+    pub step: u32,
+    /// Step name.
+    pub name: String,
+    /// The step's `meta` (`kind`: `still`, `sine`, `display`; what it showed).
+    pub meta: Value,
+    /// The spread of reflection angles, averaged over the step's captures.
+    pub spread: Spread,
+}
+
+/// A display session's steps as the camera saw them, with the plan's liquid and screen pitch.
+pub struct DisplaySession {
+    /// The rig file the session was planned from.
+    pub rig: RigFile,
+    /// The liquid.
+    pub liquid: Liquid,
+    /// Angle per screen pixel, rad.
+    pub pitch_rad: f64,
+    /// Each done step.
+    pub steps: Vec<Seen>,
+}
+
+/// Reads a BRDF display session: every done step's frames from its pipeline camera.
+pub fn read(dir: &Path) -> Result<DisplaySession, FitError> {
+    let (s, _) = Session::read(dir).map_err(|e| fail(e.to_string()))?;
+    let m = s.manifest();
+    let method = m.plan.extra.get("method").and_then(Value::as_str).unwrap_or("");
+    if method != "brdf-display" {
+        return Err(fail(format!(
+            "{}: a `{method}` session; `lightrig fit display` reads BRDF display sessions",
+            dir.display()
+        )));
+    }
+    if !s.is_done() {
+        return Err(fail(format!("{}: not complete; `lightrig resume` it first", dir.display())));
+    }
+    let rig = RigFile::parse(&m.rig, &dir.join("manifest.json"))
+        .map_err(|e| fail(format!("{}: the session's rig file: {e}", dir.display())))?;
+    let meta = m.plan.extra.get("meta").cloned().unwrap_or(Value::Null);
+    let liquid_name = meta.get("liquid").and_then(Value::as_str).unwrap_or("water");
+    let liquid = Liquid::preset(liquid_name)
+        .ok_or_else(|| fail(format!("{}: liquid `{liquid_name}` is not a known preset", dir.display())))?;
+    let pitch_rad = meta.get("screen_rad_per_px").and_then(Value::as_f64).ok_or_else(|| {
+        fail(format!(
+            "{}: the plan does not say the screen's pitch (plan.meta.screen_rad_per_px)",
+            dir.display()
+        ))
+    })?;
+    let camera = s.pipeline_camera(None).map_err(fail)?;
+    let mut steps = Vec::new();
+    for p in &m.plan.steps {
+        let frames = s.camera_frames_of(p.id, camera);
+        if frames.is_empty() {
+            return Err(fail(format!("{}: step {} ({}) has no frame", dir.display(), p.id, p.name)));
+        }
+        let mut sum = Spread { mean: [0.0; 2], var: [0.0; 2] };
+        for f in &frames {
+            let path = dir.join(&f.file);
+            let img =
+                lightrig_imaging::io::read(&path).map_err(|e| fail(format!("{}: {e}", path.display())))?;
+            let c = usize::from(img.channels.max(1));
+            let px: Vec<f32> = img.data.iter().step_by(c).copied().collect();
+            let one = spread(&px, img.width as usize, img.height as usize, pitch_rad);
+            for a in 0..2 {
+                sum.mean[a] += one.mean[a] / frames.len() as f64;
+                sum.var[a] += one.var[a] / frames.len() as f64;
+            }
+        }
+        let meta = p.extra.get("meta").cloned().unwrap_or(Value::Null);
+        steps.push(Seen { step: p.id, name: p.name.clone(), meta, spread: sum });
+    }
+    Ok(DisplaySession { rig, liquid, pitch_rad, steps })
+}
+
+fn kind(s: &Seen) -> &str {
+    s.meta.get("kind").and_then(Value::as_str).unwrap_or("")
+}
+
+/// A calibration session (`[plan.calibrate]`) → the display's calibration: the still step's
+/// spread is the beam's own; step `i`'s spread on each axis is one sine's, `2ρ²`, so
+/// `|H(fᵢ)| = ρ / (k(fᵢ)·drive)`.
+pub fn calibration(d: &DisplaySession) -> Result<Calibration, FitError> {
+    let still = d
+        .steps
+        .iter()
+        .find(|s| kind(s) == "still")
+        .ok_or_else(|| fail("the session has no `still` step: it is not a calibration session"))?;
+    let coils = display_coils(&d.rig).map_err(|e| fail(e.to_string()))?;
+    let mut axes = coils.map(|c| AxisCalibration {
+        coil: c.name.clone().unwrap_or_else(|| format!("channel {}", c.channel)),
+        channel: c.channel,
+        max_drive: c.max_amplitude,
+        frequencies_hz: Vec::new(),
+        response_m: Vec::new(),
+        seen: Vec::new(),
+    });
+    let mut drive = 0.0;
+    for s in d.steps.iter().filter(|s| kind(s) == "sine") {
+        let f = s.meta.get("frequencies_hz").and_then(Value::as_array);
+        let dr = s.meta.get("drive").and_then(Value::as_f64);
+        let (Some(f), Some(dr)) = (f, dr) else {
+            return Err(fail(format!(
+                "step {} ({}): its meta lacks frequencies_hz or drive",
+                s.step, s.name
+            )));
+        };
+        drive = dr;
+        let var = surface_variance(&s.spread, &still.spread);
+        for (k, axis) in axes.iter_mut().enumerate() {
+            let fk = f
+                .get(k)
+                .and_then(Value::as_f64)
+                .ok_or_else(|| fail(format!("step {}: frequency {k}", s.step)))?;
+            let rho = single_sine_roughness(var[k]);
+            axis.frequencies_hz.push(fk);
+            axis.response_m.push(rho / (d.liquid.wave_number(fk) * dr));
+        }
+    }
+    if axes[0].frequencies_hz.is_empty() {
+        return Err(fail("the calibration session has no `sine` step"));
+    }
+    Ok(Calibration {
+        format: FORMAT,
+        liquid: d.liquid.name.to_string(),
+        drive,
+        pitch_rad: d.pitch_rad,
+        beam_var: still.spread.var,
+        axes,
+    })
+}
+
+/// What one target showed.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Shown {
+    /// Step id.
+    pub step: u32,
+    /// The α the plan aimed at, x and y.
+    pub target: [f64; 2],
+    /// The α it asked of the solver (the closed loop's correction included).
+    pub asked: [f64; 2],
+    /// The α the camera saw.
+    pub shown: [f64; 2],
+}
+
+impl Shown {
+    /// The relative error of each axis.
+    pub fn error(&self) -> [f64; 2] {
+        [self.shown[0] / self.target[0] - 1.0, self.shown[1] / self.target[1] - 1.0]
+    }
+}
+
+/// A display session (`alphas`) → what each target showed, the still beam's spread (from
+/// `cal`) removed. `cal` learns each `asked → shown` pair for the next plan.
+pub fn measure(d: &DisplaySession, cal: &mut Calibration) -> Result<Vec<Shown>, FitError> {
+    let still = Spread { mean: [0.0; 2], var: cal.beam_var };
+    let mut out = Vec::new();
+    for s in d.steps.iter().filter(|s| kind(s) == "display") {
+        let pair = |key: &str| -> Result<[f64; 2], FitError> {
+            let v = s.meta.get(key).and_then(Value::as_array);
+            let g = |i: usize| v.and_then(|v| v.get(i)).and_then(Value::as_f64);
+            match (g(0), g(1)) {
+                (Some(x), Some(y)) => Ok([x, y]),
+                _ => Err(fail(format!("step {} ({}): its meta lacks `{key}`", s.step, s.name))),
+            }
+        };
+        let (target, asked) = (pair("alpha")?, pair("asked")?);
+        let shown = surface_variance(&s.spread, &still).map(alpha_of_variance);
+        for k in 0..2 {
+            cal.axes[k].saw(asked[k], shown[k]);
+        }
+        out.push(Shown { step: s.step, target, asked, shown });
+    }
+    if out.is_empty() {
+        return Err(fail("the session shows no α target (`alphas` in the rig file's [plan])"));
+    }
+    Ok(out)
+}
+
+/// What `lightrig fit display` made of a session.
+pub enum Fitted {
+    /// A calibration session: the calibration.
+    Calibration(Calibration),
+    /// A display session: what each target showed, and the calibration that learnt it.
+    Shown(Vec<Shown>, Calibration),
+}
+
+/// The file name of the calibration `lightrig fit display` writes.
+pub const CALIBRATION_FILE: &str = "display-calibration.json";
+
+/// Fits a display session: a calibration session gives the calibration; a display session
+/// needs the calibration its plan was solved with (`calibration`) and gives what each target
+/// showed. Writes `out/display-calibration.json` (for a display session, the given one with
+/// the new `asked → shown` pairs: plan from it again to close the loop) and, for a display
+/// session, `out/shown.json`. Returns the result and the files written.
+pub fn fit_session(
+    dir: &Path,
+    calibration: Option<&Path>,
+    out: &Path,
+) -> Result<(Fitted, Vec<std::path::PathBuf>), FitError> {
+    let d = read(dir)?;
+    let is_calibration = d.steps.iter().any(|s| kind(s) == "still");
+    std::fs::create_dir_all(out).map_err(|e| fail(format!("{}: {e}", out.display())))?;
+    let write = |name: &str, json: String| -> Result<std::path::PathBuf, FitError> {
+        let p = out.join(name);
+        std::fs::write(&p, json + "\n").map_err(|e| fail(format!("{}: {e}", p.display())))?;
+        Ok(p)
+    };
+    if is_calibration {
+        let cal = self::calibration(&d)?;
+        let p = write(CALIBRATION_FILE, serde_json::to_string_pretty(&cal).expect("serializes"))?;
+        return Ok((Fitted::Calibration(cal), vec![p]));
+    }
+    let path = calibration.ok_or_else(|| {
+        fail(format!(
+            "{}: a display session is measured against the calibration its plan was solved with: \
+             give it with --calibration FILE",
+            dir.display()
+        ))
+    })?;
+    let text = std::fs::read_to_string(path).map_err(|e| fail(format!("{}: {e}", path.display())))?;
+    let mut cal: Calibration = serde_json::from_str(&text)
+        .map_err(|e| fail(format!("{}: not a display calibration: {e}", path.display())))?;
+    let shown = measure(&d, &mut cal)?;
+    let rows: Vec<Value> = shown
+        .iter()
+        .map(|s| serde_json::json!({ "step": s.step, "alpha": s.target, "asked": s.asked, "shown": s.shown }))
+        .collect();
+    let a = write("shown.json", serde_json::to_string_pretty(&rows).expect("serializes"))?;
+    let b = write(CALIBRATION_FILE, serde_json::to_string_pretty(&cal).expect("serializes"))?;
+    Ok((Fitted::Shown(shown, cal), vec![a, b]))
+}
