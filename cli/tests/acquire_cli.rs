@@ -116,6 +116,57 @@ fn bispectral_example_acquires_with_its_filters_set_before_each_step() {
 }
 
 #[test]
+fn bispectral_filters_on_serial_ports_are_tuned_by_the_host() {
+    use lightrig_sim::filter::PtyFilter;
+    let dir = scratch("bispectral-ports");
+    let settle = std::time::Duration::from_millis(2);
+    let (light, camera) = (
+        PtyFilter::start((350.0, 720.0), settle, false).unwrap(),
+        PtyFilter::start((400.0, 720.0), settle, false).unwrap(),
+    );
+    let ports = format!(
+        "settle_ms = 0\nlight_range_nm = [350, 720]\nlight_port = \"{}\"\ncamera_port = \"{}\"",
+        light.path().display(),
+        camera.path().display()
+    );
+    let rig = example(
+        &dir,
+        "bispectral.toml",
+        &[
+            ("range_nm", "range_nm = [400, 410]"),
+            ("settle_ms", &ports),
+            ("sample_angles", "sample_angles = [0]"),
+            ("light_angles", "light_angles = [30]"),
+        ],
+    );
+    let session = dir.join("session");
+    let s = acquire(&rig, &session);
+    let steps = s.manifest().plan.steps.len();
+    let by: Vec<String> = journal_records(&session)
+        .unwrap()
+        .into_iter()
+        .filter_map(|r| match r {
+            Record::StepPrepared { by, .. } => Some(by),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(by, vec!["instruments".to_string(); steps]);
+    // Each step's pair, in plan order, reached the filters.
+    let wanted: Vec<(f64, f64)> = s
+        .manifest()
+        .plan
+        .steps
+        .iter()
+        .map(|p| {
+            let host = &p.extra["meta"]["host"];
+            (host["light_filter_nm"].as_f64().unwrap(), host["camera_filter_nm"].as_f64().unwrap())
+        })
+        .collect();
+    let got: Vec<(f64, f64)> = light.tuned().into_iter().zip(camera.tuned()).collect();
+    assert_eq!(got, wanted);
+}
+
+#[test]
 fn disco_frames_show_the_spot_where_each_trigger_pointed_the_galvos() {
     let dir = scratch("disco");
     let rig = example(&dir, "disco.toml", &[("views", "views = 1"), ("spot_grid", "spot_grid = [3, 2]")]);

@@ -17,6 +17,7 @@ pub mod acquire;
 pub mod bringup;
 pub mod client;
 pub mod clock;
+pub mod filter;
 pub mod fit;
 pub mod frames;
 pub mod plan;

@@ -24,6 +24,7 @@
 
 pub mod board;
 pub mod camera;
+pub mod filter;
 pub mod pacing;
 #[cfg(unix)]
 pub mod pty;

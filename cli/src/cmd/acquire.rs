@@ -316,6 +316,16 @@ fn run(
     // the virtual one lives in this process and cannot.
     let attempts = if *spec == Connect::Virtual { 0 } else { RECONNECT_ATTEMPTS };
     let mut hooks = prep.clone();
+    // Tunable filters the rig file gives ports for are tuned by the host, the rest asked (on
+    // the virtual rig without ports, its instruments follow the step's meta by themselves).
+    let filters = lightrig_host::filter::from_rig(rig).map_err(|e| err(INPUT, e.to_string()))?;
+    let mut tuned;
+    let steps: &mut dyn acquire::StepPreparation = if filters.is_empty() {
+        prep
+    } else {
+        tuned = lightrig_host::filter::FilterPreparation { filters, rest: Box::new(prep.clone()) };
+        &mut tuned
+    };
     let mut reconnect = |old: Option<Box<dyn Transport>>, k: u32| {
         drop(old); // close the old port before opening it again
         std::thread::sleep(std::time::Duration::from_millis(reconnect_backoff_ms(k)));
@@ -329,7 +339,7 @@ fn run(
         session,
         plan,
         &mut Boxed(input),
-        prep,
+        steps,
         progress_printer(start),
         |m| eprintln!("\n{m}"),
     );

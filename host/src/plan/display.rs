@@ -56,7 +56,7 @@ pub fn calibration_targets(axes: &[(u8, Vec<f64>); 2], drive: f64) -> Vec<Target
 ///
 /// [`AxisCalibration::asked_for`]: lightrig_pipelines::display::AxisCalibration::asked_for
 pub fn alpha_targets(cal: &Calibration, alphas: &[[f64; 2]]) -> Result<Vec<Target>, DisplayError> {
-    let liquid = cal.liquid().map_err(|_| DisplayError::Invalid { axis: "x", alpha: f64::NAN })?;
+    let liquid = cal.liquid().map_err(DisplayError::UnknownLiquid)?;
     let axes = [cal.axes[0].axis("x"), cal.axes[1].axis("y")];
     alphas
         .iter()

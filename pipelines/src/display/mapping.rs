@@ -118,6 +118,8 @@ pub enum DisplayError {
         /// The α asked for.
         alpha: f64,
     },
+    /// The calibration names a liquid this build does not know (the message says which).
+    UnknownLiquid(String),
     /// A partial's frequency lies outside the measured response: calibrate over it.
     Uncalibrated {
         /// The axis.
@@ -135,6 +137,7 @@ impl std::fmt::Display for DisplayError {
                 "α{axis} = {alpha} cannot be shown: this display reaches 0 < α{axis} ≤ {max:.4} ({limit})"
             ),
             DisplayError::Invalid { axis, alpha } => write!(f, "α{axis} = {alpha}: must be a number ≥ 0"),
+            DisplayError::UnknownLiquid(why) => f.write_str(why),
             DisplayError::Uncalibrated { axis, frequency } => write!(
                 f,
                 "the {axis} coil's response is not measured at {frequency} Hz: run the display's \
