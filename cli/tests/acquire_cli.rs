@@ -142,14 +142,7 @@ fn bispectral_filters_on_serial_ports_are_tuned_by_the_host() {
     let session = dir.join("session");
     let s = acquire(&rig, &session);
     let steps = s.manifest().plan.steps.len();
-    let by: Vec<String> = journal_records(&session)
-        .unwrap()
-        .into_iter()
-        .filter_map(|r| match r {
-            Record::StepPrepared { by, .. } => Some(by),
-            _ => None,
-        })
-        .collect();
+    let by = lightrig_host::session::prepared_by(&session).unwrap();
     assert_eq!(by, vec!["instruments".to_string(); steps]);
     // Each step's pair, in plan order, reached the filters.
     let wanted: Vec<(f64, f64)> = s
@@ -242,14 +235,7 @@ fn a_step_that_needs_a_person_stops_without_a_terminal_and_runs_with_yes() {
     let (after, _) = Session::read(&session).unwrap();
     assert!(after.is_done());
     assert_eq!(after.frame_index().len(), 1);
-    let by: Vec<String> = journal_records(&session)
-        .unwrap()
-        .into_iter()
-        .filter_map(|r| match r {
-            Record::StepPrepared { by, .. } => Some(by),
-            _ => None,
-        })
-        .collect();
+    let by = lightrig_host::session::prepared_by(&session).unwrap();
     assert_eq!(by, ["assumed"]);
 }
 

@@ -11,7 +11,7 @@ use lightrig_host::bringup::bring_up_on;
 use lightrig_host::filter::{self, FilterPreparation};
 use lightrig_host::plan::{from_rig, Step};
 use lightrig_host::rigfile::RigFile;
-use lightrig_host::session::{journal_records, Manifest, Record, Session};
+use lightrig_host::session::{Manifest, Session};
 use lightrig_host::transport::Transport;
 use lightrig_protocol::event::TriggerEvent;
 use lightrig_sim::filter::PtyFilter;
@@ -89,14 +89,7 @@ fn each_step_tunes_both_filters_before_it_runs() {
     // Two geometries × two pairs, in plan order.
     assert_eq!(light.tuned(), [365.0, 405.0, 365.0, 405.0]);
     assert_eq!(camera.tuned(), [450.0, 600.0, 450.0, 600.0]);
-    let by: Vec<String> = journal_records(&dir)
-        .unwrap()
-        .into_iter()
-        .filter_map(|r| match r {
-            Record::StepPrepared { by, .. } => Some(by),
-            _ => None,
-        })
-        .collect();
+    let by = lightrig_host::session::prepared_by(&dir).unwrap();
     assert_eq!(by, ["instruments"; 4]);
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -66,7 +66,12 @@ pub fn run(args: &Args) -> ExitCode {
         opts.seed,
         opts.dir.display()
     );
+    let tty = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let progress = |r: &soak::Report| {
+        // A log (CI) gets the figures at the end only.
+        if !tty {
+            return;
+        }
         eprint!(
             "\r  {:>8} / {} triggers  {:.0} triggers/s   ",
             r.triggers,

@@ -1131,6 +1131,17 @@ pub fn journal_records(dir: impl AsRef<Path>) -> Result<Vec<Record>> {
     Ok(out)
 }
 
+/// Who prepared each step attempt, in journal order: each `StepPrepared` record's `by`.
+pub fn prepared_by(dir: impl AsRef<Path>) -> Result<Vec<String>> {
+    Ok(journal_records(dir)?
+        .into_iter()
+        .filter_map(|r| match r {
+            Record::StepPrepared { by, .. } => Some(by),
+            _ => None,
+        })
+        .collect())
+}
+
 /// Every trigger event in a session's journal, by `(sequence, item)`: the rig's state at each
 /// frame (the frame records name their trigger by these two numbers).
 pub fn trigger_events(
