@@ -69,6 +69,11 @@ fn the_quick_display_demo_meets_its_targets_and_refuses_what_it_cannot_show() {
     ] {
         assert!(said.contains(line), "{line}: {said}");
     }
+    // The largest α the display reports, asked for exactly: its quantised drives stay within
+    // the coils' limit, so the controller takes them.
+    let max = said.split("0 < αx ≤ ").nth(1).and_then(|r| r.split(' ').next()).unwrap().to_string();
+    let (code, said2) = live(&max, "");
+    assert_eq!(code, Some(0), "{said2}");
     let (code, said) = live("0.3", "");
     assert_eq!(code, Some(2), "{said}");
     assert!(said.contains("this display reaches 0 < αx ≤ 0.14"), "{said}");

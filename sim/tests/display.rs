@@ -222,3 +222,28 @@ fn a_live_change_of_alpha_ramps_without_a_click_and_takes_effect() {
     let (first, second) = (rms(&samples[n - 28_800 - 12_000..n - 28_800]), rms(&samples[n - 12_000..]));
     assert!((second / first / 3.0 - 1.0).abs() < 0.1, "{first} then {second}");
 }
+
+#[test]
+fn the_reported_maximum_alpha_fits_the_coils_limit_once_quantised() {
+    use lightrig_host::plan::display::partials_for;
+    use lightrig_protocol::config::ConfigItem;
+    let rig = RigFile::parse(RIG, Path::new("brdf-display.toml")).unwrap();
+    let cal = true_calibration(&rig);
+    let liquid = Liquid::WATER;
+    let limits: Vec<(u8, u16)> = rig
+        .config_items(&virtual_device_info())
+        .unwrap()
+        .into_iter()
+        .filter_map(|i| match i {
+            ConfigItem::VoiceCoil(c) => Some((c.channel, c.max_amplitude)),
+            _ => None,
+        })
+        .collect();
+    let max = [cal.axes[0].axis("x"), cal.axes[1].axis("y")].map(|a| a.reachable(&liquid).unwrap().0);
+    for (channel, partials) in partials_for(&cal, max).unwrap() {
+        let sum: u32 = partials.iter().map(|p| u32::from(p.amplitude)).sum();
+        let limit = limits.iter().find(|(c, _)| *c == channel).unwrap().1;
+        assert!(sum <= u32::from(limit), "channel {channel}: {sum} above the controller's {limit}");
+        assert!(sum + 8 > u32::from(limit), "and the drive limit is what set the maximum: {sum} of {limit}");
+    }
+}

@@ -21,11 +21,13 @@ use std::sync::Arc;
 
 use super::{Plan, PlanError, Step};
 
-/// A partial at `f` Hz, `drive` of full scale, starting `phase` turns in.
+/// A partial at `f` Hz, `drive` of full scale, starting `phase` turns in. The amplitude is
+/// rounded down: drives that sum to a coil's limit stay within it once quantised (the
+/// controller refuses a sum above `max_amplitude`).
 pub fn partial(f: f64, drive: f64, phase: f64) -> Partial {
     Partial {
         freq_mhz: (f * 1000.0).round().clamp(0.0, f64::from(u32::MAX)) as u32,
-        amplitude: (drive.clamp(0.0, 1.0) * f64::from(u16::MAX)).round() as u16,
+        amplitude: (drive.clamp(0.0, 1.0) * f64::from(u16::MAX)).floor() as u16,
         phase: (phase.rem_euclid(1.0) * 65536.0) as u16,
     }
 }
