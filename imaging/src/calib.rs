@@ -325,57 +325,6 @@ fn inv3(a: &M3) -> Option<M3> {
     Some(m)
 }
 
-/// Eigen-decomposition of a symmetric `n×n` matrix (row-major) by cyclic Jacobi rotations.
-/// Returns eigenvalues and eigenvectors (`vecs[k]` belongs to `vals[k]`).
-fn sym_eigen(a: &[f64], n: usize) -> (Vec<f64>, Vec<Vec<f64>>) {
-    let mut a = a.to_vec();
-    let mut v = vec![0.0; n * n];
-    for i in 0..n {
-        v[i * n + i] = 1.0;
-    }
-    for _sweep in 0..100 {
-        let off: f64 = (0..n)
-            .flat_map(|i| (0..n).filter(move |&j| j != i).map(move |j| (i, j)))
-            .map(|(i, j)| a[i * n + j].powi(2))
-            .sum();
-        let diag: f64 = (0..n).map(|i| a[i * n + i].powi(2)).sum();
-        if off <= 1e-30 * diag || off == 0.0 {
-            break;
-        }
-        for p in 0..n {
-            for q in p + 1..n {
-                let apq = a[p * n + q];
-                if apq == 0.0 {
-                    continue;
-                }
-                let theta = (a[q * n + q] - a[p * n + p]) / (2.0 * apq);
-                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
-                let t = if theta == 0.0 { 1.0 } else { t };
-                let c = 1.0 / (t * t + 1.0).sqrt();
-                let s = t * c;
-                for k in 0..n {
-                    let (akp, akq) = (a[k * n + p], a[k * n + q]);
-                    a[k * n + p] = c * akp - s * akq;
-                    a[k * n + q] = s * akp + c * akq;
-                }
-                for k in 0..n {
-                    let (apk, aqk) = (a[p * n + k], a[q * n + k]);
-                    a[p * n + k] = c * apk - s * aqk;
-                    a[q * n + k] = s * apk + c * aqk;
-                }
-                for k in 0..n {
-                    let (vkp, vkq) = (v[k * n + p], v[k * n + q]);
-                    v[k * n + p] = c * vkp - s * vkq;
-                    v[k * n + q] = s * vkp + c * vkq;
-                }
-            }
-        }
-    }
-    let vals = (0..n).map(|i| a[i * n + i]).collect();
-    let vecs = (0..n).map(|k| (0..n).map(|i| v[i * n + k]).collect()).collect();
-    (vals, vecs)
-}
-
 /// Least-squares null vector of the `m×n` matrix `rows` (unit vector minimising ‖A·x‖), via the
 /// smallest eigenvector of `AᵀA`. `None` when the null space is more than one-dimensional.
 fn null_vector(rows: &[Vec<f64>], n: usize) -> Option<Vec<f64>> {
@@ -387,14 +336,13 @@ fn null_vector(rows: &[Vec<f64>], n: usize) -> Option<Vec<f64>> {
             }
         }
     }
-    let (vals, vecs) = sym_eigen(&ata, n);
-    let mut idx: Vec<usize> = (0..n).collect();
-    idx.sort_by(|&a, &b| vals[a].total_cmp(&vals[b]));
-    let max = vals[idx[n - 1]].abs();
-    if !(max > 0.0) || vals[idx[1]] <= 1e-13 * max {
+    // Eigenvalues descending, eigenvectors as columns: the smallest is the last.
+    let (vals, vecs) = crate::linalg::sym_eigen(&ata, n);
+    let max = vals[0].abs();
+    if !(max > 0.0) || vals[n - 2] <= 1e-13 * max {
         return None;
     }
-    Some(vecs[idx[0]].clone())
+    Some((0..n).map(|i| vecs[i * n + n - 1]).collect())
 }
 
 /// Solves the symmetric positive-definite system `a·x = b` by Cholesky; `None` if not SPD.

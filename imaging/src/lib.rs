@@ -11,4 +11,5 @@ pub mod calib;
 pub mod calib_file;
 pub mod hdr;
 pub mod io;
+pub mod linalg;
 pub mod synth;

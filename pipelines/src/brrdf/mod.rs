@@ -1,9 +1,7 @@
 //! Bispectral BRRDF (Hullin et al. 2010; thesis chapter 4): the maths of the PCA-steered
 //! acquisition.
 //!
-//! - [`linalg`]: symmetric eigen-decomposition, singular values, pseudoinverse.
 //! - [`pca`]: principal components of bispectral samples, greedy wavelength-pair selection by
 //!   `cond(R)`, reconstruction through `R⁺`, the saturated PCA of figure 4.10.
 
-pub mod linalg;
 pub mod pca;

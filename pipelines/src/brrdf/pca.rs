@@ -7,7 +7,7 @@
 //!
 //! A sample is one vectorised reradiation matrix: its value at each of the `K` wavelength pairs.
 
-use super::linalg::{cond, gram, pinv, sym_eigen};
+use lightrig_imaging::linalg::{cond, gram, pinv, sym_eigen};
 
 /// The principal components of a set of bispectral samples.
 #[derive(Debug, Clone, PartialEq)]

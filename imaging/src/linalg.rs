@@ -1,6 +1,7 @@
-//! The little dense linear algebra the PCA needs, on row-major `f64` matrices: a symmetric
-//! eigen-decomposition by cyclic Jacobi rotations (exact to rounding for the few hundred
-//! wavelength pairs a bispectral matrix has), singular values and the pseudoinverse from it.
+//! Small dense linear algebra on row-major `f64` matrices: a symmetric eigen-decomposition by
+//! cyclic Jacobi rotations (exact to rounding for the sizes here: calibration's 9×9 normal
+//! equations, a bispectral PCA's few hundred wavelength pairs), singular values, the condition
+//! number and the pseudoinverse from it.
 
 /// Eigenvalues (descending) and eigenvectors (as columns of a row-major `n × n` matrix) of the
 /// symmetric row-major `n × n` matrix `a`.
