@@ -165,9 +165,8 @@ impl FrameInput for DirectoryInput {
         let mut out = Vec::new();
         for a in self.source.poll()? {
             let data = std::fs::read(&a.path)?;
-            let written = std::fs::metadata(&a.path)?.modified().ok();
             let before_step = self.there_before.remove(&a.path)
-                || matches!((written, self.began), (Some(w), Some(b)) if w < b);
+                || matches!((a.modified, self.began), (Some(w), Some(b)) if w < b);
             let frame = if before_step {
                 u32::try_from(a.frame).ok()
             } else {

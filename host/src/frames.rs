@@ -14,6 +14,8 @@ pub struct Arrived {
     pub path: PathBuf,
     /// Size in bytes when it was seen complete.
     pub bytes: u64,
+    /// When it was last written, if the file system says.
+    pub modified: Option<std::time::SystemTime>,
 }
 
 /// A file-name template: literal text around one `{frame}` or `{frame:0N}` field.
@@ -64,6 +66,8 @@ impl Pattern {
     }
 }
 
+type Listed = (PathBuf, u64, u64, Option<std::time::SystemTime>);
+
 /// Watches a directory for new frame files. A file counts once its size has stayed the same
 /// over two polls (cameras write in pieces), or at once if the camera software writes to a
 /// temporary name and renames (the usual way).
@@ -81,13 +85,14 @@ impl DirectorySource {
     pub fn new(dir: &Path, pattern: Pattern) -> std::io::Result<Self> {
         std::fs::create_dir_all(dir)?;
         let mut s = Self { dir: dir.to_path_buf(), pattern, seen: HashSet::new(), growing: Vec::new() };
-        for (path, _, _) in s.list()? {
+        for (path, ..) in s.list()? {
             s.seen.insert(path);
         }
         Ok(s)
     }
 
-    fn list(&self) -> std::io::Result<Vec<(PathBuf, u64, u64)>> {
+    /// The pattern's files: path, frame number, size, modification time.
+    fn list(&self) -> std::io::Result<Vec<Listed>> {
         let mut out = Vec::new();
         for entry in std::fs::read_dir(&self.dir)? {
             let entry = entry?;
@@ -95,7 +100,7 @@ impl DirectorySource {
             let Some(frame) = name.to_str().and_then(|n| self.pattern.frame_of(n)) else { continue };
             let meta = entry.metadata()?;
             if meta.is_file() {
-                out.push((entry.path(), frame, meta.len()));
+                out.push((entry.path(), frame, meta.len(), meta.modified().ok()));
             }
         }
         Ok(out)
@@ -104,21 +109,21 @@ impl DirectorySource {
     /// The files of the pattern in the directory now that [`Self::poll`] has not reported yet
     /// (complete or still being written).
     pub fn unreported(&self) -> std::io::Result<HashSet<PathBuf>> {
-        Ok(self.list()?.into_iter().map(|(p, _, _)| p).filter(|p| !self.seen.contains(p)).collect())
+        Ok(self.list()?.into_iter().map(|(p, ..)| p).filter(|p| !self.seen.contains(p)).collect())
     }
 
     /// Frames complete since the last poll, in frame order.
     pub fn poll(&mut self) -> std::io::Result<Vec<Arrived>> {
         let mut done = Vec::new();
         let mut growing = Vec::new();
-        for (path, frame, bytes) in self.list()? {
+        for (path, frame, bytes, modified) in self.list()? {
             if self.seen.contains(&path) {
                 continue;
             }
             let stable = self.growing.iter().any(|(p, b)| *p == path && *b == bytes && bytes > 0);
             if stable {
                 self.seen.insert(path.clone());
-                done.push(Arrived { frame, path, bytes });
+                done.push(Arrived { frame, path, bytes, modified });
             } else {
                 growing.push((path, bytes));
             }

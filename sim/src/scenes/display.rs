@@ -223,13 +223,13 @@ impl DisplayScene {
 }
 
 /// A key for an exposure's coil samples, cheap enough to take per pixel: where they lie, how
-/// many, and every 61st of them.
+/// many, and 32 of them spread over each (two exposures of waves never agree on all of those).
 fn coil_key(state: &RigState) -> u64 {
     use std::hash::{Hash, Hasher};
     let mut h = std::collections::hash_map::DefaultHasher::new();
     for c in state.coils.iter().chain(&state.coils_before) {
         (c.as_ptr() as usize, c.len()).hash(&mut h);
-        c.iter().step_by(61).for_each(|s| s.hash(&mut h));
+        c.iter().step_by(c.len() / 32 + 1).for_each(|s| s.hash(&mut h));
     }
     state.exposure_s.to_bits().hash(&mut h);
     h.finish()
