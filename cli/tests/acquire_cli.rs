@@ -67,6 +67,26 @@ fn linear_light_source_example_acquires() {
 }
 
 #[test]
+fn a_missing_camera_response_is_refused_before_the_session_starts() {
+    let dir = scratch("response");
+    let rig = example(
+        &dir,
+        "lls-gantry.toml",
+        &[("min_interval_us", "min_interval_us = 50000\nresponse = \"cam0-response.json\"")],
+    );
+    let session = dir.join("session");
+    let out = lightrig(&["acquire", rig.to_str().unwrap(), "--session", session.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(4));
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        said.contains(&format!("{}", dir.join("cam0-response.json").display()))
+            && said.contains("lightrig hdr calibrate"),
+        "{said}"
+    );
+    assert!(!session.join("manifest.json").exists(), "no session is started");
+}
+
+#[test]
 fn fluorescent_immersion_example_acquires() {
     let dir = scratch("firs");
     let rig = example(

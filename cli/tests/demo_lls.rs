@@ -17,6 +17,7 @@ fn lls_demo_meets_the_accuracy_targets() {
         progress: false,
         real_time: false,
         step_mm: None,
+        camera_gamma: None,
     };
     let (acc, report) = run_lls(&opts).unwrap();
     assert!(acc.pixels > 1500, "{} pixels compared", acc.pixels);
@@ -97,6 +98,58 @@ fn lls_demo_meets_the_accuracy_targets() {
         median((0..captured.len()).filter(fitted).map(|j| (captured[j] - predicted[j]).abs()).collect());
     // Measured 6.2 % (the frame's noise: one frame, where the fit saw the whole trace).
     assert!(level > 0.0 && off < 0.08 * level, "check frame: {off} off a median level of {level}");
+    std::fs::remove_dir_all(&out).ok();
+}
+
+/// A camera with a display gamma: with the response recovered from an exposure series and
+/// named in the rig file, the fit meets every target; the same session merged as if the
+/// camera were linear misses them.
+#[test]
+fn a_gamma_camera_fits_with_its_response_and_misses_without() {
+    let out = std::env::temp_dir().join(format!("lightrig-demo-gamma-test-{}", std::process::id()));
+    let opts = DemoOptions {
+        quick: true,
+        out: out.clone(),
+        seed: 3,
+        progress: false,
+        real_time: false,
+        step_mm: None,
+        camera_gamma: Some(2.2),
+    };
+    let (acc, report) = run_lls(&opts).unwrap();
+    for (name, value, limit, met) in acc.targets() {
+        assert!(met, "with the response: {name}: {value} > {limit}");
+    }
+    assert!(std::fs::read_to_string(report).unwrap().contains("display gamma 2.2"));
+    let rig = std::fs::read_to_string(out.join("rig.toml")).unwrap();
+    assert!(rig.contains("gamma = 2.2") && rig.contains("response = \"camera-response.json\""), "{rig}");
+    // The session kept its copy of the response; without it the fit refuses, naming the copy.
+    let copy = out.join("session/camera0-response.json");
+    let kept = lightrig_host::response::ResponseFile::load(&copy).unwrap();
+    assert_eq!(kept, lightrig_host::response::ResponseFile::load(&out.join("camera-response.json")).unwrap());
+    std::fs::remove_file(&copy).unwrap();
+    let fit = |dir: &str| {
+        lightrig_host::fit::lls::fit_session(
+            &out.join("session"),
+            Some(&out.join("camera.toml")),
+            &out.join(dir),
+            &|_, _| {},
+        )
+    };
+    let e = fit("none").unwrap_err().to_string();
+    assert!(e.contains("camera0-response.json") && e.contains("copy the response file there"), "{e}");
+    // A linear response in its place: the brackets merged as a linear camera's.
+    let levels = kept.levels;
+    let g: Vec<f32> = (0..levels).map(|z| (z.max(1) as f32).ln()).collect();
+    lightrig_host::response::ResponseFile { levels, g: vec![g.clone(), g.clone(), g] }.save(&copy).unwrap();
+    let linear = fit("linear").unwrap();
+    let scene = LlsScene::new(LlsSceneSpec::new(80, 60));
+    let wrong = lightrig_cli::demo::lls::lls_accuracy(&scene, &linear, 2.0);
+    let missed: Vec<_> = wrong.targets().into_iter().filter(|t| !t.3).map(|t| t.0).collect();
+    assert!(
+        missed.contains(&"diffuse albedo, median abs") && missed.contains(&"roughness, median rel"),
+        "merged as linear, the fit should miss: {wrong:?}"
+    );
     std::fs::remove_dir_all(&out).ok();
 }
 

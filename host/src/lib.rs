@@ -21,6 +21,7 @@ pub mod filter;
 pub mod fit;
 pub mod frames;
 pub mod plan;
+pub mod response;
 pub mod rigfile;
 pub mod session;
 pub mod transport;

@@ -274,10 +274,14 @@ pub struct VoiceCoil {
 }
 
 /// Where a camera's frames come from (host side only; never sent to the device).
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub enum FrameSource {
     /// Synthetic frames from the virtual rig.
-    Virtual,
+    Virtual {
+        /// The virtual sensor's display gamma (`source.gamma`, 1 = linear): stored values are
+        /// `v^(1/gamma)`, a camera whose fits need its response (`response`).
+        gamma: f64,
+    },
     /// Files the camera software writes into a directory.
     Directory {
         /// The directory, relative paths resolved against the rig file's directory.
@@ -291,7 +295,7 @@ impl FrameSource {
     /// Path of frame `frame`, for a directory source.
     pub fn frame_path(&self, frame: u64) -> Option<PathBuf> {
         match self {
-            FrameSource::Virtual => None,
+            FrameSource::Virtual { .. } => None,
             FrameSource::Directory { dir, pattern } => {
                 Some(dir.join(crate::frames::Pattern::parse(pattern).ok()?.name_of(frame)))
             }
@@ -316,6 +320,9 @@ pub struct Camera {
     pub min_interval_us: f64,
     /// Where the frames come from.
     pub source: FrameSource,
+    /// The camera's response curve (`response`, `lightrig hdr calibrate`'s output), relative
+    /// paths resolved against the rig file's directory; `None`: a linear camera.
+    pub response: Option<PathBuf>,
 }
 
 /// Device-wide safety settings (`[safety]`).
@@ -500,6 +507,7 @@ struct RawSource {
     kind: String,
     path: Option<String>,
     pattern: Option<String>,
+    gamma: Option<f64>,
 }
 
 #[derive(Deserialize)]
@@ -513,6 +521,7 @@ struct RawCamera {
     #[serde(default)]
     min_interval_us: f64,
     source: Option<RawSource>,
+    response: Option<String>,
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -856,6 +865,8 @@ fn key_hint(table: &str, field: &str) -> Option<String> {
         "sample_rate_hz" => "output sample rate in Hz".into(),
         "max_amplitude" => "largest amplitude, 0.0..=1.0 of full scale".into(),
         "pulse_us" => "trigger pulse width in µs".into(),
+        "response" => "the camera's response file from `lightrig hdr calibrate`".into(),
+        "gamma" => "the virtual camera's display gamma, 1 = linear".into(),
         "heartbeat_timeout_ms" => "heartbeat timeout in ms".into(),
         _ => return None,
     })
@@ -1231,7 +1242,7 @@ fn build_voice_coil(cx: &Cx<'_>, i: usize, v: RawVoiceCoil) -> Result<VoiceCoil,
 fn build_source(cx: &Cx<'_>, i: usize, s: Option<RawSource>) -> Result<FrameSource, RigError> {
     const EXAMPLE: &str = "e.g. \"img_{frame:06}.png\"";
     let k = |f: &str| format!("camera[{i}].source.{f}");
-    let Some(s) = s else { return Ok(FrameSource::Virtual) };
+    let Some(s) = s else { return Ok(FrameSource::Virtual { gamma: 1.0 }) };
     let kinds: Vec<_> = SOURCE_KINDS.iter().map(|s| (*s, *s)).collect();
     if cx.choice(&k("kind"), &s.kind, &kinds)? == "virtual" {
         for (key, v) in [("path", &s.path), ("pattern", &s.pattern)] {
@@ -1240,7 +1251,17 @@ fn build_source(cx: &Cx<'_>, i: usize, s: Option<RawSource>) -> Result<FrameSour
                 return Err(cx.err(&k(key), message));
             }
         }
-        return Ok(FrameSource::Virtual);
+        let gamma = s.gamma.unwrap_or(1.0);
+        if !(0.2..=5.0).contains(&gamma) {
+            return Err(
+                cx.err(&k("gamma"), "must be in 0.2..=5.0 (1 is a linear camera, 2.2 a display gamma)")
+            );
+        }
+        return Ok(FrameSource::Virtual { gamma });
+    }
+    if s.gamma.is_some() {
+        let message = "only for kind = \"virtual\": a real camera's curve is its `response` file";
+        return Err(cx.err(&k("gamma"), message));
     }
     let Some(path) = s.path else {
         let message = "required for kind = \"directory\": the directory the frames appear in";
@@ -1277,6 +1298,7 @@ fn build_camera(cx: &Cx<'_>, i: usize, c: RawCamera) -> Result<Camera, RigError>
         )?,
         min_interval_us: cx.nonneg(&k("min_interval_us"), c.min_interval_us)?,
         source,
+        response: c.response.map(|r| cx.path.parent().unwrap_or(Path::new("")).join(r)),
     })
 }
 

@@ -297,6 +297,30 @@ fn device_and_camera_sources() {
         "rig.toml:7: camera[0].source.pattern: \"x.png\" needs exactly one {frame} or {frame:0N} placeholder \
          (N digits, zero-padded), e.g. \"img_{frame:06}.png\""
     );
+    // A virtual camera's gamma and a camera's response file (relative to the rig file).
+    let rig = RigFile::parse(
+        &format!(
+            "{HEAD}[[camera]]\ncamera = 0\npulse_us = 100\nsource = {{ kind = \"virtual\", gamma = 2.2 }}\n\
+             response = \"cam0.json\"\n"
+        ),
+        Path::new("/lab/rigs/gantry.toml"),
+    )
+    .unwrap();
+    assert_eq!(rig.camera_source(0).unwrap(), &FrameSource::Virtual { gamma: 2.2 });
+    assert_eq!(rig.cameras[0].response.as_deref(), Some(Path::new("/lab/rigs/cam0.json")));
+    assert_eq!(parse("[[camera]]\ncamera = 0\npulse_us = 100\n").cameras[0].response, None);
+    assert_eq!(
+        parse_err("[[camera]]\ncamera = 0\npulse_us = 100\nsource = { kind = \"virtual\", gamma = 9 }\n"),
+        "rig.toml:7: camera[0].source.gamma: must be in 0.2..=5.0 (1 is a linear camera, 2.2 a display gamma)"
+    );
+    assert_eq!(
+        parse_err(
+            "[[camera]]\ncamera = 0\npulse_us = 100\n\
+                   source = { kind = \"directory\", path = \"f\", pattern = \"x{frame}.png\", gamma = 2 }\n"
+        ),
+        "rig.toml:7: camera[0].source.gamma: only for kind = \"virtual\": a real camera's curve is its \
+         `response` file"
+    );
 }
 
 #[test]

@@ -324,27 +324,7 @@ impl<S: Scene> VirtualCamera<S> {
     /// Renders one frame whose exposure saw each of `states` for its fraction of the time:
     /// the radiance is their weighted sum, then the sensor exposes it once.
     pub fn render_exposure(&self, states: &[(f64, RigState)], frame_key: u64) -> Image {
-        let (w, h) = self.scene.size();
-        let mut img = Image::new(w, h, 3);
-        let (sensor, scene) = (self.sensor, &self.scene);
-        let exposure_s = states.first().map_or(0.0, |(_, s)| s.exposure_s);
-        img.data.par_chunks_mut(w as usize * 3).enumerate().for_each(|(y, row)| {
-            for x in 0..w {
-                let mut l = [0.0; 3];
-                for (f, state) in states {
-                    let r = scene.radiance(x, y as u32, state);
-                    for c in 0..3 {
-                        l[c] += f * r[c];
-                    }
-                }
-                for c in 0..3 {
-                    let i = (y * w as usize + x as usize) * 3 + c;
-                    let key = mix(frame_key).wrapping_add(i as u64);
-                    row[x as usize * 3 + c] = sensor.expose(l[c], exposure_s, key);
-                }
-            }
-        });
-        img.with_encoding(Encoding::Linear)
+        render_exposure(&self.scene, &self.sensor, states, frame_key)
     }
 
     /// Renders and writes the pending frames whose exposure has ended (all of them without a
@@ -382,6 +362,37 @@ impl<S: Scene> VirtualCamera<S> {
         };
         res.map_err(|e| io::Error::other(e.to_string()))
     }
+}
+
+/// One frame of `scene` through `sensor` whose exposure saw each of `states` for its fraction
+/// of the time (the first state's exposure): the radiance is their weighted sum, then the
+/// sensor exposes it once; `frame_key` selects the noise draw.
+pub fn render_exposure<S: Scene + ?Sized>(
+    scene: &S,
+    sensor: &Sensor,
+    states: &[(f64, RigState)],
+    frame_key: u64,
+) -> Image {
+    let (w, h) = scene.size();
+    let mut img = Image::new(w, h, 3);
+    let exposure_s = states.first().map_or(0.0, |(_, s)| s.exposure_s);
+    img.data.par_chunks_mut(w as usize * 3).enumerate().for_each(|(y, row)| {
+        for x in 0..w {
+            let mut l = [0.0; 3];
+            for (f, state) in states {
+                let r = scene.radiance(x, y as u32, state);
+                for c in 0..3 {
+                    l[c] += f * r[c];
+                }
+            }
+            for c in 0..3 {
+                let i = (y * w as usize + x as usize) * 3 + c;
+                let key = mix(frame_key).wrapping_add(i as u64);
+                row[x as usize * 3 + c] = sensor.expose(l[c], exposure_s, key);
+            }
+        }
+    });
+    img.with_encoding(Encoding::Linear)
 }
 
 impl<S: Scene> FrameInput for VirtualCamera<S> {

@@ -15,6 +15,17 @@ pub enum Response {
     Gamma(f64),
 }
 
+impl Response {
+    /// A camera with display gamma `gamma` (1: linear).
+    pub fn of_gamma(gamma: f64) -> Self {
+        if gamma == 1.0 {
+            Response::Linear
+        } else {
+            Response::Gamma(gamma)
+        }
+    }
+}
+
 /// Stored sample format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Depth {

@@ -113,9 +113,10 @@ fn frame_input(
             FrameSource::Directory { dir, pattern } => {
                 Box::new(DirectoryInput::new(cam.camera, dir, pattern).map_err(|e| err(INPUT, e))?)
             }
-            FrameSource::Virtual => {
+            FrameSource::Virtual { gamma } => {
                 let dir = scratch.join(format!("cam{}", cam.camera));
-                let (scene, sensor) = scene_for(rig, 1 + u64::from(cam.camera));
+                let (scene, mut sensor) = scene_for(rig, 1 + u64::from(cam.camera));
+                sensor.response = lightrig_sim::sensor::Response::of_gamma(*gamma);
                 let mut camera = VirtualCamera::new(rig, cam.camera, scene, sensor, tick_hz, &dir)
                     .map_err(|e| err(FAILURE, format!("{}: {e}", dir.display())))?;
                 match &timeline {
@@ -409,6 +410,7 @@ pub fn acquire(
     assume_done: bool,
 ) -> Result<(), CliError> {
     let rig = RigFile::load(rig_path).map_err(|e| err(INPUT, e.to_string()))?;
+    lightrig_host::response::check(&rig).map_err(|e| err(INPUT, e))?;
     let text =
         std::fs::read_to_string(rig_path).map_err(|e| err(INPUT, format!("{}: {e}", rig_path.display())))?;
     if dir.join("manifest.json").exists() {
@@ -420,6 +422,7 @@ pub fn acquire(
     let ready = bring_up(&rig, over, assume_done)?;
     let manifest = Manifest::new(text, ready.client.info(), plan_summary(&ready.plan));
     let mut session = Session::create(dir, manifest).map_err(|e| err(INPUT, e.to_string()))?;
+    lightrig_host::response::attach(&rig, dir).map_err(|e| err(INPUT, e))?;
     ready.run(&rig, &mut session)
 }
 

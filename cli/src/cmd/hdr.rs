@@ -6,9 +6,9 @@
 
 use std::path::{Path, PathBuf};
 
+pub use lightrig_host::response::ResponseFile;
 use lightrig_imaging::hdr::{self, DebevecOptions, MergeOptions, Response, RobertsonOptions, Stack, Weights};
 use lightrig_imaging::io::{self, BitDepth, ExrPrecision, Image, IoError, ReadOptions};
-use serde::{Deserialize, Serialize};
 
 /// An exposure: file and time.
 #[derive(Debug, Clone, PartialEq)]
@@ -46,15 +46,6 @@ pub fn read_sidecar(path: &Path) -> Result<Vec<Exposure>, String> {
         out.push(Exposure { path: base.join(file), seconds });
     }
     Ok(out)
-}
-
-/// Response curves as stored by `hdr calibrate`: one per channel.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct ResponseFile {
-    /// Levels per channel (256 for 8-bit files; for 16-bit files the data's: 4096 for 12-bit).
-    pub levels: usize,
-    /// `g = ln f⁻¹` per channel, `levels` values each.
-    pub g: Vec<Vec<f32>>,
 }
 
 /// The stack's samples as integers at their file's bit depth.
@@ -179,8 +170,7 @@ fn recover(l: &Loaded, method: Method) -> Result<ResponseFile, String> {
 /// `lightrig hdr calibrate`: recovers the response by `method` and writes it as JSON.
 pub fn calibrate(exposures: &[Exposure], method: Method, out: &Path) -> Result<ResponseFile, String> {
     let r = recover(&load(exposures)?, method)?;
-    let json = serde_json::to_string_pretty(&r).map_err(|e| e.to_string())?;
-    std::fs::write(out, json).map_err(|e| format!("{}: {e}", out.display()))?;
+    r.save(out)?;
     Ok(r)
 }
 
@@ -195,11 +185,7 @@ pub fn merge(
 ) -> Result<usize, String> {
     let l = load(exposures)?;
     let r = match response {
-        Some(p) => {
-            let text = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;
-            serde_json::from_str::<ResponseFile>(&text)
-                .map_err(|e| format!("{}: not a response file: {e}", p.display()))?
-        }
+        Some(p) => ResponseFile::load(p)?,
         None => recover(&l, Method::Debevec)?,
     };
     if r.levels < data_levels(&l) {

@@ -36,6 +36,10 @@ pub struct DemoOptions {
     pub real_time: bool,
     /// The gantry's step, mm; `None`: 1 mm (2 mm when `quick`).
     pub step_mm: Option<f64>,
+    /// The virtual camera's display gamma; `None`: a linear camera. With a gamma the demo
+    /// recovers the camera's response from an exposure series (`camera-response.json`,
+    /// `lightrig hdr calibrate`'s output), and the rig file names it.
+    pub camera_gamma: Option<f64>,
 }
 
 /// The fit against the truth: median errors over the sample's pixels.
@@ -88,6 +92,18 @@ fn median(mut v: Vec<f64>) -> f64 {
 /// The demo's rig file for `spec`: a valid rig file whose `[plan.fit]` holds the geometry the
 /// fit needs (what a lab measures once for its rig).
 pub fn lls_rig_text(spec: &LlsSceneSpec, pass: [f64; 2], step_mm: f64) -> String {
+    lls_rig_text_with(spec, pass, step_mm, None)
+}
+
+/// [`lls_rig_text`] for a virtual camera with display gamma `gamma` (`Some`) whose response
+/// is `camera-response.json` beside the rig file.
+pub fn lls_rig_text_with(spec: &LlsSceneSpec, pass: [f64; 2], step_mm: f64, gamma: Option<f64>) -> String {
+    let source = match gamma {
+        None => "source = { kind = \"virtual\" }".to_string(),
+        Some(g) => format!(
+            "source = {{ kind = \"virtual\", gamma = {g} }}\n# From `lightrig hdr calibrate` on an exposure series of this camera.\nresponse = \"{RESPONSE_FILE}\""
+        ),
+    };
     let l = &spec.light;
     let s = &spec.stripe;
     let b = &spec.board;
@@ -152,7 +168,7 @@ pulse_us = 4000
 polarity = "high"
 exposure_input = "high"
 min_interval_us = 5000
-source = {{ kind = "virtual" }}
+{source}
 
 [plan]
 pass_mm = [{p0}, {p1}]
@@ -197,6 +213,40 @@ specular_strip = {{ x_mm = [{sx0}, {sx1}], y_mm = [{sy0}, {sy1}], albedo = {sa2}
         sy1 = sp.y_mm[1],
         sa2 = sp.specular,
     )
+}
+
+/// The demo's camera response file (beside `rig.toml`).
+pub const RESPONSE_FILE: &str = "camera-response.json";
+
+/// Recovers the virtual camera's response as a lab would: an exposure series of a still scene
+/// (the tube over the sample's specular side, 0.125–32 ms a stop apart) written as the camera
+/// writes frames into `out/response-series/`, then `lightrig hdr calibrate` (Debevec) into
+/// `out/camera-response.json`. Returns the images in the series.
+fn calibrate_response(scene: &LlsScene, sensor: &Sensor, out: &Path) -> Result<usize, CliError> {
+    use crate::cmd::hdr::{calibrate, Exposure, Method};
+    use lightrig_imaging::io::{write_png, BitDepth};
+    let dir = out.join("response-series");
+    std::fs::create_dir_all(&dir).map_err(io(&dir))?;
+    let s = &scene.spec;
+    let gantry = (s.sample_x[0] + s.sample_x[1]) / 2.0 - 20.0;
+    let mut exposures = Vec::new();
+    for k in 0..9 {
+        let t = 0.000125 * f64::from(1u32 << k);
+        let state = lightrig_sim::camera::RigState {
+            pass: Some("reflectance".into()),
+            axes: vec![gantry; usize::from(s.gantry_axis) + 1],
+            lasers: 1 << s.tube_channel,
+            exposure_s: t,
+            ..Default::default()
+        };
+        let img = lightrig_sim::camera::render_exposure(scene, sensor, &[(1.0, state)], 1_000_000 + k as u64);
+        let path = dir.join(format!("exposure_{k:02}.png"));
+        write_png(&path, &img, BitDepth::Sixteen).map_err(failure)?;
+        exposures.push(Exposure { path, seconds: t as f32 });
+    }
+    calibrate(&exposures, Method::Debevec, &out.join(RESPONSE_FILE))
+        .map_err(|e| crate::error::err(crate::error::FAILURE, e))?;
+    Ok(exposures.len())
 }
 
 fn write_truth(scene: &LlsScene, dir: &Path) -> Result<(), CliError> {
@@ -311,12 +361,21 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
     // The pass covers every pixel's diffuse peak (tube overhead), its mirror position (about
     // 29 mm towards the camera) and the stripe's crossing, with the lobes' tails.
     let pass = [spec.sample_x[0] - 100.0, spec.sample_x[1] + 60.0];
-    let demo = DemoRig::write(out, lls_rig_text(&spec, pass, step))?;
+    let demo = DemoRig::write(out, lls_rig_text_with(&spec, pass, step, opts.camera_gamma))?;
     let calibration = out.join("camera.toml");
     write_calibration(&spec, &calibration)?;
     let scene = LlsScene::new(spec);
     write_truth(&scene, &out.join("truth"))?;
-    let sensor = Sensor { gain: 30_000.0 / (0.16 * 0.004), seed: opts.seed, ..Sensor::default() };
+    let sensor = Sensor {
+        gain: 30_000.0 / (0.16 * 0.004),
+        seed: opts.seed,
+        response: lightrig_sim::sensor::Response::of_gamma(opts.camera_gamma.unwrap_or(1.0)),
+        ..Sensor::default()
+    };
+    let series = match opts.camera_gamma {
+        Some(_) => Some(calibrate_response(&scene, &sensor, out)?),
+        None => None,
+    };
     let summary = demo.plan.summary();
     println!(
         "lightrig demo lls: {}×{} px, {} frames ({} mm steps), output in {}",
@@ -371,6 +430,14 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
         t.fit_s / t.read_s.max(1e-9),
         maps.tables_note
     ));
+    match (opts.camera_gamma, series) {
+        (Some(g), Some(n)) => r.line(format_args!(
+            "Camera: virtual, display gamma {g}; its response recovered by `lightrig hdr calibrate` \
+             (Debevec) from {n} exposures ({RESPONSE_FILE}), named in rig.toml, every bracket merged \
+             through it.\n"
+        )),
+        _ => r.line("Camera: virtual, linear.\n"),
+    }
     r.line(format_args!(
         "Camera pose from the board image: reprojection RMS {:.3} px.",
         maps.registration_rms

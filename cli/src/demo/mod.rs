@@ -54,6 +54,11 @@ pub struct Args {
     /// passes of the fit's benchmark (docs/benchmarks.md).
     #[arg(long)]
     pub step_mm: Option<f64>,
+    /// The LLS demo's virtual camera applies this display gamma (1 = linear, the default):
+    /// the demo then recovers the camera's response with `lightrig hdr calibrate`'s method from
+    /// an exposure series, names it in the rig file, and the fit merges through it.
+    #[arg(long)]
+    pub camera_gamma: Option<f64>,
 }
 
 /// Runs `lightrig demo [METHOD]`: the demo's output in `out/<method>/`; with `check`, a
@@ -69,6 +74,15 @@ pub fn run(args: &Args) -> ExitCode {
         return ExitCode::from(USAGE);
     }
     let display = args.method == "display" || args.method == "brdf-display";
+    let lls = args.method == "lls" || args.method == "linear-light-source";
+    if let Some(g) = args.camera_gamma.filter(|_| !lls) {
+        eprintln!("error: --camera-gamma {g}: only `lightrig demo lls` has a camera response to recover");
+        return ExitCode::from(USAGE);
+    }
+    if let Some(g) = args.camera_gamma.filter(|g| !(0.2..=5.0).contains(g)) {
+        eprintln!("error: --camera-gamma {g}: give a gamma from 0.2 to 5 (1 is a linear camera)");
+        return ExitCode::from(USAGE);
+    }
     if let Some(step) = args.step_mm.filter(|_| display) {
         eprintln!("error: --step-mm {step}: the display demo has no gantry; it is for `lightrig demo lls`");
         return ExitCode::from(USAGE);
@@ -96,7 +110,7 @@ pub fn run(args: &Args) -> ExitCode {
             real_time: args.real_time,
         };
         firs::run_firs(&opts).map(|result| result.missed())
-    } else if args.method == "lls" || args.method == "linear-light-source" {
+    } else if lls {
         let opts = lls::DemoOptions {
             quick: args.quick,
             out: args.out.join("lls"),
@@ -104,6 +118,7 @@ pub fn run(args: &Args) -> ExitCode {
             progress: true,
             real_time: args.real_time,
             step_mm: args.step_mm,
+            camera_gamma: args.camera_gamma,
         };
         lls::run_lls(&opts).map(|(acc, _)| {
             acc.targets().into_iter().filter(|t| !t.3).map(|t| t.0.to_string()).collect::<Vec<_>>()
@@ -173,6 +188,8 @@ impl DemoRig {
         let mut client = bring_up_on(&self.rig, transport)?;
         let manifest = Manifest::new(self.text.clone(), client.info(), plan_summary(&self.plan));
         let mut session = Session::create(&session_dir, manifest).map_err(failure)?;
+        lightrig_host::response::attach(&self.rig, &session_dir)
+            .map_err(|e| crate::error::err(crate::error::INPUT, e))?;
         let mut camera = VirtualCamera::new(&self.rig, 0, scene, sensor, self.info.tick_hz, &camera_dir)
             .map_err(io(&camera_dir))?;
         camera.follow(timeline);

@@ -32,6 +32,7 @@ use rayon::prelude::*;
 use serde::Deserialize;
 
 use crate::fit::{fail, FitError};
+use crate::response::CameraResponse;
 use crate::rigfile::RigFile;
 use crate::session::{trigger_events, Session};
 use stack::{block_pixels, Block, Gathered, TraceStack};
@@ -226,11 +227,17 @@ fn positions_of(
     Ok(out)
 }
 
-/// Decodes a position's bracket and merges it: exposure-weighted, clipped samples dropped.
-/// `size`, when known, is the size every image must have.
-fn merge(pos: &Position, size: Option<(u32, u32)>) -> Result<((u32, u32), Vec<f32>), FitError> {
+/// Decodes a position's bracket and merges it: each sample through the camera's `response`
+/// (linear values), exposure-weighted, clipped samples dropped. `size`, when known, is the
+/// size every image must have.
+fn merge(
+    pos: &Position,
+    size: Option<(u32, u32)>,
+    response: &CameraResponse,
+) -> Result<((u32, u32), Vec<f32>), FitError> {
     let (mut sum, mut weight): (Vec<f32>, Vec<f32>) = (Vec::new(), Vec::new());
     let mut size = size;
+    let mut linear = Vec::new();
     for (path, exposure) in &pos.images {
         let img = read_with(path, ReadOptions { assume: Encoding::Linear, expect_depth: None })
             .map_err(|e| fail(format!("{}: {e}", path.display())))?;
@@ -252,14 +259,14 @@ fn merge(pos: &Position, size: Option<(u32, u32)>) -> Result<((u32, u32), Vec<f3
         if sum.is_empty() {
             (sum, weight) = (vec![0.0; n], vec![0.0; n]);
         }
-        let ch = usize::from(img.channels);
-        // Weight by exposure time (collected light); clipped samples get none.
-        for (i, px) in img.data.chunks(ch).enumerate() {
-            for (c, &v) in px.iter().take(3).enumerate() {
-                if v < CLIP {
-                    sum[i * 3 + c] += v;
-                    weight[i * 3 + c] += *exposure as f32;
-                }
+        response
+            .linearize(&img.data, usize::from(img.channels), 3, CLIP, &mut linear)
+            .map_err(|e| fail(format!("{}: {e}", path.display())))?;
+        // Weight by exposure time (collected light); clipped samples (NaN) get none.
+        for ((s, w), &v) in sum.iter_mut().zip(weight.iter_mut()).zip(&linear) {
+            if !v.is_nan() {
+                *s += v;
+                *w += *exposure as f32;
             }
         }
     }
@@ -275,11 +282,16 @@ fn gantry_mm(gantry: &crate::rigfile::Stepper, steps: i32) -> f64 {
 fn first_frame(
     positions: &[Position],
     gantry: &crate::rigfile::Stepper,
+    response: &CameraResponse,
 ) -> Result<Option<PassFrame>, FitError> {
     positions
         .first()
         .map(|p| {
-            merge(p, None).map(|(size, rate)| PassFrame { size, gantry: gantry_mm(gantry, p.steps), rate })
+            merge(p, None, response).map(|(size, rate)| PassFrame {
+                size,
+                gantry: gantry_mm(gantry, p.steps),
+                rate,
+            })
         })
         .transpose()
 }
@@ -294,7 +306,7 @@ struct StreamedPass {
 
 fn stream_pass(
     positions: &[Position],
-    gantry: &crate::rigfile::Stepper,
+    (gantry, response): (&crate::rigfile::Stepper, &CameraResponse),
     size: (u32, u32),
     name: &str,
     scratch: &Path,
@@ -313,7 +325,7 @@ fn stream_pass(
     let mut stack = TraceStack::create(&path, pixels, positions.len(), block_pixels).map_err(io)?;
     let (mut bytes, mut kept) = (Vec::new(), None);
     for (k, pos) in positions.iter().enumerate() {
-        let (_, rate) = merge(pos, Some(size)).map_err(|e| {
+        let (_, rate) = merge(pos, Some(size), response).map_err(|e| {
             fail(format!("the {name} pass: {e} (the board frame's size: one camera, one size)"))
         })?;
         stack.write_position(k, &rate, &mut bytes).map_err(io)?;
@@ -466,6 +478,7 @@ pub fn fit_session_with(
     // Passes by name and, for the reflectance passes, mount angle (the first of each).
     // One camera's frames (a rig may fire several together): the lowest-numbered.
     let camera = session.pipeline_camera(None).map_err(fail)?;
+    let response = crate::response::for_session(&rig, dir, camera).map_err(fail)?;
     let mount_of = |s: &crate::session::PlanStep| s.extra["meta"]["mount_deg"].as_i64().unwrap_or(0);
     let pass_of = |name: &str, mount: Option<i64>| {
         manifest
@@ -484,7 +497,7 @@ pub fn fit_session_with(
         }
     };
     let positions = |name: &str| positions_mount(name, None);
-    let board = first_frame(&positions("board")?, gantry)?;
+    let board = first_frame(&positions("board")?, gantry, &response)?;
     let reflect_pos = positions_mount("reflectance", Some(0))?;
     let mut mounts: Vec<i64> = manifest
         .plan
@@ -506,8 +519,8 @@ pub fn fit_session_with(
             Vec::new()
         };
     let stripe_pos = positions("stripe")?;
-    let backlit = first_frame(&positions("backlit")?, gantry)?;
-    let lightbox = first_frame(&positions("light-box")?, gantry)?;
+    let backlit = first_frame(&positions("backlit")?, gantry, &response)?;
+    let lightbox = first_frame(&positions("light-box")?, gantry, &response)?;
     let first = board.ok_or_else(|| fail("the session has no board frame: the camera's pose needs one"))?;
     if reflect_pos.len() < 5 {
         return Err(fail(format!(
@@ -533,7 +546,7 @@ pub fn fit_session_with(
         reflect_pos.len() + stripe_pos.len() + diagonal_pos.iter().map(|(_, p)| p.len()).sum::<usize>();
     let bp = block_pixels(streaming.block_bytes, streamed_positions);
     let stream = |pos: &[Position], name: &str, keep: Option<usize>| {
-        stream_pass(pos, gantry, first.size, name, streaming.scratch, bp, keep)
+        stream_pass(pos, (gantry, &response), first.size, name, streaming.scratch, bp, keep)
     };
     let t_read = std::time::Instant::now();
     let mut reflect = stream(&reflect_pos, "reflectance", Some(reflect_pos.len() / 2))?;
