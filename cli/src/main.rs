@@ -61,7 +61,9 @@ fn main() -> ExitCode {
         Cmd::Soak(args) => soak::run(&args),
         Cmd::Schema => device::schema(),
         Cmd::Devices(args) => device::devices(&args),
-        Cmd::Acquire(a) => cmd::exit(acquire::acquire(&a.rig, &a.session, a.connect.as_ref(), a.yes)),
+        Cmd::Acquire(a) => {
+            cmd::exit(acquire::acquire(&a.rig, &a.session, a.connect.as_ref(), a.yes, &a.overrides))
+        }
         Cmd::Resume(a) => cmd::exit(acquire::resume(&a)),
         Cmd::Hdr(c) => hdr::run(&c),
         Cmd::Calibrate(args) => calibrate::run(&args),

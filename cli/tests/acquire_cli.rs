@@ -1,6 +1,6 @@
-//! `lightrig acquire` end to end on every example rig file in `docs/rigs/`, as a newcomer runs
+//! `lightrig acquire` end to end on example rig files in `docs/rigs/`, as a newcomer runs
 //! it: `connect = "virtual"` and `source = { kind = "virtual" }`, each plan cut down to a few
-//! frames. Every session must complete with one frame per trigger; the DISCO frames must show
+//! frames (every shipped file acquired and fitted: `shipped_rigs.rs`). Every session must complete with one frame per trigger; the DISCO frames must show
 //! the laser spot where the trigger's galvo codes pointed; steps that ask for a person or a
 //! host instrument are journaled, refused without a terminal, and taken as done with `--yes`.
 
@@ -57,16 +57,6 @@ fn acquire(rig: &Path, session: &Path) -> Session {
 }
 
 #[test]
-fn linear_light_source_example_acquires() {
-    let dir = scratch("lls");
-    let rig =
-        example(&dir, "lls-gantry.toml", &[("pass_mm", "pass_mm = [-4, 4]"), ("step_mm", "step_mm = 4")]);
-    let s = acquire(&rig, &dir.join("session"));
-    // Two passes (reflectance, stripe) × 3 positions × the 3-exposure bracket.
-    assert_eq!(s.frame_index().len(), 18);
-}
-
-#[test]
 fn a_missing_camera_response_is_refused_before_the_session_starts() {
     let dir = scratch("response");
     let rig = example(
@@ -87,21 +77,40 @@ fn a_missing_camera_response_is_refused_before_the_session_starts() {
 }
 
 #[test]
-fn fluorescent_immersion_example_acquires() {
-    let dir = scratch("firs");
-    let rig = example(
-        &dir,
-        "fluorescent-immersion.toml",
-        &[("views", "views = 1"), ("sheet_positions", "sheet_positions = 6")],
+fn overrides_shape_the_run_and_resume_asks_for_the_same_ones() {
+    let dir = scratch("overrides");
+    let rig = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/rigs/lls-gantry.toml");
+    let (r, session) = (rig.to_str().unwrap(), dir.join("session"));
+    let s = session.to_str().unwrap();
+    let sets = [
+        "--set",
+        "plan.pass_mm=[-4, 4]",
+        "--set",
+        "plan.step_mm=4",
+        "--set",
+        "plan.passes=[\"reflectance\"]",
+    ];
+    let mut args = vec!["acquire", r, "--session", s];
+    args.extend(sets);
+    let out = lightrig(&args);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // 3 positions × the shipped 3-exposure bracket.
+    let (done, _) = Session::read(&session).unwrap();
+    assert_eq!(done.frame_index().len(), 9);
+    let text = &done.manifest().rig;
+    assert!(text.contains("step_mm = 4") && text.ends_with("#   plan.passes=[\"reflectance\"]\n"), "{text}");
+    // Resuming against the original file needs the same overrides.
+    let out = lightrig(&["resume", s, "--rig", r]);
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(said.contains("already complete"), "a complete session is not re-checked: {said}");
+    let bad =
+        lightrig(&["acquire", r, "--session", dir.join("s2").to_str().unwrap(), "--set", "plan.nope.x="]);
+    let said = String::from_utf8_lossy(&bad.stderr);
+    assert_eq!(bad.status.code(), Some(4), "{said}");
+    assert!(
+        said.contains("lls-gantry.toml: --set plan.nope.x=: the file has no `plan.nope.x` to remove"),
+        "{said}"
     );
-    acquire(&rig, &dir.join("session"));
-}
-
-#[test]
-fn brdf_display_example_acquires() {
-    let dir = scratch("brdf");
-    let rig = example(&dir, "brdf-display.toml", &[]);
-    acquire(&rig, &dir.join("session"));
 }
 
 #[test]
@@ -230,7 +239,8 @@ fn a_step_that_needs_a_person_stops_without_a_terminal_and_runs_with_yes() {
         "lls-gantry.toml",
         &[
             ("homing", "homing = { mode = \"none\" }"),
-            ("pass_mm", "pass_mm = [-4, 4]\npasses = [\"board\"]"),
+            ("pass_mm", "pass_mm = [-4, 4]"),
+            ("passes", "passes = [\"board\"]"),
             ("exposures_us", "exposures_us = [500]"),
         ],
     );
@@ -366,6 +376,7 @@ fn acquire_rides_out_a_controller_that_dies_and_comes_back() {
         &[
             ("homing", "homing = { mode = \"none\" }"),
             ("pass_mm", "pass_mm = [-4, 4]\nsettle_ms = 300"),
+            ("passes", "passes = [\"reflectance\", \"stripe\"]"),
             ("step_mm", "step_mm = 2"),
             ("exposures_us", "exposures_us = [500]"),
         ],

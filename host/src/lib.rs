@@ -20,6 +20,7 @@ pub mod clock;
 pub mod filter;
 pub mod fit;
 pub mod frames;
+pub mod overrides;
 pub mod plan;
 pub mod response;
 pub mod rigfile;

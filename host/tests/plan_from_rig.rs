@@ -15,10 +15,12 @@ fn example(name: &str) -> PathBuf {
 fn the_gantry_example_plans_one_bracket_per_half_millimetre() {
     let rig = RigFile::load(&example("lls-gantry.toml")).unwrap();
     let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
-    // -180..=180 mm every 0.5 mm = 721 positions; 3 exposures; light tube and stripe passes.
+    // The board frame (its bracket), then -180..=180 mm every 0.5 mm = 721 positions;
+    // 3 exposures; light tube and stripe passes.
     let s = plan.summary();
-    assert_eq!((s.steps, s.triggers), (2, 721 * 3 * 2));
-    let moves: Vec<i32> = plan.steps[0]
+    assert_eq!((s.steps, s.triggers), (3, 3 + 721 * 3 * 2));
+    assert_eq!(plan.steps[0].meta["pass"], "board");
+    let moves: Vec<i32> = plan.steps[1]
         .items()
         .iter()
         .filter_map(|i| match i.action {
@@ -29,7 +31,7 @@ fn the_gantry_example_plans_one_bracket_per_half_millimetre() {
     // 80 steps/mm: the first move goes to the start, then every 40 steps.
     assert_eq!(&moves[..3], [-14_400, -14_400, -14_360]);
     assert_eq!(*moves.last().unwrap(), 14_400);
-    let widths: Vec<u32> = plan.steps[0]
+    let widths: Vec<u32> = plan.steps[1]
         .items()
         .iter()
         .filter_map(|i| match i.action {
@@ -39,7 +41,7 @@ fn the_gantry_example_plans_one_bracket_per_half_millimetre() {
         .take(3)
         .collect();
     assert_eq!(widths, [500, 2_000, 8_000]);
-    assert_eq!(plan.steps[1].meta["pass"], "stripe");
+    assert_eq!(plan.steps[2].meta["pass"], "stripe");
 }
 
 #[test]
@@ -72,9 +74,19 @@ fn plan_mistakes_point_at_the_rig_file() {
 fn the_immersion_and_display_examples_plan() {
     let rig = RigFile::load(&example("fluorescent-immersion.toml")).unwrap();
     let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
-    // Calibration (a dark frame and one sweep), then 36 orientations of 400 sheets.
-    assert_eq!(plan.summary().steps, 37);
-    assert_eq!(plan.summary().triggers, (1 + 400) + 36 * 400);
+    // Calibration at two target positions (a board frame, a dark frame and a sweep each), then
+    // 36 orientations of 365 sheets over the sweep's codes.
+    assert_eq!(plan.summary().steps, 2 * 2 + 36);
+    assert_eq!(plan.summary().triggers, 2 * (1 + 1 + 365) + 36 * 365);
+    let codes: Vec<u16> = plan.steps[4]
+        .items()
+        .iter()
+        .filter_map(|i| match &i.action {
+            Action::GalvoPoint { to, .. } => Some(to.x),
+            _ => None,
+        })
+        .collect();
+    assert_eq!((codes.first(), codes.last()), (Some(&31578), Some(&33749)), "the sweep spans sweep_codes");
     // The display ships as its calibration: a still surface, then one sine per coil per step.
     let path = example("brdf-display.toml");
     let rig = RigFile::load(&path).unwrap();

@@ -10,6 +10,7 @@ use std::sync::Arc;
 
 use lightrig_host::bringup::{bring_up_with, reconnect_backoff_ms, BringUpHooks, RECONNECT_ATTEMPTS};
 use lightrig_host::client::{describe_fault, Client, ClientError, Interrupt};
+use lightrig_host::overrides::{self, Override};
 use lightrig_host::plan::{from_rig, Plan, Step};
 use lightrig_host::rigfile::{self, FrameSource, RigFile};
 use lightrig_host::session::{Manifest, PlanStep, Session};
@@ -38,6 +39,11 @@ pub struct AcquireArgs {
     /// `meta.host`) as done, without asking: for scripts on a rig set up beforehand.
     #[arg(long)]
     pub yes: bool,
+    /// Change one of the rig file's values for this run, `KEY=VALUE` (repeatable):
+    /// `--set plan.step_mm=4 --set camera[0].pulse_us=500`. The session keeps the text that
+    /// ran; `resume --rig` needs the same overrides.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<Override>,
 }
 
 /// Arguments of `lightrig resume`.
@@ -60,6 +66,9 @@ pub struct ResumeArgs {
     /// journal.jsonl.dropped.N. Without it such a session is refused, to be looked at first.
     #[arg(long)]
     pub drop_damaged_tail: bool,
+    /// The overrides the session was started with (`acquire --set`), for `--rig`'s check.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<Override>,
 }
 
 pub(crate) fn connect_spec(rig: &RigFile, over: Option<&Connect>) -> Connect {
@@ -402,17 +411,26 @@ fn client_error(spec: &Connect, e: CliError) -> ClientError {
     ClientError::Io { device: spec.to_string(), error: std::io::Error::other(e.message) }
 }
 
-/// `lightrig acquire RIG --session DIR [--yes]`.
+/// The rig file at `path` with `overrides` applied: its text and the parsed file.
+pub fn rig_with(path: &Path, overrides: &[Override]) -> Result<(String, RigFile), CliError> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| err(INPUT, format!("{}: cannot read the rig file: {e}", path.display())))?;
+    let text =
+        overrides::apply(&text, overrides).map_err(|e| err(INPUT, format!("{}: {e}", path.display())))?;
+    let rig = RigFile::parse(&text, path).map_err(|e| err(INPUT, e.to_string()))?;
+    Ok((text, rig))
+}
+
+/// `lightrig acquire RIG --session DIR [--yes] [--set KEY=VALUE …]`.
 pub fn acquire(
     rig_path: &Path,
     dir: &Path,
     over: Option<&Connect>,
     assume_done: bool,
+    overrides: &[Override],
 ) -> Result<(), CliError> {
-    let rig = RigFile::load(rig_path).map_err(|e| err(INPUT, e.to_string()))?;
+    let (text, rig) = rig_with(rig_path, overrides)?;
     lightrig_host::response::check(&rig).map_err(|e| err(INPUT, e))?;
-    let text =
-        std::fs::read_to_string(rig_path).map_err(|e| err(INPUT, format!("{}: {e}", rig_path.display())))?;
     if dir.join("manifest.json").exists() {
         return Err(err(
             INPUT,
@@ -442,13 +460,16 @@ pub fn resume(args: &ResumeArgs) -> Result<(), CliError> {
     let text = session.manifest().rig.clone();
     let base: PathBuf = match rig_path {
         Some(p) => {
-            let now = std::fs::read_to_string(p).map_err(|e| err(INPUT, format!("{}: {e}", p.display())))?;
+            let (now, _) = rig_with(p, &args.overrides)?;
             if now != text {
                 return Err(err(
                     INPUT,
                     format!(
-                        "{} changed since the session started; resume with the original rig file",
-                        p.display()
+                        "{} with {} override(s) is not the rig file the session started with: resume with \
+                         the original file and the same --set options (the session's copy is in its \
+                         manifest.json)",
+                        p.display(),
+                        args.overrides.len()
                     ),
                 ));
             }

@@ -11,7 +11,8 @@
 //!   `exposure_us`, `readout_us`, `frame_bytes`.
 //!
 //! - fluorescent-immersion: `views` (turntable positions over a full turn), `sheet_positions`
-//!   (spread over the galvo's X range; Y at its zero code), `laser` (name; the first laser),
+//!   (spread over `sweep_codes = [first, last]`, by default the galvo's X range; Y at its zero
+//!   code), `laser` (name; the first laser),
 //!   `exposure_us`, `readout_us`, `calibration` (true), `frame_bytes`, `calibration_targets`
 //!   (the target's positions, `[{ z_mm = … }, …]`, front to back: a board frame and a sweep at each).
 //! - brdf-display: `patterns.NAME = { frequencies_hz = […], amplitudes = […] }` (amplitudes as
@@ -327,12 +328,38 @@ fn immersion_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         None => true,
         Some(v) => v.as_bool().ok_or_else(|| rig.error("plan.calibration", "must be true or false"))?,
     };
+    let sweep = match nums(rig, "sweep_codes")? {
+        None => (galvo.x.min_code, galvo.x.max_code),
+        Some(c) => {
+            let (lo, hi) = (galvo.x.min_code, galvo.x.max_code);
+            match c[..] {
+                [a, b]
+                    if a.fract() == 0.0
+                        && b.fract() == 0.0
+                        && a >= f64::from(lo)
+                        && b <= f64::from(hi)
+                        && a < b =>
+                {
+                    (a as u16, b as u16)
+                }
+                _ => {
+                    return Err(rig.error(
+                        "plan.sweep_codes",
+                        format!(
+                            "must be [first, last], whole galvo codes with first < last inside galvo[0].x's \
+                             range {lo}..={hi}"
+                        ),
+                    ))
+                }
+            }
+        }
+    };
     let p = firs::ImmersionParams {
         turntable,
         orientations,
         laser,
         galvo: galvo.galvo,
-        sweep: (galvo.x.min_code, galvo.x.max_code, sheets),
+        sweep: (sweep.0, sweep.1, sheets),
         sheet_y: galvo.y.zero_code,
         cameras: indices(&cameras),
         exposure,
@@ -673,15 +700,18 @@ mod tests {
     use super::*;
 
     fn rig_with(targets: &str) -> RigFile {
-        let text = std::fs::read_to_string(concat!(
+        RigFile::parse(&rig_text(targets), std::path::Path::new("rig.toml")).unwrap()
+    }
+
+    fn rig_text(targets: &str) -> String {
+        std::fs::read_to_string(concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/../docs/rigs/fluorescent-immersion.toml"
         ))
         .unwrap()
         .replace("views = 36 ", "views = 2 ")
-        .replace("sheet_positions = 400 ", "sheet_positions = 5 ")
-        .replace("# calibration_targets = [{ z_mm = -12.0 }, { z_mm = 8.0 }]", targets);
-        RigFile::parse(&text, std::path::Path::new("rig.toml")).unwrap()
+        .replace("sheet_positions = 365 ", "sheet_positions = 5 ")
+        .replace("calibration_targets = [{ z_mm = -12.0 }, { z_mm = 8.0 }]", targets)
     }
 
     #[test]
@@ -694,6 +724,14 @@ mod tests {
         assert_eq!(plan.steps[0].meta["pose"]["z_mm"], -12.0);
         assert_eq!(plan.steps[3].meta["pose"]["z_mm"], 8);
         assert_eq!(plan.summary().triggers, 2 * (1 + 1 + 5) + 2 * 5);
+        // The sweep's codes must lie inside the galvo's range.
+        for bad in ["[30000, 50000]", "[33749, 31578]", "[31578.5, 33000]", "[1]"] {
+            let text = rig_text("calibration_targets = [{ z_mm = -12.0 }, { z_mm = 8 }]")
+                .replace("sweep_codes = [31578, 33749]", &format!("sweep_codes = {bad}"));
+            let rig = RigFile::parse(&text, std::path::Path::new("rig.toml")).unwrap();
+            let e = super::plan(&rig, &info).unwrap_err().to_string();
+            assert!(e.contains("plan.sweep_codes") && e.contains("range 19661..=45875"), "{bad}: {e}");
+        }
         for bad in [
             "calibration_targets = [{ z_mm = -12.0 }]",
             "calibration_targets = [{ z = 1.0 }, { z_mm = 2.0 }]",
