@@ -85,6 +85,38 @@ fn lls_demo_meets_the_accuracy_targets() {
     // The diagonal passes were used, and their normals alone meet the target too.
     assert_eq!(again.diagonal_mounts, vec![-15, 15]);
     assert!(acc.photometric_normal_deg < 1.0, "{}", acc.photometric_normal_deg);
+    // Both blends are reported; the frequency split is the default and what the fit used, the
+    // paper's ρs/α blend meets the target too.
+    let report_text = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(
+        report_text.contains("| normal, frequency split of the two (used), median deg |"),
+        "{report_text}"
+    );
+    assert!(report_text.contains("| normal, blended by ρs/α as the paper's §7.2, median deg |"));
+    assert_eq!(acc.split_normal_deg, acc.normal_deg);
+    assert!(acc.gloss_normal_deg < 1.0, "{}", acc.gloss_normal_deg);
+    // `[plan.fit] normal_blend = "gloss"` makes the fit use the paper's blend: the same session
+    // with that line in its rig file.
+    let gloss_session = out.join("gloss-session");
+    copy_dir(&out.join("session"), &gloss_session);
+    let manifest = gloss_session.join("manifest.json");
+    let mut m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&manifest).unwrap()).unwrap();
+    let rig = m["rig"].as_str().unwrap().replace("[plan.fit]\n", "[plan.fit]\nnormal_blend = \"gloss\"\n");
+    m["rig"] = rig.into();
+    std::fs::write(&manifest, serde_json::to_string_pretty(&m).unwrap()).unwrap();
+    let gloss = lightrig_host::fit::lls::fit_session(
+        &gloss_session,
+        Some(&out.join("camera.toml")),
+        &out.join("gloss"),
+        &|_, _| {},
+    )
+    .unwrap();
+    assert_eq!(gloss.normal_blend, lightrig_host::fit::lls::NormalBlend::Gloss);
+    assert_eq!(gloss.gloss_normals, again.gloss_normals, "the blends do not depend on the choice");
+    for i in (0..gloss.normals.len()).filter(|&i| gloss.fitted[i]) {
+        assert_eq!(gloss.normals[i], gloss.gloss_normals[i]);
+    }
     // The check frame (relit.png's pair): the maps' prediction of the middle frame against the
     // capture, over the fitted pixels, relative to the capture's median there.
     let (_, captured, predicted) = &again.check_frame;
@@ -151,6 +183,19 @@ fn a_gamma_camera_fits_with_its_response_and_misses_without() {
         "merged as linear, the fit should miss: {wrong:?}"
     );
     std::fs::remove_dir_all(&out).ok();
+}
+
+fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let dest = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &dest);
+        } else {
+            std::fs::copy(e.path(), dest).unwrap();
+        }
+    }
 }
 
 /// Every map of two fits, bit for bit (NaN equal to NaN).

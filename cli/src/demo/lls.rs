@@ -11,7 +11,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use lightrig_host::fit::lls::{fit_session, write_outputs, LlsMaps};
+use lightrig_host::fit::lls::{fit_session, write_outputs, LlsMaps, NormalBlend};
 use lightrig_imaging::io::{write_exr_layers, ExrPrecision, Layer};
 use lightrig_pipelines::vec3::angle;
 use lightrig_sim::scenes::lls::{LlsScene, LlsSceneSpec, Region};
@@ -59,6 +59,10 @@ pub struct LlsAccuracy {
     pub geometric_normal_deg: f64,
     /// The same for the diagonal passes' normals alone (NaN without diagonal passes).
     pub photometric_normal_deg: f64,
+    /// The same for the two blends of the diagonal passes' normals with the displacement
+    /// map's: the frequency split and the paper's `ρs/α` blend (NaN without diagonal passes).
+    pub split_normal_deg: f64,
+    pub gloss_normal_deg: f64,
     /// Median |h − h*|, mm.
     pub height_mm: f64,
     /// Median |τ − τ*|.
@@ -294,7 +298,7 @@ fn write_calibration(spec: &LlsSceneSpec, path: &Path) -> Result<(), CliError> {
 /// Compares the maps with the scene's truth.
 pub fn lls_accuracy(scene: &LlsScene, m: &LlsMaps, step_mm: f64) -> LlsAccuracy {
     let (mut d, mut s, mut r, mut n, mut hgt, mut tr) = (vec![], vec![], vec![], vec![], vec![], vec![]);
-    let (mut ng, mut np) = (vec![], vec![]);
+    let (mut ng, mut np, mut ns, mut nb) = (vec![], vec![], vec![], vec![]);
     for (i, t) in scene.truth.iter().enumerate() {
         if t.region != Region::Sample || !m.fitted[i] {
             continue;
@@ -305,9 +309,13 @@ pub fn lls_accuracy(scene: &LlsScene, m: &LlsMaps, step_mm: f64) -> LlsAccuracy 
             s.push((f.specular[c] / t.material.specular[c] - 1.0).abs());
         }
         r.push((f.alpha / t.material.alpha - 1.0).abs());
-        for (normals, errs) in
-            [(&m.normals, &mut n), (&m.geometric_normals, &mut ng), (&m.photometric_normals, &mut np)]
-        {
+        for (normals, errs) in [
+            (&m.normals, &mut n),
+            (&m.geometric_normals, &mut ng),
+            (&m.photometric_normals, &mut np),
+            (&m.split_normals, &mut ns),
+            (&m.gloss_normals, &mut nb),
+        ] {
             if let Some(nn) = normals[i] {
                 errs.push(angle(nn, t.normal).to_degrees());
             }
@@ -325,6 +333,8 @@ pub fn lls_accuracy(scene: &LlsScene, m: &LlsMaps, step_mm: f64) -> LlsAccuracy 
         normal_deg: median(n),
         geometric_normal_deg: median(ng),
         photometric_normal_deg: median(np),
+        split_normal_deg: median(ns),
+        gloss_normal_deg: median(nb),
         height_mm: median(hgt),
         translucency_abs: median(tr),
         step_mm,
@@ -458,6 +468,17 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
             "| normal from the diagonal passes ({}°) alone, median deg | {:.4} | | |",
             maps.diagonal_mounts.iter().map(|m| format!("{m:+}")).collect::<Vec<_>>().join(", "),
             acc.photometric_normal_deg
+        ));
+        let used = |b| if maps.normal_blend == b { " (used)" } else { "" };
+        r.line(format_args!(
+            "| normal, frequency split of the two{}, median deg | {:.4} | | |",
+            used(NormalBlend::Split),
+            acc.split_normal_deg
+        ));
+        r.line(format_args!(
+            "| normal, blended by ρs/α as the paper's §7.2{}, median deg | {:.4} | | |",
+            used(NormalBlend::Gloss),
+            acc.gloss_normal_deg
         ));
     }
     r.line("\nRoughness by material:\n\n| α | pixels | median rel error |\n|---|---|---|");

@@ -912,6 +912,33 @@ pub fn blend_normals(
         .collect()
 }
 
+/// Where [`blend_normals_by_gloss`] switches: displacement normals below `ρs/α = LOW`,
+/// specular normals above `HIGH`, linear between (Gardner et al. §7.2).
+pub const GLOSS_BLEND: (f64, f64) = (0.2, 0.5);
+
+/// Gardner et al.'s §7.2 blend: a pixel's normal from the specular reflection (`photo`) where
+/// its `ρs/α` (`gloss`) exceeds [`GLOSS_BLEND`]`.1`, from the displacement map (`geom`) below
+/// [`GLOSS_BLEND`]`.0`, and linear between (in slope space). A pixel with only one normal
+/// keeps it; a NaN `gloss` takes the displacement normal.
+pub fn blend_normals_by_gloss(photo: &[Option<V3>], geom: &[Option<V3>], gloss: &[f64]) -> Vec<Option<V3>> {
+    let slope = |n: V3| [-n[0] / n[2], -n[1] / n[2]];
+    let (lo, hi) = GLOSS_BLEND;
+    photo
+        .iter()
+        .zip(geom)
+        .zip(gloss)
+        .map(|((p, g), &r)| match (p, g) {
+            (Some(p), Some(g)) if p[2] > 0.0 && g[2] > 0.0 => {
+                let t = if r.is_nan() { 0.0 } else { ((r - lo) / (hi - lo)).clamp(0.0, 1.0) };
+                let (sp, sg) = (slope(*p), slope(*g));
+                let s = [0, 1].map(|k| t * sp[k] + (1.0 - t) * sg[k]);
+                Some(normalize([-s[0], -s[1], 1.0]))
+            }
+            _ => p.or(*g),
+        })
+        .collect()
+}
+
 /// One pixel's trace for [`strip_scale`]: observations and validity per channel, and the model
 /// trace of a white Lambertian surface.
 pub type StripTrace = ([Vec<f64>; 3], [Vec<bool>; 3], Vec<f64>);
@@ -1258,5 +1285,24 @@ mod tests {
         let mut lone = geom.clone();
         lone[0] = None;
         assert_eq!(blend_normals(&photo, &lone, w, h, 2.0)[0], photo[0]);
+    }
+
+    #[test]
+    fn the_gloss_blend_switches_between_the_estimates_by_rho_s_over_alpha() {
+        let photo = normalize([0.2, 0.0, 1.0]);
+        let geom = normalize([0.0, 0.1, 1.0]);
+        let n = 6;
+        let gloss = [0.1, 0.2, 0.35, 0.5, 2.0, f64::NAN];
+        let out = blend_normals_by_gloss(&vec![Some(photo); n], &vec![Some(geom); n], &gloss);
+        let close = |a: V3, b: V3| (0..3).all(|k| (a[k] - b[k]).abs() < 1e-12);
+        assert!(close(out[0].unwrap(), geom) && close(out[1].unwrap(), geom));
+        assert!(close(out[3].unwrap(), photo) && close(out[4].unwrap(), photo));
+        assert!(close(out[5].unwrap(), geom), "no gloss: the displacement normal");
+        // Half way: the mean of the slopes.
+        let m = out[2].unwrap();
+        assert!((m[0] / m[2] - 0.1).abs() < 1e-12 && (m[1] / m[2] - 0.05).abs() < 1e-12, "{m:?}");
+        // A pixel with one estimate keeps it.
+        let one = blend_normals_by_gloss(&[None, Some(photo)], &[Some(geom), None], &[1.0, 0.0]);
+        assert_eq!(one, vec![Some(geom), Some(photo)]);
     }
 }

@@ -22,9 +22,9 @@ use lightrig_imaging::io::{
     read_with, write_exr_layers, write_png, BitDepth, Encoding, ExrPrecision, Image, Layer, ReadOptions,
 };
 use lightrig_pipelines::lls::{
-    blend_normals, fit_normal, fit_tabled_traces, normals_from_points, point_on_sheet, register, strip_ratio,
-    strip_scale_of, stripe_peak, BoardGeometry, Light, LobeTables, PassTrace, Registration, Setup, Sheet,
-    Strip, Sweep, TabledTraces, TraceFit, TraceModel,
+    blend_normals, blend_normals_by_gloss, fit_normal, fit_tabled_traces, normals_from_points,
+    point_on_sheet, register, strip_ratio, strip_scale_of, stripe_peak, BoardGeometry, Light, LobeTables,
+    PassTrace, Registration, Setup, Sheet, Strip, Sweep, TabledTraces, TraceFit, TraceModel,
 };
 use lightrig_pipelines::vec3::{normalize, sub, V3};
 use lightrig_pipelines::ward::Ward;
@@ -54,6 +54,21 @@ pub struct FitSpec {
     pub diffuse_strip: StripGeom,
     /// The specular calibration strip.
     pub specular_strip: StripGeom,
+    /// How the diagonal passes' normals and the displacement map's are combined: `"split"`
+    /// (default: the displacement map's low frequencies, the specular normals' detail) or
+    /// `"gloss"` (Gardner et al. §7.2: by `ρs/α`, specular above 0.5, displacement below 0.2).
+    pub normal_blend: Option<NormalBlend>,
+}
+
+/// How the two normal estimates are combined ([`FitSpec::normal_blend`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum NormalBlend {
+    /// Frequency split: `G_σ∗n_geom + (n_photo − G_σ∗n_photo)` in slope space, σ 2 px.
+    #[default]
+    Split,
+    /// By `ρs/α` per pixel (the paper's §7.2).
+    Gloss,
 }
 
 /// Pinhole intrinsics.
@@ -156,6 +171,13 @@ pub struct LlsMaps {
     pub geometric_normals: Vec<Option<V3>>,
     /// Normals from the diagonal passes' traces (all `None` without diagonal passes).
     pub photometric_normals: Vec<Option<V3>>,
+    /// The two blends of those with the geometric normals (all `None` without diagonal
+    /// passes): the frequency split and the paper's `ρs/α` blend. `normals` is the one
+    /// [`FitSpec::normal_blend`] chose.
+    pub split_normals: Vec<Option<V3>>,
+    pub gloss_normals: Vec<Option<V3>>,
+    /// The blend the final fit used.
+    pub normal_blend: NormalBlend,
     /// The mount angles of the diagonal passes used, degrees.
     pub diagonal_mounts: Vec<i64>,
     pub translucency: Vec<f32>,
@@ -773,6 +795,8 @@ pub fn fit_session_with(
     }
     let geometric_normals = normals.clone();
     let mut photometric_normals = vec![None; w * h];
+    let (mut split_normals, mut gloss_normals) = (vec![None; w * h], vec![None; w * h]);
+    let normal_blend = spec.normal_blend.unwrap_or_default();
     if !diagonal.is_empty() {
         let mut diag_blocks: Vec<Block> = diagonal.iter().map(|_| Block::default()).collect();
         for b in 0..blocks {
@@ -831,8 +855,19 @@ pub fn fit_session_with(
             photometric_normals[range].copy_from_slice(&got);
         }
         drop(diag_blocks);
-        // The geometric normals' low frequencies, the photometric ones' detail (σ 2 px).
-        let blended = blend_normals(&photometric_normals, &geometric_normals, w, h, 2.0);
+        // The geometric normals' low frequencies, the photometric ones' detail (σ 2 px); or
+        // by each pixel's gloss ρs/α from the first fit (§7.2).
+        split_normals = blend_normals(&photometric_normals, &geometric_normals, w, h, 2.0);
+        let gloss: Vec<f64> = fit
+            .iter()
+            .map(|f| (f.specular.iter().sum::<f64>() / 3.0) / f.alpha)
+            .map(|r| if r.is_finite() { r } else { f64::NAN })
+            .collect();
+        gloss_normals = blend_normals_by_gloss(&photometric_normals, &geometric_normals, &gloss);
+        let blended = match normal_blend {
+            NormalBlend::Split => &split_normals,
+            NormalBlend::Gloss => &gloss_normals,
+        };
         for i in 0..w * h {
             if fitted[i] {
                 normals[i] = blended[i];
@@ -929,6 +964,9 @@ pub fn fit_session_with(
         normals,
         geometric_normals,
         photometric_normals,
+        split_normals,
+        gloss_normals,
+        normal_blend,
         diagonal_mounts: diagonal_pos.iter().map(|(m, _)| *m).collect(),
         translucency,
         registration_rms: reg.rms,
