@@ -53,6 +53,11 @@ pub trait FrameInput: Send {
     }
     /// Frames that arrived since the last call.
     fn poll(&mut self, now_us: f64) -> io::Result<Vec<Captured>>;
+    /// Frames of the current step the source knows it lost, `(camera, frame, why)` (a camera
+    /// that delivered a frame incomplete): their missing records say why. Taken once.
+    fn lost(&mut self) -> Vec<(u8, u32, String)> {
+        Vec::new()
+    }
 }
 
 /// What a step asks of the host before its sequence runs, in words: a person's action
@@ -206,6 +211,10 @@ impl FrameInput for Cameras {
             out.extend(c.poll(now_us)?);
         }
         Ok(out)
+    }
+
+    fn lost(&mut self) -> Vec<(u8, u32, String)> {
+        self.0.iter_mut().flat_map(|c| c.lost()).collect()
     }
 }
 
@@ -695,14 +704,20 @@ fn run_step<T: Transport>(
         let frame = c.frame.unwrap_or(0);
         pairing.extra.push(Extra { arrival: i, camera: c.camera, frame, arrived_us: c.host_us, reason });
     }
+    let lost = input.lost();
     // Each frame is written and fsynced with its record (hundreds in a pass): the link stays
     // alive meanwhile.
-    client.busy(|| store(session, &pairing, &arrivals))
+    client.busy(|| store(session, &pairing, &arrivals, &lost))
 }
 
 /// Stores a step attempt's paired frames, records the missing ones and the extra ones, and
 /// closes the attempt; returns the frames stored.
-fn store(session: &mut Session, pairing: &Pairing, arrivals: &[Captured]) -> Result<u64, AcquireError> {
+fn store(
+    session: &mut Session,
+    pairing: &Pairing,
+    arrivals: &[Captured],
+    lost: &[(u8, u32, String)],
+) -> Result<u64, AcquireError> {
     let mut stored = 0;
     for p in &pairing.pairs {
         let c = &arrivals[p.arrival];
@@ -710,7 +725,8 @@ fn store(session: &mut Session, pairing: &Pairing, arrivals: &[Captured]) -> Res
         stored += 1;
     }
     for m in &pairing.missing {
-        session.frame_missing(m, "no frame arrived within the wait")?;
+        let why = lost.iter().find(|(c, f, _)| (*c, *f) == (m.camera, m.frame)).map(|(_, _, w)| w.as_str());
+        session.frame_missing(m, why.unwrap_or("no frame arrived within the wait"))?;
     }
     for x in &pairing.extra {
         let c = &arrivals[x.arrival];

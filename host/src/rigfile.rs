@@ -289,13 +289,36 @@ pub enum FrameSource {
         /// File name with a `{frame}` or `{frame:0N}` placeholder.
         pattern: String,
     },
+    /// A GenICam camera (GigE Vision, USB3 Vision) read through Aravis.
+    Genicam(GenicamSource),
+}
+
+/// A GenICam camera's settings (`source = { kind = "genicam", … }`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct GenicamSource {
+    /// The camera: its address (`127.0.0.1`), or its Aravis id (`Vendor-Model-Serial`).
+    pub address: String,
+    /// `"software"`: the host fires a software trigger for each trigger the controller reports
+    /// (a camera without its trigger line wired, or Aravis's fake camera); else the camera's
+    /// trigger line wired to the controller's trigger output, e.g. `"Line0"`.
+    pub trigger: String,
+    /// Trigger activation for a line trigger (`RisingEdge`, `FallingEdge`, …); `None`: the
+    /// camera's own setting.
+    pub activation: Option<String>,
+    /// Pixel format (`Mono8`, `Mono16`, …); `None`: the camera's own setting.
+    pub pixel_format: Option<String>,
+    /// Exposure, µs; `None`: the camera's own setting (with a line trigger in `TriggerWidth`
+    /// mode the pulse sets it).
+    pub exposure_us: Option<f64>,
+    /// Stream buffers queued at once.
+    pub buffers: u32,
 }
 
 impl FrameSource {
     /// Path of frame `frame`, for a directory source.
     pub fn frame_path(&self, frame: u64) -> Option<PathBuf> {
         match self {
-            FrameSource::Virtual { .. } => None,
+            FrameSource::Virtual { .. } | FrameSource::Genicam(_) => None,
             FrameSource::Directory { dir, pattern } => {
                 Some(dir.join(crate::frames::Pattern::parse(pattern).ok()?.name_of(frame)))
             }
@@ -508,6 +531,12 @@ struct RawSource {
     path: Option<String>,
     pattern: Option<String>,
     gamma: Option<f64>,
+    address: Option<String>,
+    trigger: Option<String>,
+    activation: Option<String>,
+    pixel_format: Option<String>,
+    exposure_us: Option<f64>,
+    buffers: Option<i64>,
 }
 
 #[derive(Deserialize)]
@@ -546,7 +575,7 @@ const HOMING_MODES: &[(&str, HomingMode)] = &[
     ("index", HomingMode::ToIndex),
     ("none", HomingMode::None),
 ];
-const SOURCE_KINDS: &[&str] = &["directory", "virtual"];
+const SOURCE_KINDS: &[&str] = &["directory", "virtual", "genicam"];
 
 fn name_of<T: PartialEq + Copy>(options: &[(&'static str, T)], value: T) -> &'static str {
     options.iter().find(|(_, v)| *v == value).map_or("?", |(s, _)| s)
@@ -867,6 +896,9 @@ fn key_hint(table: &str, field: &str) -> Option<String> {
         "pulse_us" => "trigger pulse width in µs".into(),
         "response" => "the camera's response file from `lightrig hdr calibrate`".into(),
         "gamma" => "the virtual camera's display gamma, 1 = linear".into(),
+        "address" => "the GenICam camera's address or Aravis id".into(),
+        "trigger" => "\"software\" or the camera's trigger line, e.g. \"Line0\"".into(),
+        "buffers" => "stream buffers queued at once".into(),
         "heartbeat_timeout_ms" => "heartbeat timeout in ms".into(),
         _ => return None,
     })
@@ -1244,7 +1276,54 @@ fn build_source(cx: &Cx<'_>, i: usize, s: Option<RawSource>) -> Result<FrameSour
     let k = |f: &str| format!("camera[{i}].source.{f}");
     let Some(s) = s else { return Ok(FrameSource::Virtual { gamma: 1.0 }) };
     let kinds: Vec<_> = SOURCE_KINDS.iter().map(|s| (*s, *s)).collect();
-    if cx.choice(&k("kind"), &s.kind, &kinds)? == "virtual" {
+    let kind = cx.choice(&k("kind"), &s.kind, &kinds)?;
+    if kind != "genicam" {
+        let keys = [
+            ("address", s.address.is_some()),
+            ("trigger", s.trigger.is_some()),
+            ("activation", s.activation.is_some()),
+            ("pixel_format", s.pixel_format.is_some()),
+            ("exposure_us", s.exposure_us.is_some()),
+            ("buffers", s.buffers.is_some()),
+        ];
+        if let Some((key, _)) = keys.iter().find(|(_, set)| *set) {
+            return Err(cx.err(&k(key), "only for kind = \"genicam\" (a GenICam camera read through Aravis)"));
+        }
+    }
+    if kind == "genicam" {
+        for (key, set) in
+            [("path", s.path.is_some()), ("pattern", s.pattern.is_some()), ("gamma", s.gamma.is_some())]
+        {
+            if set {
+                return Err(cx.err(&k(key), "not for kind = \"genicam\": the camera streams its frames"));
+            }
+        }
+        let Some(address) = s.address.filter(|a| !a.is_empty()) else {
+            let message = "required for kind = \"genicam\": the camera's address (\"192.168.1.20\") or its \
+                           Aravis id (`lightrig devices` lists them)";
+            return Err(cx.err(&k("address"), message));
+        };
+        let trigger = s.trigger.unwrap_or_else(|| "software".into());
+        if trigger.is_empty() {
+            return Err(cx.err(&k("trigger"), "\"software\" or the camera's trigger line, e.g. \"Line0\""));
+        }
+        if let Some(e) = s.exposure_us.filter(|e| !(e.is_finite() && *e > 0.0)) {
+            return Err(cx.err(&k("exposure_us"), format!("{e}: must be a positive time in µs")));
+        }
+        let buffers = match s.buffers {
+            None => 16,
+            Some(b) => cx.int(&k("buffers"), b, 2, 1024)? as u32,
+        };
+        return Ok(FrameSource::Genicam(GenicamSource {
+            address,
+            trigger,
+            activation: s.activation,
+            pixel_format: s.pixel_format,
+            exposure_us: s.exposure_us,
+            buffers,
+        }));
+    }
+    if kind == "virtual" {
         for (key, v) in [("path", &s.path), ("pattern", &s.pattern)] {
             if v.is_some() {
                 let message = "only for kind = \"directory\"; a virtual source makes its own frames";

@@ -309,6 +309,31 @@ fn device_and_camera_sources() {
     assert_eq!(rig.camera_source(0).unwrap(), &FrameSource::Virtual { gamma: 2.2 });
     assert_eq!(rig.cameras[0].response.as_deref(), Some(Path::new("/lab/rigs/cam0.json")));
     assert_eq!(parse("[[camera]]\ncamera = 0\npulse_us = 100\n").cameras[0].response, None);
+    // A GenICam camera.
+    let rig = parse(
+        "[[camera]]\ncamera = 0\npulse_us = 100\n\
+         source = { kind = \"genicam\", address = \"192.168.1.20\", trigger = \"Line0\", pixel_format = \"Mono16\" }\n",
+    );
+    assert_eq!(
+        rig.camera_source(0).unwrap(),
+        &FrameSource::Genicam(lightrig_host::rigfile::GenicamSource {
+            address: "192.168.1.20".into(),
+            trigger: "Line0".into(),
+            activation: None,
+            pixel_format: Some("Mono16".into()),
+            exposure_us: None,
+            buffers: 16,
+        })
+    );
+    assert_eq!(
+        parse_err("[[camera]]\ncamera = 0\npulse_us = 100\nsource = { kind = \"genicam\" }\n"),
+        "rig.toml:7: camera[0].source.address: required for kind = \"genicam\": the camera's address \
+         (\"192.168.1.20\") or its Aravis id (`lightrig devices` lists them)"
+    );
+    assert_eq!(
+        parse_err("[[camera]]\ncamera = 0\npulse_us = 100\nsource = { kind = \"virtual\", address = \"x\" }\n"),
+        "rig.toml:7: camera[0].source.address: only for kind = \"genicam\" (a GenICam camera read through Aravis)"
+    );
     assert_eq!(
         parse_err("[[camera]]\ncamera = 0\npulse_us = 100\nsource = { kind = \"virtual\", gamma = 9 }\n"),
         "rig.toml:7: camera[0].source.gamma: must be in 0.2..=5.0 (1 is a linear camera, 2.2 a display gamma)"

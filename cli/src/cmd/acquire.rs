@@ -87,7 +87,10 @@ pub(crate) fn open(
 ) -> Result<(Box<dyn Transport>, Option<Timeline>), CliError> {
     Ok(match spec {
         Connect::Virtual => {
-            let (t, timeline) = connect_for_camera(rig, virtual_device_info(), false);
+            // A real camera beside the virtual controller takes its frames in real time: so
+            // must the controller (the frames' wait is on its clock).
+            let real_camera = rig.cameras.iter().any(|c| !matches!(c.source, FrameSource::Virtual { .. }));
+            let (t, timeline) = connect_for_camera(rig, virtual_device_info(), real_camera);
             (Box::new(t), Some(timeline))
         }
         _ => (spec.open().map_err(|e| err(DEVICE, e.to_string()))?, None),
@@ -122,6 +125,9 @@ fn frame_input(
             FrameSource::Directory { dir, pattern } => {
                 Box::new(DirectoryInput::new(cam.camera, dir, pattern).map_err(|e| err(INPUT, e))?)
             }
+            FrameSource::Genicam(g) => {
+                lightrig_genicam::open(cam.camera, g, cam.min_interval_us).map_err(|e| err(DEVICE, e))?
+            }
             FrameSource::Virtual { gamma } => {
                 let dir = scratch.join(format!("cam{}", cam.camera));
                 let (scene, mut sensor) = scene_for(rig, 1 + u64::from(cam.camera));
@@ -149,8 +155,23 @@ fn check_sources(rig: &RigFile) -> Result<(), CliError> {
         return Err(err(INPUT, format!("{}: the rig has no [[camera]]", rig.path.display())));
     }
     for cam in &rig.cameras {
-        if let FrameSource::Directory { dir, pattern } = &cam.source {
-            DirectoryInput::new(cam.camera, dir, pattern).map_err(|e| err(INPUT, e))?;
+        match &cam.source {
+            FrameSource::Directory { dir, pattern } => {
+                DirectoryInput::new(cam.camera, dir, pattern).map_err(|e| err(INPUT, e))?;
+            }
+            FrameSource::Genicam(g) if !lightrig_genicam::available() => {
+                return Err(err(
+                    INPUT,
+                    format!(
+                        "{}: camera {} ({}): {}",
+                        rig.path.display(),
+                        cam.camera,
+                        g.address,
+                        lightrig_genicam::NOT_BUILT
+                    ),
+                ));
+            }
+            _ => {}
         }
     }
     Ok(())
@@ -276,6 +297,9 @@ impl FrameInput for Boxed<'_> {
     }
     fn poll(&mut self, now: f64) -> std::io::Result<Vec<Captured>> {
         self.0.poll(now)
+    }
+    fn lost(&mut self) -> Vec<(u8, u32, String)> {
+        self.0.lost()
     }
 }
 

@@ -20,6 +20,10 @@ pub struct DevicesArgs {
     /// Machine-readable output.
     #[arg(long)]
     pub json: bool,
+    /// Also open the GenICam camera at this address (repeatable): discovery by broadcast
+    /// finds no camera on loopback or on another subnet.
+    #[arg(long = "genicam", value_name = "ADDRESS")]
+    pub genicam: Vec<String>,
 }
 
 /// Arguments of `lightrig info`.
@@ -85,19 +89,39 @@ pub fn devices(args: &DevicesArgs) -> ExitCode {
         };
         rows.push(serde_json::json!({ "connect": c.connect, "description": c.description, "hello": answer }));
     }
+    // GenICam cameras beside the controllers: a rig file names one by address or id.
+    let cameras = match lightrig_genicam::cameras(&args.genicam) {
+        Ok(cams) => cams
+            .into_iter()
+            .map(|c| {
+                let address = if c.address.is_empty() { c.id.clone() } else { c.address.clone() };
+                serde_json::json!({
+                    "genicam": address,
+                    "description": format!("{} {} ({}), id {}", c.vendor, c.model, c.protocol, c.id),
+                })
+            })
+            .collect(),
+        Err(e) if !args.genicam.is_empty() => {
+            eprintln!("error: --genicam: {e}");
+            return ExitCode::from(USAGE);
+        }
+        Err(_) => Vec::new(),
+    };
+    rows.extend(cameras);
     if args.json {
         println!("{}", serde_json::Value::Array(rows));
     } else if rows.is_empty() {
         println!(
-            "no serial ports or USB controllers found (the virtual rig is always there: --connect virtual)"
+            "no serial ports, USB controllers or GenICam cameras found (the virtual rig is always there: \
+             --connect virtual)"
         );
     } else {
         for r in &rows {
-            println!(
-                "{:<28} {}",
-                r["connect"].as_str().unwrap_or(""),
-                r["description"].as_str().unwrap_or("")
-            );
+            let name = match r["genicam"].as_str() {
+                Some(a) => format!("genicam:{a}"),
+                None => r["connect"].as_str().unwrap_or("").to_string(),
+            };
+            println!("{:<28} {}", name, r["description"].as_str().unwrap_or(""));
             if !r["hello"].is_null() {
                 println!("    {}", r["hello"]);
             }
