@@ -34,6 +34,10 @@ pub struct ChessboardScene {
     pub noise: f64,
     /// Seed of the noise.
     pub seed: u64,
+    /// Uneven light: every grey level is scaled by `1 + shading·u`, `u`
+    /// running from −1 at the image's left edge to +1 at its right (0: even light; 0.6 makes
+    /// the right side four times as bright as the left).
+    pub shading: f64,
 }
 
 impl ChessboardScene {
@@ -50,6 +54,7 @@ impl ChessboardScene {
             blur: 0.7,
             noise: 0.0,
             seed: 1,
+            shading: 0.0,
         }
     }
 }
@@ -112,7 +117,8 @@ pub fn render_chessboard(
                     * step(1, y0 - 1.0)
                     * (1.0 - step(1, y1 + 1.0));
                 let card = inside * squares + (1.0 - inside) * scene.light;
-                on_card * card + (1.0 - on_card) * scene.background
+                let lit = 1.0 + scene.shading * (2.0 * x as f64 / (w.max(2) - 1) as f64 - 1.0);
+                (on_card * card + (1.0 - on_card) * scene.background) * lit
             };
             let noisy = if scene.noise > 0.0 { value + scene.noise * rng.gauss() } else { value };
             out.push(noisy.round().clamp(0.0, 255.0) as u8);

@@ -354,3 +354,98 @@ fn calibrates_opencv_sample_chessboards() {
     eprintln!("inner corners: fx {:.4} fy {:.4} rms {:.5}", ci.intrinsics.fx, ci.intrinsics.fy, ci.rms);
     assert!((ci.intrinsics.fx / 535.6929 - 1.0).abs() < 0.005, "inner fx {}", ci.intrinsics.fx);
 }
+
+/// Boards tilted 45° and 60° about either image axis, 14 and 22 squares away (squares of ~44
+/// and ~28 px, foreshortened to half at 60°), under even light, uneven light (the right side
+/// four times as bright as the left, or seven times at low contrast), a soft lens (blur σ 1.5
+/// px) and both: every corner found, within 0.3 px of the truth. (OpenCV's
+/// `findChessboardCorners` finds these too; it also finds the same boards blurred at σ 2.5 px
+/// and the 60° board at 28 squares with blur 1.5, which this detector misses.)
+#[test]
+fn finds_boards_tilted_to_60_degrees_under_uneven_light_and_blur() {
+    let k = camera();
+    let base = ChessboardScene { noise: 2.0, ..ChessboardScene::new(9, 6, 1.0) };
+    let scenes = [
+        ("even light", base.clone()),
+        ("blur 1.5", ChessboardScene { blur: 1.5, ..base.clone() }),
+        ("uneven light", ChessboardScene { shading: 0.6, ..base.clone() }),
+        (
+            "uneven light, blur, noise",
+            ChessboardScene { shading: 0.6, blur: 1.5, noise: 3.0, ..base.clone() },
+        ),
+        (
+            "uneven light, low contrast",
+            ChessboardScene { shading: 0.8, dark: 70.0, light: 150.0, noise: 3.0, ..base.clone() },
+        ),
+    ];
+    for dist in [14.0, 22.0] {
+        for tilt_deg in [45.0f64, 60.0] {
+            for axis in 0..2 {
+                let t = tilt_deg.to_radians();
+                // The board's centre (4, 2.5) on the optical axis, `dist` squares away.
+                let (rvec, rc) = if axis == 0 {
+                    ([t, 0.0, 0.0], [4.0, 2.5 * t.cos(), 2.5 * t.sin()])
+                } else {
+                    ([0.0, t, 0.0], [4.0 * t.cos(), 2.5, -4.0 * t.sin()])
+                };
+                let pose = Pose { rvec, tvec: [-rc[0], -rc[1], dist - rc[2]] };
+                for (name, scene) in &scenes {
+                    let (img, truth) = rendered(scene, &k, &pose);
+                    let what =
+                        format!("{name}, tilt {tilt_deg}° about {}, {dist} squares away", ["x", "y"][axis]);
+                    let found = find_chessboard(&img, W, H, (9, 6)).unwrap_or_else(|e| panic!("{what}: {e}"));
+                    let (max, rms) = corner_errors(&found, &truth);
+                    assert!(max < 0.3 && rms < 0.12, "{what}: corner error max {max} px, rms {rms} px");
+                }
+            }
+        }
+    }
+}
+
+/// Boards like OpenCV's sample (9×6, outer squares cut to a third), rendered through a known
+/// camera (fx = fy = 620 px, cx 320, cy 240, k1 −0.15, k2 0.05) in 12 poses tilted 20°–43°,
+/// blur 0.7 px, noise σ 2: which focal length is right is then known. This detector and
+/// `calibrate`: fx 620.039, fy 620.053 (+0.006 %, +0.009 %), rms 0.020 px. OpenCV 5.0.0 on the
+/// same images (written by this test to `$LIGHTRIG_DUMP_BOARDS` when set; findChessboardCorners,
+/// cornerSubPix 30 iterations / 0.001, calibrateCamera with 5 coefficients) finds all 12:
+/// winSize (11, 11), its tutorial's: fx 643.69, fy 650.89 (+3.8 %, +5.0 %), rms 0.934 px;
+/// winSize (7, 7): fx 621.51 (+0.24 %), rms 0.259; winSize (5, 5): fx 620.00, rms 0.033. The
+/// larger windows reach past the cut outer squares into the board's margin and pull the outer
+/// corners, which inflates the focal length: on the sample photographs OpenCV's 0.6–0.9 % higher
+/// fx is that bias, not this detector's.
+#[test]
+fn rendered_boards_of_known_intrinsics_calibrate_to_them() {
+    let k = camera();
+    let scene = ChessboardScene { noise: 2.0, border: 1.0 / 3.0, ..ChessboardScene::new(9, 6, 1.0) };
+    let mut views = Vec::new();
+    for n in 0..12 {
+        let a = n as f64 * std::f64::consts::TAU / 12.0;
+        let t = 0.35 + 0.4 * (n % 3) as f64 / 2.0;
+        let rvec = [t * a.cos(), t * a.sin(), 0.2 * (a * 2.0).sin()];
+        // The board's centre (4, 2.5) near the optical axis, 13–16 squares away.
+        let r = Pose { rvec, tvec: [0.0; 3] }.rotation();
+        let rc: Vec<f64> = (0..3).map(|i| r[i][0] * 4.0 + r[i][1] * 2.5).collect();
+        let off = [1.5 * a.sin(), 1.0 * a.cos(), 13.0 + (n % 4) as f64];
+        let pose = Pose { rvec, tvec: [off[0] - rc[0], off[1] - rc[1], off[2] - rc[2]] };
+        let (img, truth) = rendered(&ChessboardScene { seed: n, ..scene.clone() }, &k, &pose);
+        if let Ok(dir) = std::env::var("LIGHTRIG_DUMP_BOARDS") {
+            let mut pgm = format!("P5\n{W} {H}\n255\n").into_bytes();
+            pgm.extend(&img);
+            std::fs::write(format!("{dir}/board{n:02}.pgm"), pgm).unwrap();
+        }
+        let found = find_chessboard(&img, W, H, (9, 6)).unwrap_or_else(|e| panic!("view {n}: {e}"));
+        let (max, _) = corner_errors(&found, &truth);
+        assert!(max < 0.25, "view {n}: corner error {max} px");
+        views.push(found);
+    }
+    let c = calibrate(&Board::chessboard(9, 6, 1.0), &views).unwrap();
+    eprintln!("rendered boards: {:?}, rms {:.4}", c.intrinsics, c.rms);
+    for (name, got, want) in [("fx", c.intrinsics.fx, k.fx), ("fy", c.intrinsics.fy, k.fy)] {
+        assert!((got / want - 1.0).abs() < 5e-4, "{name} {got} against the true {want}");
+    }
+    assert!(
+        (c.intrinsics.cx - k.cx).abs() < 0.5 && (c.intrinsics.cy - k.cy).abs() < 0.5,
+        "{:?}",
+        c.intrinsics
+    );
+}

@@ -460,6 +460,67 @@ impl Scene<'_> {
     }
 }
 
+impl Scene<'_> {
+    /// Fills the few corners growth left out of a grid that already spans the pattern: on a
+    /// strongly tilted board whose outermost squares are cut short, an outer corner's far
+    /// squares are a few pixels wide and the verification ring reaches past them. Such a corner
+    /// is predicted from its neighbours (the parallelogram through the nearest three), refined,
+    /// and accepted when its diagonal squares show the polarity its neighbour's imply. At most
+    /// three holes, each with known neighbours on two sides.
+    fn fill_holes(&self, grid: &mut Grid, cols: usize, rows: usize) {
+        let Some((i0, i1, j0, j1)) = extent(grid) else { return };
+        let (ni, nj) = ((i1 - i0 + 1) as usize, (j1 - j0 + 1) as usize);
+        if !((ni, nj) == (cols, rows) || (ni, nj) == (rows, cols)) || grid.len() + 3 < cols * rows {
+            return;
+        }
+        let holes: Vec<(i32, i32)> = (i0..=i1)
+            .flat_map(|i| (j0..=j1).map(move |j| (i, j)))
+            .filter(|t| !grid.contains_key(t))
+            .collect();
+        for t in holes {
+            let mut preds = Vec::new();
+            for (si, sj) in [(1, 1), (1, -1), (-1, 1), (-1, -1)] {
+                if let (Some(a), Some(b), Some(c)) =
+                    (grid.get(&(t.0 + si, t.1)), grid.get(&(t.0, t.1 + sj)), grid.get(&(t.0 + si, t.1 + sj)))
+                {
+                    preds.push([a.p[0] + b.p[0] - c.p[0], a.p[1] + b.p[1] - c.p[1]]);
+                }
+            }
+            let Some(near) =
+                [(1, 0), (-1, 0), (0, 1), (0, -1)].iter().find_map(|d| grid.get(&(t.0 + d.0, t.1 + d.1)))
+            else {
+                continue;
+            };
+            if preds.is_empty() {
+                continue;
+            }
+            let n = preds.len() as f64;
+            let pred =
+                [preds.iter().map(|p| p[0]).sum::<f64>() / n, preds.iter().map(|p| p[1]).sum::<f64>() / n];
+            let (ei, ej) = (near.ei, near.ej);
+            let len = norm(ei).min(norm(ej));
+            let win = ((0.2 * len).round() as usize).clamp(2, 6);
+            let Some(q) = refine_corner(self.grad, pred, win, 0.3 * len) else { continue };
+            let r = (0.2 * len).max(2.0);
+            let (Some(here), Some(there)) =
+                (x_polarity(self.smooth, q, ei, ej, r), x_polarity(self.smooth, near.p, ei, ej, r))
+            else {
+                continue;
+            };
+            if here == -there {
+                grid.insert(t, Node { p: q, ei, ej });
+            }
+        }
+    }
+}
+
+/// The grid's index ranges `(imin, imax, jmin, jmax)`.
+fn extent(grid: &Grid) -> Option<(i32, i32, i32, i32)> {
+    let mut keys = grid.keys();
+    let &(i, j) = keys.next()?;
+    Some(keys.fold((i, i, j, j), |(a, b, c, d), &(i, j)| (a.min(i), b.max(i), c.min(j), d.max(j))))
+}
+
 /// Finds the `cols × rows` inner corners of a chessboard in an 8-bit grey image (`w·h` bytes,
 /// row-major) with sub-pixel accuracy.
 ///
@@ -533,7 +594,8 @@ pub fn find_chessboard(
             }
             pairs.sort_by(|a, b| a.0.total_cmp(&b.0));
             for (_, d1, d2) in pairs {
-                let grid = scene.grow(start, d1, d2, cols, rows);
+                let mut grid = scene.grow(start, d1, d2, cols, rows);
+                scene.fill_holes(&mut grid, cols, rows);
                 if let Some(corners) = order_grid(&grid, &smooth, cols, rows) {
                     return Ok(final_refinement(&smooth, &grad, &corners, cols, rows));
                 }
