@@ -128,6 +128,14 @@ fn a_whole_acquisition_through_gige_vision() {
         let img = lightrig_imaging::io::read(session.join(&f.file)).unwrap();
         assert_eq!((img.width, img.height), (512, 512), "the fake camera's frame");
     }
+    // Each frame keeps the camera's frame id and timestamp: ids one apart per frame, times
+    // increasing with the trigger ticks.
+    let stamps: Vec<_> = frames.iter().map(|f| (f.frame, f.tick, f.camera_stamp.expect("stamped"))).collect();
+    for w in stamps.windows(2) {
+        let ((f0, t0, a), (f1, t1, b)) = (w[0], w[1]);
+        assert_eq!(lightrig_genicam::ids::frames_after(a.id, b.id), Some(u64::from(f1 - f0)));
+        assert!(b.time_ns > a.time_ns && t1 > t0);
+    }
     // `lightrig devices` lists it beside the controllers.
     let listed = lightrig(&["devices".into(), "--genicam".into(), "127.0.0.1".into()]);
     let text = String::from_utf8_lossy(&listed.stdout);

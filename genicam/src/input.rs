@@ -11,6 +11,7 @@ use glib::prelude::*;
 use lightrig_host::acquire::{Captured, FrameInput};
 use lightrig_host::plan::Step;
 use lightrig_host::rigfile::GenicamSource;
+use lightrig_host::session::CameraStamp;
 use lightrig_protocol::event::TriggerEvent;
 
 use crate::ids::{advance, frames_after};
@@ -64,7 +65,7 @@ pub fn cameras(addresses: &[String]) -> Vec<CameraInfo> {
 
 /// What the stream thread hands over.
 enum Out {
-    Frame { id: u64, status: Option<String>, png: Result<Vec<u8>, String> },
+    Frame { id: u64, time_ns: u64, status: Option<String>, png: Result<Vec<u8>, String> },
     Error(String),
 }
 
@@ -158,7 +159,9 @@ impl GenicamInput {
             me.last = Some(id);
             me.next_id = Some(advance(id, 1));
         }
-        let gap = Duration::from_micros(min_interval_us.max(0.0) as u64);
+        // A little under the controller's own spacing, so that a late trigger event does not
+        // delay every software trigger after it.
+        let gap = Duration::from_micros((0.8 * min_interval_us).max(0.0) as u64);
         let (fire, fired) = channel::<()>();
         let (tx, frames) = channel::<Out>();
         let address = a.to_string();
@@ -172,19 +175,20 @@ impl GenicamInput {
         let mut out = Vec::new();
         loop {
             match self.frames.try_recv() {
-                Ok(Out::Frame { id, status, png }) => {
+                Ok(Out::Frame { id, time_ns, status, png }) => {
+                    let stamp = Some(CameraStamp { id, time_ns });
                     self.last = Some(id);
                     let base = *self.base.get_or_insert(id);
                     let Some(k) = frames_after(base, id) else {
                         // A frame of an earlier step, late: kept as an extra.
                         if let Ok(data) = png {
-                            out.push(self.captured(Some(id as u32), data, now_us, true));
+                            out.push(self.captured(Some(id as u32), data, now_us, true, stamp));
                         }
                         continue;
                     };
                     let k = k as u32;
                     match (status, png) {
-                        (None, Ok(data)) => out.push(self.captured(Some(k), data, now_us, false)),
+                        (None, Ok(data)) => out.push(self.captured(Some(k), data, now_us, false, stamp)),
                         (Some(s), _) => self.lost.push((
                             self.camera,
                             k,
@@ -205,8 +209,15 @@ impl GenicamInput {
         }
     }
 
-    fn captured(&self, frame: Option<u32>, data: Vec<u8>, host_us: f64, before_step: bool) -> Captured {
-        Captured { camera: self.camera, frame, ext: "png".into(), data, host_us, before_step }
+    fn captured(
+        &self,
+        frame: Option<u32>,
+        data: Vec<u8>,
+        host_us: f64,
+        before_step: bool,
+        stamp: Option<CameraStamp>,
+    ) -> Captured {
+        Captured { camera: self.camera, frame, ext: "png".into(), data, host_us, before_step, stamp }
     }
 }
 
@@ -241,7 +252,7 @@ fn stream_loop(
             last_fire = Some(Instant::now());
         }
         if let Some(b) = stream.timeout_pop_buffer(2_000) {
-            let id = b.frame_id();
+            let (id, time_ns) = (b.frame_id(), b.timestamp());
             let out = match b.status() {
                 BufferStatus::Success => {
                     let name = format_name(b.image_pixel_format());
@@ -251,9 +262,11 @@ fn stream_loop(
                         name,
                         &b.image_data(),
                     );
-                    Out::Frame { id, status: None, png }
+                    Out::Frame { id, time_ns, status: None, png }
                 }
-                other => Out::Frame { id, status: Some(format!("{other:?}")), png: Err(String::new()) },
+                other => {
+                    Out::Frame { id, time_ns, status: Some(format!("{other:?}")), png: Err(String::new()) }
+                }
             };
             stream.push_buffer(b);
             if tx.send(out).is_err() {

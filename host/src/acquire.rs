@@ -19,7 +19,7 @@ use crate::client::{Client, ClientError};
 use crate::frames::{DirectorySource, Pattern};
 use crate::plan::{Plan, Step};
 use crate::session::{pair, Arrival, CameraTriggers, Extra, ExtraReason, Pairing, PlanStep, PlanSummary};
-use crate::session::{Session, SessionError};
+use crate::session::{CameraStamp, Session, SessionError};
 use crate::session::{StepId, Trigger};
 use crate::transport::Transport;
 
@@ -40,6 +40,8 @@ pub struct Captured {
     /// The source knows the frame was made before the step began (a straggler of an earlier
     /// attempt): kept as an extra, never paired.
     pub before_step: bool,
+    /// The camera's own frame id and timestamp, if it gives them (stored with the frame).
+    pub stamp: Option<CameraStamp>,
 }
 
 /// Where a camera's frames come from. Inputs are `Send`: the engine polls them on another
@@ -185,6 +187,7 @@ impl FrameInput for DirectoryInput {
                 data,
                 host_us: now_us,
                 before_step,
+                stamp: None,
             });
         }
         Ok(out)
@@ -721,7 +724,7 @@ fn store(
     let mut stored = 0;
     for p in &pairing.pairs {
         let c = &arrivals[p.arrival];
-        session.store_frame(p, &c.ext, &c.data)?;
+        session.store_frame_stamped(p, &c.ext, &c.data, c.stamp)?;
         stored += 1;
     }
     for m in &pairing.missing {
@@ -763,6 +766,7 @@ mod tests {
                     data,
                     host_us,
                     before_step: false,
+                    stamp: None,
                 });
             }
             Ok(())

@@ -112,6 +112,7 @@ impl FrameInput for NamingCamera {
             data: frame_text(t.sequence, t.frame, t.tick).into_bytes(),
             host_us: host_us.unwrap_or(0.0) + f64::from(EXPOSURE),
             before_step: false,
+            stamp: None,
         });
         Ok(())
     }

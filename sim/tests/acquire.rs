@@ -50,6 +50,7 @@ impl FrameInput for TestCamera {
             data: data.into_bytes(),
             host_us: host_us.unwrap_or(0.0) + 500.0,
             before_step: false,
+            stamp: None,
         };
         if self.duplicate.contains(&n) {
             self.ready.push(c.clone());

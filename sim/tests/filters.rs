@@ -35,6 +35,7 @@ impl FrameInput for Frames {
             data,
             host_us,
             before_step: false,
+            stamp: None,
         });
         Ok(())
     }

@@ -103,6 +103,7 @@ impl FrameInput for SlowCamera {
             data: format!("frame {}\n", t.frame).into_bytes(),
             host_us: host_us.unwrap_or(0.0) + 500.0,
             before_step: false,
+            stamp: None,
         });
         Ok(())
     }

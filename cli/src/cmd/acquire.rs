@@ -427,6 +427,54 @@ fn tally(session: &Session) -> String {
              files with their neighbours"
         );
     }
+    for line in camera_clock_check(session) {
+        out += &format!("\n  {line}");
+    }
+    out
+}
+
+/// Per step and line-triggered camera that stamps its frames (GenICam): the camera's
+/// timestamps against the trigger ticks they were paired with. A frame more than a quarter of
+/// the trigger spacing (and 1 ms) off the line the others make was likely paired with the
+/// wrong trigger: named. (A software-triggered camera's times carry the host's latency and,
+/// on Aravis's fake camera, its frame clock's 40 ms steps: not checked.)
+fn camera_clock_check(session: &Session) -> Vec<String> {
+    let st = session.state();
+    let mut out = Vec::new();
+    let rig = RigFile::parse(&session.manifest().rig, &session.dir().join("manifest.json")).ok();
+    let line_triggered = |cam: u8| {
+        rig.as_ref().and_then(|r| r.cameras.iter().find(|c| c.camera == cam)).is_some_and(
+            |c| matches!(&c.source, FrameSource::Genicam(g) if !g.trigger.eq_ignore_ascii_case("software")),
+        )
+    };
+    for step in st.steps_done() {
+        let (_, a) = st.done_attempt(step).expect("a done step has its attempt");
+        let cameras: std::collections::BTreeSet<u8> = a.frames.keys().map(|k| k.0).collect();
+        for cam in cameras.into_iter().filter(|&c| line_triggered(c)) {
+            let frames: Vec<_> = a.frames.range((cam, 0)..=(cam, u32::MAX)).map(|(_, f)| f).collect();
+            let pts: Vec<(u64, u64)> =
+                frames.iter().filter_map(|f| f.camera_stamp.map(|c| (f.tick, c.time_ns))).collect();
+            let Some(clock) = lightrig_host::session::camera_clock(&pts) else { continue };
+            let mut gaps: Vec<f64> =
+                pts.windows(2).map(|w| (w[1].0 - w[0].0) as f64 * clock.ns_per_tick).collect();
+            gaps.sort_by(f64::total_cmp);
+            let limit = (0.25 * gaps.get(gaps.len() / 2).copied().unwrap_or(0.0)).max(1e6);
+            let off: Vec<String> = frames
+                .iter()
+                .filter(|f| f.camera_stamp.is_some())
+                .zip(&clock.residuals_ns)
+                .filter(|(_, r)| r.abs() > limit)
+                .map(|(f, r)| format!("frame {} ({:+.1} ms)", f.frame, r / 1e6))
+                .collect();
+            if !off.is_empty() {
+                out.push(format!(
+                    "step {step}, camera {cam}: the camera's timestamps put {} off their triggers' ticks; \
+                     those frames may be paired with the wrong trigger",
+                    off.join(", ")
+                ));
+            }
+        }
+    }
     out
 }
 

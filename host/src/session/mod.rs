@@ -43,10 +43,10 @@ use crate::client::EventRecord;
 
 pub use fsutil::{now_rfc3339, rfc3339};
 pub use journal::{crc32, decode_line, encode_line, Crc32, Damage};
-pub use pairing::{pair, Arrival, Extra, ExtraReason, Pair, Pairing, Trigger};
+pub use pairing::{camera_clock, pair, Arrival, CameraClock, Extra, ExtraReason, Pair, Pairing, Trigger};
 pub use records::{
-    new_session_id, CameraTriggers, DeviceSummary, ExtraRecord, FrameRecord, Manifest, MissingRecord,
-    PlanStep, PlanSummary, Record, StepId,
+    new_session_id, CameraStamp, CameraTriggers, DeviceSummary, ExtraRecord, FrameRecord, Manifest,
+    MissingRecord, PlanStep, PlanSummary, Record, StepId,
 };
 pub use state::{Attempt, Outcome, State};
 
@@ -779,6 +779,17 @@ impl Session {
     /// directory fsync), then appends its `Frame` record (fsynced). A `Frame` record therefore
     /// always names a complete file.
     pub fn store_frame(&mut self, pair: &Pair, ext: &str, data: &[u8]) -> Result<FrameRecord> {
+        self.store_frame_stamped(pair, ext, data, None)
+    }
+
+    /// [`Self::store_frame`] with the camera's own frame id and timestamp in the record.
+    pub fn store_frame_stamped(
+        &mut self,
+        pair: &Pair,
+        ext: &str,
+        data: &[u8],
+        camera_stamp: Option<CameraStamp>,
+    ) -> Result<FrameRecord> {
         let (step, attempt) = self.open_or_refuse("store_frame")?;
         let t = &pair.trigger;
         let file = format!("{}/cam{}-frame-{:06}.{}", attempt_dir(step, attempt), t.camera, t.frame, ext);
@@ -796,6 +807,7 @@ impl Session {
             file,
             bytes: data.len() as u64,
             crc32: crc32(data),
+            camera_stamp,
         };
         let record = Record::Frame(rec);
         self.write_file(&record, ext, data)?;

@@ -170,3 +170,63 @@ pub fn pair(triggers: &[Trigger], arrivals: &[Arrival], tolerance_us: f64) -> Pa
     }
     out
 }
+
+/// A camera's clock against the device's, from frames paired with their triggers: a least-
+/// squares line `time_ns ≈ offset_ns + ns_per_tick · tick` and each frame's residual, ns.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraClock {
+    pub offset_ns: f64,
+    pub ns_per_tick: f64,
+    /// Per input point, `time_ns − line(tick)`.
+    pub residuals_ns: Vec<f64>,
+}
+
+/// Fits [`CameraClock`] to `(trigger tick, camera time ns)` pairs; `None` with fewer than 3
+/// points or all at one tick. A frame paired with the wrong trigger sits a trigger spacing
+/// off the line the others make: compare its residual with the spacing.
+pub fn camera_clock(points: &[(u64, u64)]) -> Option<CameraClock> {
+    if points.len() < 3 {
+        return None;
+    }
+    // Relative to the first point: ticks and nanoseconds are large, their spread small.
+    let (t0, c0) = (points[0].0 as f64, points[0].1 as f64);
+    let xs: Vec<f64> = points.iter().map(|p| p.0 as f64 - t0).collect();
+    let ys: Vec<f64> = points.iter().map(|p| p.1 as f64 - c0).collect();
+    let n = xs.len() as f64;
+    let (mx, my) = (xs.iter().sum::<f64>() / n, ys.iter().sum::<f64>() / n);
+    let sxx: f64 = xs.iter().map(|x| (x - mx) * (x - mx)).sum();
+    if sxx <= 0.0 {
+        return None;
+    }
+    let sxy: f64 = xs.iter().zip(&ys).map(|(x, y)| (x - mx) * (y - my)).sum();
+    let slope = sxy / sxx;
+    let icept = my - slope * mx;
+    let residuals_ns = xs.iter().zip(&ys).map(|(x, y)| y - (icept + slope * x)).collect();
+    Some(CameraClock { offset_ns: c0 + icept - slope * t0, ns_per_tick: slope, residuals_ns })
+}
+
+#[cfg(test)]
+mod camera_clock_tests {
+    use super::*;
+
+    #[test]
+    fn a_steady_camera_clock_fits_exactly_and_a_shifted_frame_stands_out() {
+        // 1 MHz ticks, a camera clock 20 ppm fast and 3 s ahead, triggers 50 ms apart.
+        let ticks: Vec<u64> = (0..20).map(|k| 1_000_000 + k * 50_000).collect();
+        let cam = |t: u64| (3e9 + t as f64 * 1000.0 * (1.0 + 20e-6)).round() as u64;
+        let pts: Vec<(u64, u64)> = ticks.iter().map(|&t| (t, cam(t))).collect();
+        let c = camera_clock(&pts).unwrap();
+        assert!((c.ns_per_tick - 1000.02).abs() < 1e-6, "{}", c.ns_per_tick);
+        assert!(c.residuals_ns.iter().all(|r| r.abs() < 1.0), "{:?}", c.residuals_ns);
+        // Frame 7 paired with trigger 8's tick: 50 ms off the others' line.
+        let mut shifted = pts.clone();
+        shifted[7].1 = cam(ticks[8]);
+        let c = camera_clock(&shifted).unwrap();
+        let worst =
+            (0..20).max_by(|&a, &b| c.residuals_ns[a].abs().total_cmp(&c.residuals_ns[b].abs())).unwrap();
+        assert_eq!(worst, 7);
+        assert!(c.residuals_ns[7] > 40e6, "{}", c.residuals_ns[7]);
+        assert!(camera_clock(&pts[..2]).is_none());
+        assert!(camera_clock(&[(5, 1), (5, 2), (5, 3)]).is_none());
+    }
+}

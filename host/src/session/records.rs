@@ -174,6 +174,19 @@ pub struct FrameRecord {
     /// CRC-32/ISO-HDLC of its content, 8 lowercase hex digits.
     #[serde(with = "hex32")]
     pub crc32: u32,
+    /// The camera's own frame id and timestamp, for a camera that gives them (GenICam);
+    /// absent otherwise (format 3 readers without it ignore it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera_stamp: Option<CameraStamp>,
+}
+
+/// What a camera says about a frame itself.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CameraStamp {
+    /// The camera's frame id (GigE Vision block id, USB3 Vision frame id).
+    pub id: u64,
+    /// The camera's timestamp of the frame, ns on the camera's clock.
+    pub time_ns: u64,
 }
 
 /// A trigger whose frame never came.
