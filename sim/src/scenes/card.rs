@@ -1,7 +1,6 @@
-//! The test card: what the virtual camera looks at on a rig with no scene of its own (DISCO,
-//! the bispectral gonioreflectometer, the BRDF display), so that `lightrig acquire` runs end
-//! to end on every rig file with `source = { kind = "virtual" }` and its frames show that the
-//! rig did what the plan said.
+//! The test card: what the virtual camera looks at on a rig with no scene of its own (DISCO),
+//! so that `lightrig acquire` runs end to end on every rig file with
+//! `source = { kind = "virtual" }` and its frames show that the rig did what the plan said.
 //!
 //! A matte card fills the view: an 8 × 8 checker (albedo 0.8 and 0.2) on the rig's first
 //! rotary axis (the turntable), so it turns with it about the image centre, under a room

@@ -3,10 +3,11 @@
 //! - [`lls`]: the linear-light-source sample and its ground truth.
 //! - [`firs`]: the fluorescent-immersion tank scene and its ground truth.
 //! - [`display`]: the BRDF display's liquid surface, driven by the coils' samples.
-//! - [`card`]: the test card for the rigs without a scene of their own yet (DISCO,
-//!   bispectral).
+//! - [`bispectral`]: the gonioreflectometer's coated spheres (or Spectralon), spectra in closed form.
+//! - [`card`]: the test card for the rig without a scene of its own yet (DISCO).
 //! - [`scene_for`]: a rig file's scene, for `lightrig acquire` with `source = { kind = "virtual" }`.
 
+pub mod bispectral;
 pub mod card;
 pub mod display;
 pub mod firs;
@@ -29,7 +30,10 @@ use crate::sensor::Sensor;
 ///   turntable on the first rotary axis;
 /// - BRDF display: the liquid ([`display::DisplayScene::small_water`], 192 × 192 float
 ///   frames), the coils at the rig file's sample rates;
-/// - DISCO, bispectral: the [`card::CardScene`] test card (160 × 120).
+/// - bispectral: the coated spheres ([`bispectral::BispectralScene`], 160 × 100; Spectralon
+///   with `[plan] sample = "spectralon"`), Spectralon at 550 nm through the white slot filling
+///   half the well at the camera's pulse width;
+/// - DISCO: the [`card::CardScene`] test card (160 × 120).
 pub fn scene_for(rig: &RigFile, seed: u64) -> (Box<dyn Scene + Send>, Sensor) {
     let laser = |names: &[&str]| {
         rig.lasers.iter().find(|l| l.name.as_deref().is_some_and(|n| names.contains(&n))).map(|l| l.channel)
@@ -72,7 +76,13 @@ pub fn scene_for(rig: &RigFile, seed: u64) -> (Box<dyn Scene + Send>, Sensor) {
                 Sensor { gain: 200_000.0, depth: crate::sensor::Depth::Float, seed, ..Sensor::default() };
             (Box::new(scene), sensor)
         }
-        Method::Disco | Method::Bispectral => {
+        Method::Bispectral => {
+            let scene = bispectral::BispectralScene::new(rig, 160, 100);
+            let pulse_s = rig.cameras.first().map_or(1e-3, |c| c.pulse_us * 1e-6).max(1e-6);
+            let sensor = Sensor { gain: 15_000.0 / pulse_s, seed, ..Sensor::default() };
+            (Box::new(scene), sensor)
+        }
+        Method::Disco => {
             let card = card::CardScene::new(rig, 160, 120);
             // A laser spot on white fills half the well at the camera's own pulse width.
             let pulse_s = rig.cameras.first().map_or(1e-3, |c| c.pulse_us * 1e-6).max(1e-6);
