@@ -105,7 +105,7 @@ fn missing_reasons(session: &Path) -> Vec<String> {
 #[test]
 fn a_whole_acquisition_through_gige_vision() {
     let _turn = ONE_CAMERA.lock().unwrap_or_else(|e| e.into_inner());
-    let _camera = FakeCamera::start(0);
+    let camera = FakeCamera::start(0);
     let dir = scratch("whole");
     let session = dir.join("session");
     let out = acquire(&session, 6);
@@ -140,6 +140,12 @@ fn a_whole_acquisition_through_gige_vision() {
     let listed = lightrig(&["devices".into(), "--genicam".into(), "127.0.0.1".into()]);
     let text = String::from_utf8_lossy(&listed.stdout);
     assert!(text.contains("genicam:127.0.0.1") && text.contains("Aravis Fake"), "{text}");
+    // Gone: the address is named, the exit status says it is the device.
+    drop(camera);
+    let gone = lightrig(&["devices".into(), "--genicam".into(), "127.0.0.1".into()]);
+    let said = String::from_utf8_lossy(&gone.stderr);
+    assert_eq!(gone.status.code(), Some(3), "{said}");
+    assert!(said.contains("127.0.0.1: no GenICam camera answers there"), "{said}");
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -25,8 +25,9 @@ fn init() {
     });
 }
 
-/// The cameras discovery finds, then those at `addresses` not already found.
-pub fn cameras(addresses: &[String]) -> Vec<CameraInfo> {
+/// The cameras discovery finds, then those at `addresses` not already found; an address that
+/// does not answer is an error naming it.
+pub fn cameras(addresses: &[String]) -> Result<Vec<CameraInfo>, String> {
     init();
     let s = |c: &std::ffi::CStr| c.to_string_lossy().into_owned();
     // SAFETY: Aravis's device list is global state; this process lists it from one thread.
@@ -44,23 +45,24 @@ pub fn cameras(addresses: &[String]) -> Vec<CameraInfo> {
         if out.iter().any(|c| &c.address == a || &c.id == a) {
             continue;
         }
-        if let Ok(cam) = Camera::new(Some(a)) {
-            let g = |r: Result<glib::GString, glib::Error>| r.map(|v| v.to_string()).unwrap_or_default();
-            out.push(CameraInfo {
-                id: format!(
-                    "{}-{}-{}",
-                    g(cam.vendor_name()),
-                    g(cam.model_name()),
-                    g(cam.string("DeviceSerialNumber"))
-                ),
-                vendor: g(cam.vendor_name()),
-                model: g(cam.model_name()),
-                protocol: if cam.is_gv_device() { "GigEVision".into() } else { "USB3Vision".into() },
-                address: a.clone(),
-            });
-        }
+        let cam = Camera::new(Some(a)).map_err(|e| {
+            format!("{a}: no GenICam camera answers there ({e}); check the address and that the camera is on this subnet")
+        })?;
+        let g = |r: Result<glib::GString, glib::Error>| r.map(|v| v.to_string()).unwrap_or_default();
+        out.push(CameraInfo {
+            id: format!(
+                "{}-{}-{}",
+                g(cam.vendor_name()),
+                g(cam.model_name()),
+                g(cam.string("DeviceSerialNumber"))
+            ),
+            vendor: g(cam.vendor_name()),
+            model: g(cam.model_name()),
+            protocol: if cam.is_gv_device() { "GigEVision".into() } else { "USB3Vision".into() },
+            address: a.clone(),
+        });
     }
-    out
+    Ok(out)
 }
 
 /// What the stream thread hands over.

@@ -54,11 +54,12 @@ pub fn open(camera: u8, source: &GenicamSource, min_interval_us: f64) -> Result<
 }
 
 /// The GenICam cameras discovery finds, and those at `addresses` (discovery by broadcast finds
-/// nothing on loopback or across subnets: such a camera is opened by its address).
+/// nothing on loopback or across subnets: such a camera is opened by its address); an address
+/// where no camera answers is an error naming it.
 pub fn cameras(addresses: &[String]) -> Result<Vec<CameraInfo>, String> {
     #[cfg(feature = "aravis")]
     {
-        Ok(input::cameras(addresses))
+        input::cameras(addresses)
     }
     #[cfg(not(feature = "aravis"))]
     {

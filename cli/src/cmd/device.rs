@@ -103,7 +103,7 @@ pub fn devices(args: &DevicesArgs) -> ExitCode {
             .collect(),
         Err(e) if !args.genicam.is_empty() => {
             eprintln!("error: --genicam: {e}");
-            return ExitCode::from(USAGE);
+            return ExitCode::from(if lightrig_genicam::available() { DEVICE } else { USAGE });
         }
         Err(_) => Vec::new(),
     };
