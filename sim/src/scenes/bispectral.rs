@@ -32,14 +32,18 @@ pub enum Sample {
     Spectralon,
 }
 
+/// What every pixel of a frame shares: the wheel's slot and the light and camera filters'
+/// wavelengths (as bits).
+type FrameKey = (Option<u8>, u64, u64);
+
 /// The scene.
 #[derive(Debug)]
 pub struct BispectralScene {
     pub width: u32,
     pub height: u32,
     pub sample: Sample,
-    /// Top sphere, bottom sphere.
-    pub materials: [Material; 2],
+    /// Top sphere, bottom sphere, and the Spectralon target.
+    pub materials: [Material; 3],
     pub light_filter: Lctf,
     pub camera_filter: Lctf,
     /// The light arm's axis.
@@ -50,9 +54,9 @@ pub struct BispectralScene {
     /// Radiance scale: the camera value of Spectralon lit head-on through the white slot at
     /// 550 nm on both filters is this.
     pub scale: f64,
-    /// The wavelength integrals per (source, light filter, camera filter): every pixel of a
-    /// frame shares them.
-    sums: Mutex<HashMap<(String, u64, u64), Vec<Sums>>>,
+    /// The wavelength integrals of each material per (wheel slot, light filter, camera filter):
+    /// every pixel of a frame shares them.
+    sums: Mutex<HashMap<FrameKey, [Sums; 3]>>,
 }
 
 impl BispectralScene {
@@ -75,7 +79,7 @@ impl BispectralScene {
             width,
             height,
             sample,
-            materials: [Material::orange_coat(), Material::fluorescent_yellow()],
+            materials: [Material::orange_coat(), Material::fluorescent_yellow(), Material::spectralon()],
             light_filter: Lctf::default(),
             camera_filter: Lctf::default(),
             light_axis,
@@ -143,12 +147,9 @@ impl Scene for BispectralScene {
         let light_nm = Self::host_nm(state, "light_filter_nm");
         let wi = self.light_dir(state);
         let wo = [0.0, 0.0, 1.0];
-        let material = match self.sample {
-            Sample::Spectralon => Material::spectralon(),
-            Sample::Spheres { .. } => self.materials[k].clone(),
-        };
-        let key = (name.to_string(), light_nm.unwrap_or(0.0).to_bits(), camera_nm.to_bits());
-        let cached = self.sums.lock().map(|c| c.get(&key).map(|v| v[k])).ok().flatten();
+        let material = &self.materials[k];
+        let key = (slot, light_nm.unwrap_or(0.0).to_bits(), camera_nm.to_bits());
+        let cached = self.sums.lock().ok().and_then(|c| c.get(&key).map(|v| v[k]));
         let frame_sums = match cached {
             Some(s) => s,
             None => {
@@ -159,18 +160,14 @@ impl Scene for BispectralScene {
                     (None, "white", Some(l)) => xenon(nm) * self.light_filter.transmission(l, nm),
                     _ => 0.0,
                 };
-                let all: Vec<Sums> = [&self.materials[0], &self.materials[1], &Material::spectralon()]
-                    .iter()
-                    .map(|m| sums(m, &source, &camera))
-                    .collect();
-                let mine = all[k];
+                let all = self.materials.each_ref().map(|m| sums(m, &source, &camera));
                 if let Ok(mut c) = self.sums.lock() {
                     c.insert(key, all);
                 }
-                mine
+                all[k]
             }
         };
-        let v = frame_sums.value(&material, wi, wo, n);
+        let v = frame_sums.value(material, wi, wo, n);
         [v * self.scale; 3]
     }
 }
