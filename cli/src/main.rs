@@ -20,8 +20,9 @@ enum Cmd {
     /// truth (the default method is the linear light source).
     Demo(demo::Args),
     /// Fit a session: `lightrig fit lls SESSION --out DIR [--calibration cam.toml]`,
-    /// `lightrig fit firs-surface|firs-volume SESSION --out DIR`, or
-    /// `lightrig fit display SESSION --out DIR [--calibration display-calibration.json]`.
+    /// `lightrig fit firs-surface|firs-volume SESSION --out DIR`,
+    /// `lightrig fit display SESSION --out DIR [--calibration display-calibration.json]`, or
+    /// `lightrig fit brrdf SESSION --spectralon CAL_SESSION --out DIR`.
     Fit(fit::Args),
     /// Run the host link against the firmware controller in-process over a lossy simulated wire.
     Selfcheck(selfcheck::Args),

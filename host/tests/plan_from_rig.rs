@@ -141,21 +141,38 @@ fn the_bispectral_example_plans_every_pair_above_the_diagonal() {
     let path = example("bispectral.toml");
     let rig = RigFile::load(&path).unwrap();
     let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
-    // LEDs 365..470 nm excite; the camera's tunable filter covers 400..=720 nm in 10 nm steps:
-    // emissions at or above each excitation.
-    let per_geometry: usize = [365u32, 385, 405, 420, 450, 470]
-        .iter()
-        .map(|&ex| (400..=720).step_by(10).filter(|&em| em >= ex).count())
-        .sum();
-    assert_eq!(plan.summary().steps, 6 * 11 * per_geometry);
+    // LEDs 380..460 nm and the xenon through the light filter 480..720 nm excite; the camera's
+    // tunable filter covers 400..=720 nm in 20 nm steps: emissions at or above each excitation
+    // (the thesis's 170 pairs), at 16 light angles.
+    let excitations: Vec<u32> =
+        [380u32, 400, 420, 440, 460].into_iter().chain((480..=720).step_by(20)).collect();
+    let per_geometry: usize =
+        excitations.iter().map(|&ex| (400..=720).step_by(20).filter(|&em| em >= ex).count()).sum();
+    assert_eq!(per_geometry, 170);
+    assert_eq!(plan.summary().steps, 16 * per_geometry);
     assert_eq!(plan.steps[0].meta["host"]["camera_filter_nm"], 400);
-    // Sparse mode: only the chosen pairs.
+    // The xenon's pairs go through the wheel's `white` slot.
+    let white = plan.steps.iter().find(|s| s.meta["excitation_nm"] == 500).unwrap();
+    assert_eq!(white.meta["slot"], 6);
+    // Sparse mode: only the chosen pairs, an LED's and the xenon's.
     let text = std::fs::read_to_string(&path)
         .unwrap()
-        .replace("[plan.tunable_filter]", "pairs = [[365, 450], [405, 600]]\n[plan.tunable_filter]");
+        .replace("[plan.tunable_filter]", "pairs = [[380, 460], [500, 600]]\n[plan.tunable_filter]");
     let rig = RigFile::parse(&text, &path).unwrap();
     let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
-    assert_eq!(plan.summary().steps, 6 * 11 * 2);
+    assert_eq!(plan.summary().steps, 16 * 2);
+    // The Spectralon session: each excitation's row within two bands of its diagonal.
+    let text =
+        std::fs::read_to_string(&path).unwrap().replace("sample = \"spheres\"", "sample = \"spectralon\"");
+    let rig = RigFile::parse(&text, &path).unwrap();
+    let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
+    let row: Vec<u64> = plan
+        .steps
+        .iter()
+        .filter(|s| s.meta["geometry"] == 0 && s.meta["excitation_nm"] == 440)
+        .map(|s| s.meta["emission_nm"].as_u64().unwrap())
+        .collect();
+    assert_eq!(row, [400, 420, 440, 460, 480]);
 }
 
 #[test]

@@ -74,7 +74,7 @@ fn only_the_fluorescent_sphere_glows_off_the_diagonal() {
     let scene = BispectralScene::new(&rig(&[]), 160, 100);
     let (top, bottom) = ((80, 27), (80, 73));
     // Blue LED in, green-yellow out: the fluorescent paint reradiates, the orange coat does not.
-    let blue_in = state(&scene, "led-450", 450.0, 540.0, 0.0);
+    let blue_in = state(&scene, "led-440", 440.0, 540.0, 0.0);
     let (t, b) = (scene.radiance(top.0, top.1, &blue_in)[0], scene.radiance(bottom.0, bottom.1, &blue_in)[0]);
     assert!(b > 1000.0 * t.max(1e-300), "fluorescent {b} against {t}");
     // On the diagonal at 540 nm both reflect; the reradiated light is a good part of it.

@@ -50,14 +50,17 @@ fn rig(light: &Path, camera: &Path) -> RigFile {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/rigs/bispectral.toml");
     let text = std::fs::read_to_string(&path)
         .unwrap()
-        .replace("[plan.tunable_filter]", "pairs = [[365, 450], [405, 600]]\n[plan.tunable_filter]")
+        .replace("[plan.tunable_filter]", "pairs = [[380, 450], [400, 600]]\n[plan.tunable_filter]")
         .replace("settle_ms = 50", &format!(
             "settle_ms = 0\nlight_range_nm = [350, 720]\nlight_port = \"{}\"\ncamera_port = \"{}\"\ntimeout_ms = 500",
             light.display(),
             camera.display()
         ))
-        .replace("sample_angles = [0, 15, 30, 45, 60, 75]", "sample_angles = [0, 30]")
-        .replace("light_angles = [-150, -120, -90, -60, -30, 0, 30, 60, 90, 120, 150]", "light_angles = [60]");
+        .replace("sample_angles = [0]", "sample_angles = [0, 30]")
+        .replace(
+            "light_angles = [0, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100, 110, 120, 130, 140, 150]",
+            "light_angles = [60]",
+        );
     RigFile::parse(&text, &path).unwrap()
 }
 
@@ -88,7 +91,7 @@ fn each_step_tunes_both_filters_before_it_runs() {
     let (r, dir) = run(&rig, "ok");
     r.unwrap();
     // Two geometries × two pairs, in plan order.
-    assert_eq!(light.tuned(), [365.0, 405.0, 365.0, 405.0]);
+    assert_eq!(light.tuned(), [380.0, 400.0, 380.0, 400.0]);
     assert_eq!(camera.tuned(), [450.0, 600.0, 450.0, 600.0]);
     let by = lightrig_host::session::prepared_by(&dir).unwrap();
     assert_eq!(by, ["instruments"; 4]);
@@ -111,6 +114,6 @@ fn a_refusing_or_silent_filter_stops_the_run_before_the_step_and_says_so() {
     let silent = PtyFilter::start((350.0, 720.0), settle, true).unwrap();
     let (r, dir) = run(&rig(silent.path(), camera.path()), "silent");
     let e = r.unwrap_err().to_string();
-    assert!(e.contains("light filter: no answer to 365 nm in time"), "{e}");
+    assert!(e.contains("light filter: no answer to 380 nm in time"), "{e}");
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -4,14 +4,14 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use lightrig_host::fit::{display, firs, lls};
+use lightrig_host::fit::{brrdf, display, firs, lls};
 
 use crate::error::{FAILURE, USAGE};
 
 /// Arguments of `lightrig fit`.
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Pipeline: `lls`, `firs-surface`, `firs-volume` or `display`.
+    /// Pipeline: `lls`, `firs-surface`, `firs-volume`, `display` or `brrdf`.
     pub pipeline: String,
     /// Session directory.
     pub session: PathBuf,
@@ -23,6 +23,10 @@ pub struct Args {
     /// solved with.
     #[arg(long)]
     pub calibration: Option<PathBuf>,
+    /// `brrdf`: the Spectralon session that scales the pairs (else the rig file's
+    /// `[plan.fit] spectralon`).
+    #[arg(long)]
+    pub spectralon: Option<PathBuf>,
 }
 
 /// Runs `lightrig fit`.
@@ -32,9 +36,10 @@ pub fn run(args: &Args) -> ExitCode {
         "firs-surface" => fit_firs_surface(&args.session, &args.out),
         "firs-volume" => fit_firs_volume(&args.session, &args.out),
         "display" | "brdf-display" => fit_display(&args.session, args.calibration.as_deref(), &args.out),
+        "brrdf" | "bispectral" => fit_brrdf(&args.session, args.spectralon.as_deref(), &args.out),
         other => {
             eprintln!(
-                "error: `lightrig fit {other}`: the pipelines are: lls, firs-surface, firs-volume, display"
+                "error: `lightrig fit {other}`: the pipelines are: lls, firs-surface, firs-volume, display, brrdf"
             );
             ExitCode::from(USAGE)
         }
@@ -128,6 +133,46 @@ fn fit_display(session: &Path, calibration: Option<&Path>, out: &Path) -> ExitCo
             }
         }
         files
+    }))
+}
+
+/// `lightrig fit brrdf SESSION --spectralon CAL --out DIR`.
+fn fit_brrdf(session: &Path, spectralon: Option<&Path>, out: &Path) -> ExitCode {
+    let bar = indicatif::ProgressBar::new(0);
+    let b = bar.clone();
+    let fit = brrdf::fit_session(session, spectralon, &move |done, total| {
+        b.set_length(total);
+        b.set_position(done);
+    });
+    bar.finish_and_clear();
+    report_files(fit.and_then(|f| {
+        for n in &f.notes {
+            println!("note: {n}");
+        }
+        println!("{} wavelength pairs; PCA angles {:?} deg", f.pairs.len(), f.pca_angles);
+        for s in &f.spheres {
+            println!(
+                "{} sphere: {} samples, {} of {} bins observed; same angle: {} components for 1 % residual energy, {} for 0.1 %",
+                s.name,
+                s.samples.len(),
+                s.binned.observed(),
+                s.binned.n.pow(3),
+                s.same_angle.0,
+                s.same_angle.1
+            );
+            if let Some(t) = &s.transfer {
+                println!(
+                    "  {}° held out, {} pairs: PSNR non-specular {:.1} dB standard / {:.1} dB saturated, specular {:.1} / {:.1} dB",
+                    t.held_out_deg,
+                    t.chosen.len(),
+                    t.psnr[0],
+                    t.psnr_saturated[0],
+                    t.psnr[1],
+                    t.psnr_saturated[1]
+                );
+            }
+        }
+        brrdf::write_outputs(&f, out)
     }))
 }
 

@@ -4,6 +4,7 @@
 //! on the virtual rig exactly as `lightrig acquire` runs it ([`DemoRig::acquire`]), the
 //! ground truth's scene file, progress bars and the report's tables ([`Report`]).
 
+pub mod brrdf;
 pub mod display;
 pub mod firs;
 pub mod lls;
@@ -30,8 +31,8 @@ use crate::error::{err, failure, io, CliError, FAILURE, INPUT, USAGE};
 /// Arguments of `lightrig demo`.
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Method: `lls` (linear light source), `firs` (fluorescent immersion) or `display` (BRDF
-    /// display).
+    /// Method: `lls` (linear light source), `firs` (fluorescent immersion), `display` (BRDF
+    /// display) or `brrdf` (bispectral).
     #[arg(default_value = "lls")]
     pub method: String,
     /// A small scene for a quick check (about half a minute).
@@ -87,7 +88,24 @@ pub fn run(args: &Args) -> ExitCode {
         eprintln!("error: --step-mm {step}: the display demo has no gantry; it is for `lightrig demo lls`");
         return ExitCode::from(USAGE);
     }
-    let missed = if display {
+    let brrdf = args.method == "brrdf" || args.method == "bispectral";
+    if let Some(step) = args.step_mm.filter(|_| brrdf) {
+        eprintln!("error: --step-mm {step}: the brrdf demo has no gantry; it is for `lightrig demo lls`");
+        return ExitCode::from(USAGE);
+    }
+    let missed = if brrdf {
+        let opts = brrdf::BrrdfDemoOptions {
+            quick: args.quick,
+            out: args.out.join("brrdf"),
+            seed: args.seed,
+            progress: true,
+            real_time: args.real_time,
+        };
+        brrdf::run_brrdf(&opts).map(|r| {
+            eprintln!("report: {}", r.report.display());
+            r.missed()
+        })
+    } else if display {
         let opts = display::DisplayDemoOptions {
             quick: args.quick,
             out: args.out.join("display"),
@@ -124,7 +142,10 @@ pub fn run(args: &Args) -> ExitCode {
             acc.targets().into_iter().filter(|t| !t.3).map(|t| t.0.to_string()).collect::<Vec<_>>()
         })
     } else {
-        eprintln!("error: `lightrig demo {}`: the methods with a demo are: lls, firs, display", args.method);
+        eprintln!(
+            "error: `lightrig demo {}`: the methods with a demo are: lls, firs, display, brrdf",
+            args.method
+        );
         return ExitCode::from(USAGE);
     };
     match missed {

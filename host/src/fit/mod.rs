@@ -8,9 +8,15 @@
 //! - [`firs`]: `lightrig fit firs-surface` and `firs-volume`: calibration through the tank
 //!   wall, surface meshes and points, or the volume and its isosurface.
 //!
-//! Both return a [`FitError`]: one message that says what was wrong, where (file, step,
+//! - [`brrdf`]: `lightrig fit brrdf`: a bispectral session scaled by its Spectralon session,
+//!   binned per sphere, and the PCA-steered reconstruction measured on it.
+//! - [`bracket`]: an exposure bracket merged through the camera's response.
+//!
+//! Each returns a [`FitError`]: one message that says what was wrong, where (file, step,
 //! field) and what to do.
 
+pub mod bracket;
+pub mod brrdf;
 pub mod display;
 pub mod firs;
 pub mod lls;

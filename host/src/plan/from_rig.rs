@@ -21,8 +21,11 @@
 //!
 //! - bispectral: `gonio.sample_angles` and `gonio.light_angles` (degrees, on the rotary axes
 //!   named `sample` and `light-arm`), `tunable_filter.range_nm = [from, to]` and `step_nm` (the
-//!   camera's emission grid), excitation from the filter wheel's `led-NNN` slots; every pair with
-//!   excitation ≤ emission (full mode), or `pairs = [[ex, em], …]` (sparse mode);
+//!   camera's emission grid), excitation from the filter wheel's `led-NNN` slots and, with
+//!   `tunable_filter.excitation_range_nm`, the light filter through the `white` slot on the same
+//!   grid; every pair with excitation ≤ emission (full mode), or `pairs = [[ex, em], …]` (sparse
+//!   mode); with `sample = "spectralon"` (the spectral calibration) each excitation's pairs
+//!   within two steps of its diagonal, either side;
 //!   `exposures_us` (the camera's pulse), `readout_us`, `frame_bytes`. The host sets the tunable
 //!   filter from each step's `meta.host` before running it.
 
@@ -615,17 +618,58 @@ fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         .filter_wheels
         .first()
         .ok_or_else(|| rig.error("filter_wheel", "the excitation needs a [[filter_wheel]]"))?;
-    // Excitation wavelengths: the wheel's `led-NNN` slots.
+    // Excitation wavelengths: the wheel's `led-NNN` slots, and the light filter's band through
+    // the `white` slot over `tunable_filter.excitation_range_nm` (an LED wins where both reach).
     let leds: Vec<(u16, u8)> = wheel
         .filters
         .iter()
         .enumerate()
         .filter_map(|(slot, n)| n.strip_prefix("led-").and_then(|w| w.parse().ok()).map(|w| (w, slot as u8)))
         .collect();
-    if leds.is_empty() {
+    let white = wheel.filters.iter().position(|n| n == "white").map(|s| s as u8);
+    let filter = rig.plan.get("tunable_filter").and_then(|v| v.as_table());
+    let range = |key: &str| -> Result<Option<(i64, i64)>, RigError> {
+        let full = format!("plan.tunable_filter.{key}");
+        let bad = || rig.error(&full, "must be [from_nm, to_nm], e.g. [400, 720]");
+        match filter.and_then(|f| f.get(key)) {
+            None => Ok(None),
+            Some(v) => match v.as_array().map(|a| a.as_slice()) {
+                Some([a, b]) => Ok(Some((a.as_integer().ok_or_else(bad)?, b.as_integer().ok_or_else(bad)?))),
+                _ => Err(bad()),
+            },
+        }
+    };
+    let step = filter.and_then(|f| f.get("step_nm")).and_then(|v| v.as_integer()).filter(|s| *s > 0);
+    let xenon = range("excitation_range_nm")?;
+    if xenon.is_some() && white.is_none() {
+        return Err(rig.error(
+            "plan.tunable_filter.excitation_range_nm",
+            "excitation through the light filter needs a `white` slot on the filter wheel",
+        ));
+    }
+    if leds.is_empty() && xenon.is_none() {
         return Err(rig.error("filter_wheel", "no `led-NNN` filters on the wheel: nothing to excite with"));
     }
-    let slot_of = |ex: u16| leds.iter().find(|(w, _)| *w == ex).map(|(_, s)| *s);
+    let slot_of = |ex: u16| {
+        leds.iter()
+            .find(|(w, _)| *w == ex)
+            .map(|(_, s)| *s)
+            .or_else(|| xenon.filter(|(a, b)| (*a..=*b).contains(&i64::from(ex))).and(white))
+    };
+    let mut excitations: Vec<(u16, u8)> = leds.clone();
+    if let (Some((from, to)), Some(white), Some(step)) = (xenon, white, step) {
+        let mut ex = from;
+        while ex <= to {
+            if !leds.iter().any(|(w, _)| i64::from(*w) == ex) {
+                excitations.push((ex as u16, white));
+            }
+            ex += step;
+        }
+    }
+    excitations.sort_unstable();
+    // The Spectralon session measures each excitation's row around its diagonal (two bands
+    // either side, below the diagonal too): the spectral scaling sums those rows.
+    let spectralon = rig.plan.get("sample").and_then(|v| v.as_str()) == Some("spectralon");
     let pairs: Vec<Pair> = match rig.plan.get("pairs").and_then(|v| v.as_array()) {
         Some(list) => list
             .iter()
@@ -633,7 +677,8 @@ fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
                 let bad = || {
                     rig.error(
                         "plan.pairs",
-                        "each pair is [excitation_nm, emission_nm] with an led-NNN slot for the excitation",
+                        "each pair is [excitation_nm, emission_nm] with an led-NNN slot (or the light \
+                         filter's excitation_range_nm) for the excitation",
                     )
                 };
                 let a = p.as_array().ok_or_else(bad)?;
@@ -647,23 +692,16 @@ fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
             })
             .collect::<Result<_, _>>()?,
         None => {
-            let filter = rig.plan.get("tunable_filter").and_then(|v| v.as_table());
             let bad = || rig.error("plan.tunable_filter", "needs range_nm = [from, to] and step_nm");
-            let range = filter.and_then(|f| f.get("range_nm")).and_then(|v| v.as_array()).ok_or_else(bad)?;
-            let (from, to) = match range.as_slice() {
-                [a, b] => (a.as_integer().ok_or_else(bad)?, b.as_integer().ok_or_else(bad)?),
-                _ => return Err(bad()),
-            };
-            let step = filter
-                .and_then(|f| f.get("step_nm"))
-                .and_then(|v| v.as_integer())
-                .filter(|s| *s > 0)
-                .ok_or_else(bad)?;
+            let (from, to) = range("range_nm")?.ok_or_else(bad)?;
+            let step = step.ok_or_else(bad)?;
             let mut out = Vec::new();
-            for &(ex, slot) in &leds {
+            for &(ex, slot) in &excitations {
                 let mut em = from;
                 while em <= to {
-                    if em >= i64::from(ex) {
+                    let take =
+                        if spectralon { (em - i64::from(ex)).abs() <= 2 * step } else { em >= i64::from(ex) };
+                    if take {
                         out.push(Pair { excitation: ex, emission: em as u16, slot });
                     }
                     em += step;

@@ -140,6 +140,40 @@ impl Material {
         0.85 + 0.15 * cos_o.clamp(0.0, 1.0)
     }
 
+    /// The diagonal entry an ideal instrument with these bands reports (the band-limited
+    /// truth): the diffuse albedo over π, averaged over the light that `source` sends and
+    /// `camera` sees.
+    pub fn band_diagonal(&self, source: Spectrum, camera: Spectrum) -> f64 {
+        let (mut num, mut den) = (0.0, 0.0);
+        for nm in (GRID.0..=GRID.1).map(f64::from) {
+            let sc = source(nm) * camera(nm);
+            num += sc * self.albedo(nm) / std::f64::consts::PI;
+            den += sc;
+        }
+        if den > 0.0 {
+            num / den
+        } else {
+            0.0
+        }
+    }
+
+    /// The off-diagonal entry an ideal instrument with these bands reports (the band-limited
+    /// truth, before the angular factor): the light reradiated into an emission band `step_nm`
+    /// wide per unit of exciting light, per steradian, each spectrum averaged over its band.
+    pub fn band_reradiation(&self, source: Spectrum, camera: Spectrum, step_nm: f64) -> f64 {
+        let Some(Fluorescence { quantum_yield: q, excitation: ex, emission: em }) = self.fluorescence else {
+            return 0.0;
+        };
+        let grid = || (GRID.0..=GRID.1).map(f64::from);
+        let (s, c): (f64, f64) = (grid().map(source).sum(), grid().map(camera).sum());
+        if s <= 0.0 || c <= 0.0 {
+            return 0.0;
+        }
+        let absorbed: f64 = grid().map(|nm| source(nm) * gauss(nm, ex.0, ex.1)).sum::<f64>() / s;
+        let seen: f64 = grid().map(|nm| camera(nm) * gauss(nm, em.0, em.1)).sum::<f64>() / c;
+        step_nm * q * absorbed * seen / (em.1 * 1.064_467) / std::f64::consts::PI
+    }
+
     /// The wavelength-preserving BRDF at `nm` for unit directions `wi`, `wo` and normal `n`.
     pub fn diagonal(&self, nm: f64, wi: [f64; 3], wo: [f64; 3], n: [f64; 3]) -> f64 {
         let d = self.albedo(nm) / std::f64::consts::PI;

@@ -73,7 +73,7 @@ impl BispectralScene {
         let wheel = rig.filter_wheels.first();
         let sample = match rig.plan.get("sample").and_then(|v| v.as_str()) {
             Some("spectralon") => Sample::Spectralon,
-            _ => Sample::Spheres { radius: f64::from(height.min(width / 2)) * 0.23 },
+            _ => Sample::Spheres { radius: f64::from(height.min(width / 2)) * 0.21 },
         };
         let mut s = BispectralScene {
             width,

@@ -18,9 +18,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use lightrig_imaging::calib::Intrinsics;
-use lightrig_imaging::io::{
-    read_with, write_exr_layers, write_png, BitDepth, Encoding, ExrPrecision, Image, Layer, ReadOptions,
-};
+use lightrig_imaging::io::{write_exr_layers, write_png, BitDepth, Encoding, ExrPrecision, Image, Layer};
 use lightrig_pipelines::lls::{
     blend_normals, blend_normals_by_gloss, fit_normal, fit_tabled_traces, normals_from_points,
     point_on_sheet, register, strip_ratio, strip_scale_of, stripe_peak, BoardGeometry, Light, LobeTables,
@@ -214,8 +212,6 @@ pub struct FitTiming {
     pub threads: usize,
 }
 
-const CLIP: f32 = 0.98;
-
 /// One gantry position of a pass: its images (an exposure bracket) and their exposures, s.
 struct Position {
     steps: i32,
@@ -249,51 +245,13 @@ fn positions_of(
     Ok(out)
 }
 
-/// Decodes a position's bracket and merges it: each sample through the camera's `response`
-/// (linear values), exposure-weighted, clipped samples dropped. `size`, when known, is the
-/// size every image must have.
+/// Decodes a position's bracket and merges it ([`crate::fit::bracket::merge`], RGB).
 fn merge(
     pos: &Position,
     size: Option<(u32, u32)>,
     response: &CameraResponse,
 ) -> Result<((u32, u32), Vec<f32>), FitError> {
-    let (mut sum, mut weight): (Vec<f32>, Vec<f32>) = (Vec::new(), Vec::new());
-    let mut size = size;
-    let mut linear = Vec::new();
-    for (path, exposure) in &pos.images {
-        let img = read_with(path, ReadOptions { assume: Encoding::Linear, expect_depth: None })
-            .map_err(|e| fail(format!("{}: {e}", path.display())))?;
-        if img.channels < 3 {
-            return Err(fail(format!("{}: {} channels, the fit needs RGB", path.display(), img.channels)));
-        }
-        if let Some(s) = size.filter(|&s| s != (img.width, img.height)) {
-            return Err(fail(format!(
-                "{}: {}×{} pixels where {}×{} were expected",
-                path.display(),
-                img.width,
-                img.height,
-                s.0,
-                s.1
-            )));
-        }
-        size = Some((img.width, img.height));
-        let n = (img.width * img.height) as usize * 3;
-        if sum.is_empty() {
-            (sum, weight) = (vec![0.0; n], vec![0.0; n]);
-        }
-        response
-            .linearize(&img.data, usize::from(img.channels), 3, CLIP, &mut linear)
-            .map_err(|e| fail(format!("{}: {e}", path.display())))?;
-        // Weight by exposure time (collected light); clipped samples (NaN) get none.
-        for ((s, w), &v) in sum.iter_mut().zip(weight.iter_mut()).zip(&linear) {
-            if !v.is_nan() {
-                *s += v;
-                *w += *exposure as f32;
-            }
-        }
-    }
-    let rate = sum.iter().zip(&weight).map(|(s, w)| if *w > 0.0 { s / w } else { f32::NAN }).collect();
-    Ok((size.unwrap_or((0, 0)), rate))
+    crate::fit::bracket::merge(&pos.images, size, 3, response)
 }
 
 fn gantry_mm(gantry: &crate::rigfile::Stepper, steps: i32) -> f64 {

@@ -1,0 +1,662 @@
+//! `lightrig fit brrdf`: a bispectral session (coated spheres) and its Spectralon session
+//! (the spectral calibration) through the thesis's processing (§4.4.2–4.5):
+//!
+//! 1. every step's exposure series merged through the camera's response ([`bracket`]);
+//! 2. the spectral scaling `s(λo, λi)` from the Spectralon session's rows
+//!    ([`Scaling`]: the rows sum to ρ/π with ρ = 0.99);
+//! 3. the spheres found as discs in the frames lit nearest the camera; each pixel's normal,
+//!    `(ωi, ωo)` from the light arm's angle β, its bispectral sample (every measured pair,
+//!    divided by `cos θi`, scaled);
+//! 4. the samples binned in `(θo, θi, φd)` (`[plan.fit] bins`, 32), empty bins diffused;
+//! 5. the PCA-steered reconstruction measured: the components a same-angle reconstruction
+//!    needs, and an angle left out of the PCA set reconstructed from the greedily chosen
+//!    wavelength pairs, with standard and saturated PCA, PSNR in and out of the highlight.
+//!
+//! `[plan.fit]` keys (all optional): `spectralon` (the calibration session, relative to the
+//! session directory; `--spectralon` on the command line wins), `detection = [[nm, W], …]`
+//! (the camera filter × sensor's integral per band, from the manufacturers' curves; without
+//! it every band counts as equally sensitive), `bins` (32), `pca_angles` (light-arm angles of
+//! the dense PCA set; the first, middle and last by default), `select` (5 pairs),
+//! `specular_deg` (20: pixels whose half vector lies within this of the normal form the
+//! highlight region).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use lightrig_pipelines::brrdf::binning::{Binned, Binner};
+use lightrig_pipelines::brrdf::geometry::{angles, find_discs, light_dir, Disc};
+use lightrig_pipelines::brrdf::pca::{Pca, SaturatedPca};
+use lightrig_pipelines::brrdf::scaling::{PairNm, Scaling};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::fit::{bracket, fail, FitError};
+use crate::rigfile::RigFile;
+use crate::session::{trigger_events, Session};
+
+/// Spectralon's reflectance (§4.4.2: "99 % quasi-Lambertian").
+pub const SPECTRALON: f64 = 0.99;
+
+/// One plan step's merged exposure series.
+#[derive(Debug, Clone)]
+pub struct StepImage {
+    pub step: u32,
+    pub geometry: usize,
+    /// The light arm's angle β, degrees.
+    pub light_deg: f64,
+    pub pair: PairNm,
+    /// Camera value per second, NaN where every exposure clipped.
+    pub rate: Vec<f32>,
+}
+
+/// A session's steps merged.
+#[derive(Debug)]
+pub struct Merged {
+    pub dir: PathBuf,
+    pub rig: RigFile,
+    pub width: usize,
+    pub height: usize,
+    pub steps: Vec<StepImage>,
+}
+
+/// The fit's settings (`[plan.fit]`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FitSpec {
+    pub spectralon: Option<PathBuf>,
+    pub detection: Vec<(f64, f64)>,
+    pub bins: usize,
+    pub pca_angles: Option<Vec<f64>>,
+    pub select: usize,
+    pub specular_deg: f64,
+    /// The emission grid's step, nm (`[plan.tunable_filter] step_nm`).
+    pub step_nm: f64,
+}
+
+impl FitSpec {
+    /// From `rig`'s `[plan.fit]` (every key optional).
+    pub fn from_rig(rig: &RigFile) -> Result<FitSpec, FitError> {
+        let fit = rig.plan.get("fit").and_then(|v| v.as_table());
+        let get = |k: &str| fit.and_then(|f| f.get(k));
+        let num = |v: &toml::Value| v.as_float().or_else(|| v.as_integer().map(|i| i as f64));
+        let bad = |k: &str, what: &str| fail(rig.error(&format!("plan.fit.{k}"), what).to_string());
+        let detection = match get("detection") {
+            None => Vec::new(),
+            Some(v) => v
+                .as_array()
+                .ok_or_else(|| bad("detection", "must be a list of [nm, sensitivity] pairs"))?
+                .iter()
+                .map(|p| match p.as_array().map(|a| a.as_slice()) {
+                    Some([a, b]) => num(a).zip(num(b)).filter(|(_, w)| *w > 0.0),
+                    _ => None,
+                })
+                .collect::<Option<Vec<_>>>()
+                .ok_or_else(|| bad("detection", "each entry is [nm, sensitivity > 0]"))?,
+        };
+        let bins = match get("bins") {
+            None => 32,
+            Some(v) => v.as_integer().filter(|b| [4, 8, 16, 32, 64, 128].contains(b)).ok_or_else(|| {
+                bad("bins", "must be a power of two from 4 to 128 (32, or 64 for specular materials)")
+            })? as usize,
+        };
+        let pca_angles = match get("pca_angles") {
+            None => None,
+            Some(v) => Some(
+                v.as_array()
+                    .and_then(|a| a.iter().map(num).collect::<Option<Vec<_>>>())
+                    .filter(|a| !a.is_empty())
+                    .ok_or_else(|| bad("pca_angles", "must be a list of light-arm angles, degrees"))?,
+            ),
+        };
+        let select = match get("select") {
+            None => 5,
+            Some(v) => v
+                .as_integer()
+                .filter(|s| (1..=64).contains(s))
+                .ok_or_else(|| bad("select", "must be 1 to 64"))? as usize,
+        };
+        let specular_deg = match get("specular_deg") {
+            None => 20.0,
+            Some(v) => num(v)
+                .filter(|d| (0.0..90.0).contains(d))
+                .ok_or_else(|| bad("specular_deg", "must be 0 to 90"))?,
+        };
+        let step_nm =
+            rig.plan.get("tunable_filter").and_then(|t| t.get("step_nm")).and_then(num).unwrap_or(20.0);
+        Ok(FitSpec {
+            spectralon: get("spectralon").and_then(|v| v.as_str()).map(PathBuf::from),
+            detection,
+            bins,
+            pca_angles,
+            select,
+            specular_deg,
+            step_nm,
+        })
+    }
+
+    /// The detection branch's band integral at `nm`: interpolated in the table, 1 without one.
+    pub fn band_integral(&self, nm: f64) -> f64 {
+        let t = &self.detection;
+        match t.iter().position(|&(x, _)| x >= nm) {
+            None => t.last().map_or(1.0, |p| p.1),
+            Some(0) => t[0].1,
+            Some(i) => {
+                let ((a, wa), (b, wb)) = (t[i - 1], t[i]);
+                wa + (nm - a) / (b - a) * (wb - wa)
+            }
+        }
+    }
+}
+
+/// Reads session `dir` and merges every step's exposure series (on all cores), `progress`
+/// told `(done, total)`.
+pub fn read(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<Merged, FitError> {
+    let (session, _) = Session::read(dir).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
+    let manifest = session.manifest().clone();
+    let rig = RigFile::parse(&manifest.rig, &dir.join("manifest.json")).map_err(|e| fail(e.to_string()))?;
+    if rig.method != crate::rigfile::Method::Bispectral {
+        return Err(fail(format!("{}: a {:?} session, not a bispectral one", dir.display(), rig.method)));
+    }
+    let arm = rig
+        .stepper_named("light-arm")
+        .ok_or_else(|| fail(format!("{}: the rig file has no stepper named `light-arm`", dir.display())))?;
+    let camera = session.pipeline_camera(None).map_err(fail)?;
+    let response = crate::response::for_session(&rig, dir, camera).map_err(fail)?;
+    let triggers = trigger_events(dir).map_err(|e| fail(e.to_string()))?;
+    let tick_hz = f64::from(manifest.device.tick_hz);
+    let mut jobs = Vec::new();
+    for s in &manifest.plan.steps {
+        let meta = &s.extra["meta"];
+        let (Some(ex), Some(em)) = (meta["excitation_nm"].as_u64(), meta["emission_nm"].as_u64()) else {
+            continue;
+        };
+        let frames = session.camera_frames_of(s.id, camera);
+        if frames.is_empty() {
+            return Err(fail(format!(
+                "{}: step {} ({}) has no frames: finish the session with `lightrig resume`",
+                dir.display(),
+                s.id,
+                s.name
+            )));
+        }
+        let mut images = Vec::new();
+        for f in &frames {
+            let t = triggers.get(&(f.sequence, f.item)).ok_or_else(|| {
+                fail(format!("{}: frame {} has no trigger record in the journal", dir.display(), f.file))
+            })?;
+            images.push((dir.join(&f.file), f64::from(t.width) / tick_hz));
+        }
+        let light = meta["light"].as_i64().unwrap_or(0);
+        let light_deg = arm.units(light).unwrap_or(0.0);
+        jobs.push((
+            s.id,
+            meta["geometry"].as_u64().unwrap_or(0) as usize,
+            light_deg,
+            (ex as u16, em as u16),
+            images,
+        ));
+    }
+    if jobs.is_empty() {
+        return Err(fail(format!(
+            "{}: no bispectral steps (excitation_nm, emission_nm) in the plan",
+            dir.display()
+        )));
+    }
+    let total = jobs.len() as u64;
+    let done = std::sync::atomic::AtomicU64::new(0);
+    let merged: Vec<((u32, u32), StepImage)> = jobs
+        .into_par_iter()
+        .map(|(step, geometry, light_deg, pair, images)| {
+            let (size, rate) = bracket::merge(&images, None, 1, &response)?;
+            progress(done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1, total);
+            Ok((size, StepImage { step, geometry, light_deg, pair, rate }))
+        })
+        .collect::<Result<_, FitError>>()?;
+    let size = merged[0].0;
+    if let Some((s, m)) = merged.iter().find(|(s, _)| *s != size) {
+        return Err(fail(format!(
+            "{}: step {} has {}×{} frames where the first has {}×{}",
+            dir.display(),
+            m.step,
+            s.0,
+            s.1,
+            size.0,
+            size.1
+        )));
+    }
+    Ok(Merged {
+        dir: dir.to_path_buf(),
+        rig,
+        width: size.0 as usize,
+        height: size.1 as usize,
+        steps: merged.into_iter().map(|m| m.1).collect(),
+    })
+}
+
+/// Spectralon's value per pair: the mean rate over the middle quarter of the frame per unit
+/// `cos θi`, averaged over the geometries with the light within 60° of the target's normal.
+pub fn spectralon_rows(m: &Merged) -> Result<Vec<(PairNm, f64)>, FitError> {
+    let (w, h) = (m.width, m.height);
+    let mut acc: BTreeMap<PairNm, (f64, u32)> = BTreeMap::new();
+    for s in m.steps.iter().filter(|s| s.light_deg.abs() < 60.0) {
+        let (mut sum, mut n, mut clipped) = (0.0, 0u32, 0u32);
+        for y in h / 4..h - h / 4 {
+            for x in w / 4..w - w / 4 {
+                let v = s.rate[y * w + x];
+                if v.is_nan() {
+                    clipped += 1;
+                } else {
+                    sum += f64::from(v);
+                    n += 1;
+                }
+            }
+        }
+        if n == 0 {
+            return Err(fail(format!(
+                "{}: step {} ({}→{} nm): every exposure of the series is clipped on the Spectralon \
+                 target: add a shorter exposure to `exposures_us`",
+                m.dir.display(),
+                s.step,
+                s.pair.0,
+                s.pair.1
+            )));
+        }
+        let _ = clipped;
+        let e = acc.entry(s.pair).or_default();
+        e.0 += sum / f64::from(n) / s.light_deg.to_radians().cos();
+        e.1 += 1;
+    }
+    if acc.is_empty() {
+        return Err(fail(format!(
+            "{}: no geometry lights the Spectralon target within 60° of its normal",
+            m.dir.display()
+        )));
+    }
+    Ok(acc.into_iter().map(|(p, (s, n))| (p, s / f64::from(n))).collect())
+}
+
+/// One pixel's bispectral sample.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Sample {
+    pub geometry: usize,
+    pub light_deg: f64,
+    pub x: u32,
+    pub y: u32,
+    /// Unit normal.
+    pub normal: [f64; 3],
+    /// `(θo, θi, φd)`, radians.
+    pub angles: (f64, f64, f64),
+    /// Angle between the normal and the half vector, degrees.
+    pub half_deg: f64,
+    /// Scaled BRRDF per pair (the fit's `pairs`), sr⁻¹.
+    pub values: Vec<f64>,
+}
+
+/// The angle transfer (thesis figure 4.12): a geometry left out of the PCA set, its samples
+/// reconstructed from their values at the chosen pairs.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Transfer {
+    /// The held-out geometry's light angle, degrees.
+    pub held_out_deg: f64,
+    /// Pairs chosen (standard PCA, saturated PCA).
+    pub chosen: Vec<PairNm>,
+    pub chosen_saturated: Vec<PairNm>,
+    /// `cond(R)` of each choice.
+    pub cond: f64,
+    pub cond_saturated: f64,
+    /// PSNR, dB: `[non-specular, specular]`, standard and saturated PCA.
+    pub psnr: [f64; 2],
+    pub psnr_saturated: [f64; 2],
+    /// Samples in each region.
+    pub pixels: [usize; 2],
+}
+
+/// One sphere's fit.
+#[derive(Debug, Clone)]
+pub struct SphereFit {
+    /// "top" or "bottom".
+    pub name: String,
+    pub disc: Disc,
+    pub samples: Vec<Sample>,
+    pub binned: Binned,
+    /// Same-angle PCA (the first PCA angle): components for residual energy under 1 % and
+    /// 0.1 %, and the residual with 10.
+    pub same_angle: (usize, usize, f64),
+    pub transfer: Option<Transfer>,
+}
+
+/// The whole fit.
+#[derive(Debug, Clone)]
+pub struct BrrdfFit {
+    pub pairs: Vec<PairNm>,
+    pub scaling: Scaling,
+    pub spec: FitSpec,
+    pub spheres: Vec<SphereFit>,
+    /// The light angles of the PCA set, degrees.
+    pub pca_angles: Vec<f64>,
+    /// What the fit left out, and why.
+    pub notes: Vec<String>,
+}
+
+/// Fits session `dir` with the Spectralon session `spectralon` (else `[plan.fit] spectralon`).
+pub fn fit_session(
+    dir: &Path,
+    spectralon: Option<&Path>,
+    progress: &(dyn Fn(u64, u64) + Sync),
+) -> Result<BrrdfFit, FitError> {
+    let m = read(dir, progress)?;
+    let spec = FitSpec::from_rig(&m.rig)?;
+    let cal_dir = match (spectralon, &spec.spectralon) {
+        (Some(p), _) => p.to_path_buf(),
+        (None, Some(p)) => dir.join(p),
+        (None, None) => {
+            return Err(fail(format!(
+                "{}: no Spectralon session to scale by: give --spectralon DIR (a session of the same rig \
+                 with `plan.sample=\"spectralon\"`) or [plan.fit] spectralon",
+                dir.display()
+            )))
+        }
+    };
+    if !cal_dir.join("manifest.json").exists() {
+        return Err(fail(format!(
+            "{}: the Spectralon session is missing (no manifest.json): acquire it with \
+             `lightrig acquire RIG --set plan.sample='\"spectralon\"'`",
+            cal_dir.display()
+        )));
+    }
+    let cal = read(&cal_dir, &|_, _| {})?;
+    if cal.rig.plan.get("sample").and_then(|v| v.as_str()) != Some("spectralon") {
+        return Err(fail(format!(
+            "{}: not a Spectralon session (its rig file's [plan] sample is not \"spectralon\")",
+            cal_dir.display()
+        )));
+    }
+    let mut rows = spectralon_rows(&cal)?;
+    // An excitation whose diagonal the camera filter cannot reach (a near-UV LED below its
+    // range) has no Spectralon scale: its pairs are left out, and said so.
+    let mut dropped = Vec::new();
+    let excitations: std::collections::BTreeSet<u16> = rows.iter().map(|r| r.0 .0).collect();
+    for ex in excitations {
+        if !rows.iter().any(|r| r.0 == (ex, ex)) {
+            dropped.push(ex);
+        }
+    }
+    rows.retain(|r| !dropped.contains(&r.0 .0));
+    let scaling = Scaling::new(&rows, |nm| spec.band_integral(f64::from(nm)), spec.step_nm, SPECTRALON)
+        .map_err(|e| fail(format!("{}: {e}", cal_dir.display())))?;
+    let mut m = m;
+    let left_out = |ex: u16| m.steps.iter().filter(|s| s.pair.0 == ex).count();
+    let counts: Vec<(u16, usize)> = dropped.iter().map(|&ex| (ex, left_out(ex))).collect();
+    m.steps.retain(|s| !dropped.contains(&s.pair.0));
+    let mut fit = fit_merged(&m, scaling, spec)?;
+    for (ex, steps) in counts {
+        fit.notes.push(format!(
+            "excitation {ex} nm left out ({steps} steps): the Spectralon session has no {ex}→{ex} nm pair to scale \
+             it by (its diagonal lies outside the camera filter's range)"
+        ));
+    }
+    Ok(fit)
+}
+
+/// The fit of merged sphere steps with a spectral scaling.
+pub fn fit_merged(m: &Merged, scaling: Scaling, spec: FitSpec) -> Result<BrrdfFit, FitError> {
+    let mut pairs: Vec<PairNm> = m.steps.iter().map(|s| s.pair).collect();
+    pairs.sort_unstable();
+    pairs.dedup();
+    for &(ex, _) in &pairs {
+        if !scaling.diagonal.contains_key(&ex) {
+            return Err(fail(format!(
+                "{}: excitation {ex} nm was not measured in the Spectralon session: acquire it with the same \
+                 excitations",
+                m.dir.display()
+            )));
+        }
+    }
+    let mut geometries: Vec<(usize, f64)> = m.steps.iter().map(|s| (s.geometry, s.light_deg)).collect();
+    geometries.sort_by_key(|g| g.0);
+    geometries.dedup_by_key(|g| g.0);
+    // The spheres: discs in the diagonal frames of the geometry lit nearest the camera.
+    let (g0, _) = *geometries
+        .iter()
+        .min_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))
+        .ok_or_else(|| fail("no geometries"))?;
+    let (w, h) = (m.width, m.height);
+    let mut lit = vec![0.0f32; w * h];
+    for s in m.steps.iter().filter(|s| s.geometry == g0 && s.pair.0 == s.pair.1) {
+        for (l, v) in lit.iter_mut().zip(&s.rate) {
+            if v.is_finite() {
+                *l += v;
+            }
+        }
+    }
+    let mut sorted: Vec<f32> = lit.iter().copied().filter(|v| *v > 0.0).collect();
+    sorted.sort_by(f32::total_cmp);
+    let top = sorted.get(sorted.len() * 99 / 100).copied().unwrap_or(0.0);
+    let discs = find_discs(&lit, w, h, 0.03 * top, 30);
+    if discs.len() != 2 {
+        return Err(fail(format!(
+            "{}: {} bright disc(s) in the diagonal frames of geometry {g0} where two spheres were expected: \
+             check the framing and that a geometry lights the spheres from near the camera",
+            m.dir.display(),
+            discs.len()
+        )));
+    }
+    // Steps by (geometry, pair).
+    let index: BTreeMap<(usize, PairNm), &StepImage> =
+        m.steps.iter().map(|s| ((s.geometry, s.pair), s)).collect();
+    let wo = [0.0, 0.0, 1.0];
+    let mut spheres = Vec::new();
+    let pca_angles = match &spec.pca_angles {
+        Some(a) => a.clone(),
+        None => {
+            let n = geometries.len();
+            let mut v = vec![geometries[0].1, geometries[n / 2].1, geometries[n - 1].1];
+            v.dedup();
+            v
+        }
+    };
+    for (d, disc) in discs.iter().enumerate() {
+        let mut samples = Vec::new();
+        for &(g, light_deg) in &geometries {
+            let wi = light_dir(light_deg);
+            let steps: Vec<Option<&&StepImage>> = pairs.iter().map(|p| index.get(&(g, *p))).collect();
+            if steps.iter().any(Option::is_none) {
+                // A sparse geometry (only some pairs): not a full sample.
+                continue;
+            }
+            let mut raw = vec![0.0; pairs.len()];
+            for y in (disc.cy - disc.r).max(0.0) as usize..((disc.cy + disc.r).ceil() as usize).min(h) {
+                for x in (disc.cx - disc.r).max(0.0) as usize..((disc.cx + disc.r).ceil() as usize).min(w) {
+                    let Some(n) = disc.normal(x, y, 0.95) else { continue };
+                    let Some(a) = angles(n, wi, wo) else { continue };
+                    let ci = a.1.cos();
+                    if ci < 0.3 || a.0.cos() < 0.3 {
+                        continue;
+                    }
+                    let mut ok = true;
+                    for (r, s) in raw.iter_mut().zip(&steps) {
+                        let v = s.map_or(f32::NAN, |s| s.rate[y * w + x]);
+                        ok &= v.is_finite();
+                        *r = f64::from(v) / ci;
+                    }
+                    if !ok {
+                        continue;
+                    }
+                    let mut values = vec![0.0; pairs.len()];
+                    scaling.apply(&pairs, &raw, &mut values).map_err(|e| fail(e.to_string()))?;
+                    let hv = [wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]];
+                    let hl = (hv[0] * hv[0] + hv[1] * hv[1] + hv[2] * hv[2]).sqrt();
+                    let half_deg = ((n[0] * hv[0] + n[1] * hv[1] + n[2] * hv[2]) / hl)
+                        .clamp(-1.0, 1.0)
+                        .acos()
+                        .to_degrees();
+                    samples.push(Sample {
+                        geometry: g,
+                        light_deg,
+                        x: x as u32,
+                        y: y as u32,
+                        normal: n,
+                        angles: a,
+                        half_deg,
+                        values,
+                    });
+                }
+            }
+        }
+        let mut binner = Binner::new(spec.bins, pairs.len());
+        for s in &samples {
+            binner.add(s.angles.0, s.angles.1, s.angles.2, &s.values);
+        }
+        let binned = binner.finish(2 * spec.bins);
+        let at = |deg: f64| (deg * 1e6).round() as i64;
+        let in_set = |s: &Sample| pca_angles.iter().any(|&a| at(a) == at(s.light_deg));
+        // Same angle: the first PCA angle's samples on their own.
+        let first: Vec<Vec<f64>> = samples
+            .iter()
+            .filter(|s| at(s.light_deg) == at(pca_angles[0]))
+            .map(|s| s.values.clone())
+            .collect();
+        let same = Pca::new(&first, 0);
+        let need = |limit: f64| (0..=pairs.len()).find(|&n| same.residual(n) < limit).unwrap_or(pairs.len());
+        let same_angle = (need(0.01), need(0.001), same.residual(10));
+        let transfer = transfer(&samples, &pairs, &pca_angles, &spec, &in_set);
+        spheres.push(SphereFit {
+            name: ["top", "bottom"][d].to_string(),
+            disc: *disc,
+            samples,
+            binned,
+            same_angle,
+            transfer,
+        });
+    }
+    Ok(BrrdfFit { pairs, scaling, spec, spheres, pca_angles, notes: Vec::new() })
+}
+
+/// PSNR of `got` against `want` over samples, dB: the peak is `want`'s largest value.
+fn psnr(want: &[&[f64]], got: &[Vec<f64>]) -> f64 {
+    let (mut se, mut n, mut peak) = (0.0, 0usize, 0.0f64);
+    for (w, g) in want.iter().zip(got) {
+        for (a, b) in w.iter().zip(g) {
+            se += (a - b) * (a - b);
+            n += 1;
+            peak = peak.max(a.abs());
+        }
+    }
+    if n == 0 || se == 0.0 {
+        return f64::INFINITY;
+    }
+    10.0 * (peak * peak / (se / n as f64)).log10()
+}
+
+fn transfer(
+    samples: &[Sample],
+    pairs: &[PairNm],
+    pca_angles: &[f64],
+    spec: &FitSpec,
+    in_set: &dyn Fn(&Sample) -> bool,
+) -> Option<Transfer> {
+    let set: Vec<Vec<f64>> = samples.iter().filter(|s| in_set(s)).map(|s| s.values.clone()).collect();
+    // Held out: the geometry outside the set nearest the middle of the first two PCA angles.
+    let mid = match pca_angles {
+        [a, b, ..] => (a + b) / 2.0,
+        [a] => *a,
+        [] => return None,
+    };
+    let held = samples
+        .iter()
+        .filter(|s| !in_set(s))
+        .map(|s| s.light_deg)
+        .min_by(|a, b| (a - mid).abs().total_cmp(&(b - mid).abs()))?;
+    let out: Vec<&Sample> = samples.iter().filter(|s| s.light_deg == held).collect();
+    if set.is_empty() || out.is_empty() {
+        return None;
+    }
+    let count = spec.select.min(pairs.len());
+    let plain = Pca::new(&set, count);
+    let chosen = plain.select_pairs(count);
+    // The saturation bends at the samples' typical largest value (their diffuse level).
+    let mut peaks: Vec<f64> = set.iter().map(|s| s.iter().copied().fold(0.0, f64::max)).collect();
+    peaks.sort_by(f64::total_cmp);
+    let scale = peaks[peaks.len() / 2].max(1e-9);
+    let sat = SaturatedPca::new(&set, count, scale);
+    let chosen_sat = sat.pca.select_pairs(count);
+    let mut result = Transfer {
+        held_out_deg: held,
+        chosen: chosen.iter().map(|&j| pairs[j]).collect(),
+        chosen_saturated: chosen_sat.iter().map(|&j| pairs[j]).collect(),
+        cond: plain.condition(&chosen),
+        cond_saturated: sat.pca.condition(&chosen_sat),
+        psnr: [0.0; 2],
+        psnr_saturated: [0.0; 2],
+        pixels: [0; 2],
+    };
+    for region in 0..2 {
+        let members: Vec<&Sample> =
+            out.iter().copied().filter(|s| (s.half_deg <= spec.specular_deg) == (region == 1)).collect();
+        result.pixels[region] = members.len();
+        let want: Vec<&[f64]> = members.iter().map(|s| s.values.as_slice()).collect();
+        let rec = |pick: &[usize], f: &dyn Fn(&[f64]) -> Vec<f64>| -> Vec<Vec<f64>> {
+            members.iter().map(|s| f(&pick.iter().map(|&j| s.values[j]).collect::<Vec<_>>())).collect()
+        };
+        result.psnr[region] = psnr(&want, &rec(&chosen, &|m| plain.reconstruct(&chosen, m)));
+        result.psnr_saturated[region] = psnr(&want, &rec(&chosen_sat, &|m| sat.reconstruct(&chosen_sat, m)));
+    }
+    Some(result)
+}
+
+/// The binned BRRDF's header (`brrdf-<sphere>.json`); the values are in `brrdf-<sphere>.f32`.
+#[derive(Debug, Serialize)]
+struct BinnedHeader<'a> {
+    format: &'static str,
+    layout: &'static str,
+    bins: usize,
+    domain: [&'static str; 3],
+    pairs: &'a [PairNm],
+    observed_bins: usize,
+    values: String,
+}
+
+/// Writes the fit's files into `out`: per sphere the binned BRRDF (`brrdf-<sphere>.json` and
+/// `.f32`) and the PCA choice (`pca-<sphere>.json`), and the spectral scaling (`scaling.json`).
+pub fn write_outputs(fit: &BrrdfFit, out: &Path) -> Result<Vec<PathBuf>, FitError> {
+    std::fs::create_dir_all(out).map_err(|e| fail(format!("{}: {e}", out.display())))?;
+    let write = |p: PathBuf, bytes: Vec<u8>| -> Result<PathBuf, FitError> {
+        std::fs::write(&p, bytes).map_err(|e| fail(format!("{}: {e}", p.display())))?;
+        Ok(p)
+    };
+    let mut files = Vec::new();
+    for s in &fit.spheres {
+        let raw: Vec<u8> = s.binned.values.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let values = format!("brrdf-{}.f32", s.name);
+        files.push(write(out.join(&values), raw)?);
+        let header = BinnedHeader {
+            format: "lightrig-brrdf 1",
+            layout:
+                "f32 little-endian, [θo][θi][φd][pair], sr⁻¹; bin centres at (k + 0.5)/bins of the domain",
+            bins: s.binned.n,
+            domain: ["θo 0..π/2", "θi 0..π/2", "φd 0..π"],
+            pairs: &fit.pairs,
+            observed_bins: s.binned.observed(),
+            values,
+        };
+        let json = serde_json::to_string_pretty(&header).map_err(|e| fail(e.to_string()))? + "\n";
+        files.push(write(out.join(format!("brrdf-{}.json", s.name)), json.into_bytes())?);
+        let pca = serde_json::json!({
+            "sphere": s.name,
+            "pca_angles_deg": fit.pca_angles,
+            "same_angle_components": { "residual_1pc": s.same_angle.0, "residual_0.1pc": s.same_angle.1 },
+            "transfer": s.transfer,
+        });
+        let json = serde_json::to_string_pretty(&pca).map_err(|e| fail(e.to_string()))? + "\n";
+        files.push(write(out.join(format!("pca-{}.json", s.name)), json.into_bytes())?);
+    }
+    let scaling = serde_json::json!({
+        "reflectance": fit.scaling.reflectance,
+        "diagonal": fit.scaling.diagonal,
+        "row": fit.scaling.row,
+        "detection": fit.scaling.detection,
+        "leak": fit.scaling.leak.iter().map(|(k, v)| (format!("{}-{}", k.0, k.1), v)).collect::<BTreeMap<_, _>>(),
+    });
+    let json = serde_json::to_string_pretty(&scaling).map_err(|e| fail(e.to_string()))? + "\n";
+    files.push(write(out.join("scaling.json"), json.into_bytes())?);
+    Ok(files)
+}
