@@ -3,7 +3,7 @@
 //! the fit's errors on bad input.
 
 use lightrig_cli::demo::brrdf::{
-    run_brrdf, BrrdfDemoOptions, DIAGONAL_TOLERANCE, MIN_PSNR, RERADIATION_TOLERANCE,
+    run_brrdf, BrrdfDemoOptions, DIAGONAL_TOLERANCE, MAX_COMPONENTS, MIN_PSNR, RERADIATION_TOLERANCE,
 };
 use lightrig_host::fit::brrdf::fit_session;
 
@@ -26,15 +26,49 @@ fn the_quick_brrdf_demo_scales_bins_and_reconstructs_against_the_truth() {
     assert!(r.truth[0].reradiation.is_nan() || r.truth[0].entries[1] == 0);
     assert!(r.truth[1].reradiation <= RERADIATION_TOLERANCE, "{}", r.truth[1].reradiation);
     assert!(r.truth[1].entries[1] > 1000);
+    // Same angle: every PCA angle (0°, 70°, 140°) decomposed, each within the target.
+    let same = &r.fit.spheres[1].same_angle;
+    assert_eq!(same.len(), 3, "{same:?}");
+    assert!(same.iter().all(|a| a.components_1pc <= MAX_COMPONENTS), "{same:?}");
+    assert!(
+        same.iter().any(|a| a.components_1pc > 1),
+        "the fluorescent sphere's 70° slice is not rank one: {same:?}"
+    );
     // The angle left out of the PCA set, from five pairs.
     let t = r.fit.spheres[1].transfer.as_ref().unwrap();
     assert_eq!(t.chosen_saturated.len(), 5);
-    assert!(!r.fit.pca_angles.iter().any(|a| (a - t.held_out_deg).abs() < 0.01));
+    assert!(!r.fit.pca_angles.contains(&t.held_out_deg));
+    assert!((t.held_out_deg - 35.0).abs() < 0.01, "between the first two PCA angles: {}", t.held_out_deg);
+    for a in [0.0, 70.0, 140.0] {
+        assert!(r.fit.pca_angles.iter().any(|p| (p - a).abs() < 0.01), "{:?}", r.fit.pca_angles);
+    }
     assert!(t.psnr_saturated[0] >= MIN_PSNR, "saturated PCA, non-specular: {} dB", t.psnr_saturated[0]);
     // Binned: every bin filled, the observed ones counted.
     for s in &r.fit.spheres {
         assert!(s.binned.observed() > 300, "{}", s.binned.observed());
         assert!(s.binned.values.iter().all(|v| v.is_finite()));
+    }
+    // The spectral images read back as the fit's samples (×π), and the renderings: under the
+    // 400 nm LED the fluorescent sphere glows green, the orange coat stays dark.
+    use lightrig_host::fit::brrdf::{render, spectral_image, RENDER_ILLUMINANTS};
+    use lightrig_imaging::io::BispectralImage;
+    let exr = BispectralImage::read(out.join("fit/spectral-0deg.exr")).unwrap();
+    assert_eq!(exr, spectral_image(&r.fit, r.fit.pca_angles[0]));
+    assert_eq!(exr.diagonal.len() + exr.reradiation.len(), 153);
+    let centre = |k: usize| {
+        let d = r.fit.spheres[k].disc;
+        (d.cy as usize) * r.fit.size.0 as usize + d.cx as usize
+    };
+    let uv = render(&r.fit, r.fit.pca_angles[0], RENDER_ILLUMINANTS[2]);
+    let (top, bottom) = (uv[centre(0)], uv[centre(1)]);
+    assert!(bottom[1] > bottom[0] && bottom[1] > bottom[2], "green glow: {bottom:?}");
+    assert!(bottom[1] > 10.0 * top[1].max(1e-6), "fluorescent {bottom:?} against {top:?}");
+    let day = render(&r.fit, r.fit.pca_angles[0], RENDER_ILLUMINANTS[0])[centre(0)];
+    assert!(day[0] > day[1] && day[1] > day[2], "orange in daylight: {day:?}");
+    for f in
+        ["render-d65.png", "render-a.png", "render-led400.png", "spectral-70deg.exr", "spectral-140deg.exr"]
+    {
+        assert!(out.join("fit").join(f).exists(), "{f}");
     }
     let report = std::fs::read_to_string(&r.report).unwrap();
     assert!(report.contains("## Per sphere") && report.contains("excitation 380 nm left out"));
@@ -52,5 +86,24 @@ fn the_quick_brrdf_demo_scales_bins_and_reconstructs_against_the_truth() {
     assert!(e.contains("nowhere") && e.contains("Spectralon session is missing"), "{e}");
     let e = fit_session(&spheres, Some(&spheres), &|_, _| {}).unwrap_err().to_string();
     assert!(e.contains("not a Spectralon session"), "{e}");
+    // A PCA angle that was not acquired is named.
+    let text = std::fs::read_to_string(out.join("spheres/rig.toml")).unwrap();
+    let e = {
+        use lightrig_host::fit::brrdf::{read, spectralon_rows, FitSpec, SPECTRALON};
+        use lightrig_pipelines::brrdf::scaling::Scaling;
+        let mut m = read(&spheres, &|_, _| {}).unwrap();
+        m.rig = lightrig_host::rigfile::RigFile::parse(
+            &text.replace("pca_angles = [0, 70, 140]", "pca_angles = [0, 65]"),
+            &out.join("spheres/rig.toml"),
+        )
+        .unwrap();
+        let spec = FitSpec::from_rig(&m.rig).unwrap();
+        let cal = read(&out.join("spectralon/session"), &|_, _| {}).unwrap();
+        let rows: Vec<_> = spectralon_rows(&cal).unwrap().into_iter().filter(|r| r.0 .0 != 380).collect();
+        let scaling = Scaling::new(&rows, |nm| spec.band_integral(f64::from(nm)), 20.0, SPECTRALON).unwrap();
+        m.steps.retain(|s| s.pair.0 != 380);
+        lightrig_host::fit::brrdf::fit_merged(&m, scaling, spec).unwrap_err().to_string()
+    };
+    assert!(e.contains("pca_angles: 65°") && e.contains("70.0°"), "{e}");
     let _ = std::fs::remove_dir_all(&out);
 }

@@ -21,11 +21,13 @@ mod buffer;
 mod error;
 mod exr_io;
 mod raster;
+mod spectral_exr;
 
 pub use self::buffer::{linear_to_srgb, srgb_to_linear, Encoding, Image};
 pub use self::error::IoError;
 pub use self::exr_io::{read_exr_layers, write_exr, write_exr_layers, ExrPrecision, Layer};
 pub use self::raster::{write_png, write_png_with, write_tiff, write_tiff_with, BitDepth, WriteOptions};
+pub use self::spectral_exr::{parse_wavelength, wavelength_name, BispectralImage, Nm};
 
 use std::fs::File;
 use std::io::{BufWriter, Read, Write};

@@ -149,20 +149,25 @@ fn fit_brrdf(session: &Path, spectralon: Option<&Path>, out: &Path) -> ExitCode 
         for n in &f.notes {
             println!("note: {n}");
         }
-        println!("{} wavelength pairs; PCA angles {:?} deg", f.pairs.len(), f.pca_angles);
+        let angles: Vec<String> = f.pca_angles.iter().map(|a| format!("{a:.1}°")).collect();
+        println!("{} wavelength pairs; PCA angles {}", f.pairs.len(), angles.join(", "));
         for s in &f.spheres {
             println!(
-                "{} sphere: {} samples, {} of {} bins observed; same angle: {} components for 1 % residual energy, {} for 0.1 %",
+                "{} sphere: {} samples, {} of {} bins observed",
                 s.name,
                 s.samples.len(),
                 s.binned.observed(),
                 s.binned.n.pow(3),
-                s.same_angle.0,
-                s.same_angle.1
             );
+            for a in &s.same_angle {
+                println!(
+                    "  same angle {:.1}°: {} bins, {} components for 1 % residual energy, {} for 0.1 %",
+                    a.light_deg, a.bins, a.components_1pc, a.components_01pc
+                );
+            }
             if let Some(t) = &s.transfer {
                 println!(
-                    "  {}° held out, {} pairs: PSNR non-specular {:.1} dB standard / {:.1} dB saturated, specular {:.1} / {:.1} dB",
+                    "  {:.1}° held out, {} pairs: PSNR non-specular {:.1} dB standard / {:.1} dB saturated, specular {:.1} / {:.1} dB",
                     t.held_out_deg,
                     t.chosen.len(),
                     t.psnr[0],

@@ -23,7 +23,9 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use lightrig_imaging::io::{linear_to_srgb, write_png, BispectralImage, BitDepth, Encoding, Image, Nm};
 use lightrig_pipelines::brrdf::binning::{Binned, Binner};
+use lightrig_pipelines::brrdf::colorimetry::{xyz_to_linear_srgb, Illuminant, Renderer};
 use lightrig_pipelines::brrdf::geometry::{angles, find_discs, light_dir, Disc};
 use lightrig_pipelines::brrdf::pca::{Pca, SaturatedPca};
 use lightrig_pipelines::brrdf::scaling::{PairNm, Scaling};
@@ -36,6 +38,10 @@ use crate::session::{trigger_events, Session};
 
 /// Spectralon's reflectance (§4.4.2: "99 % quasi-Lambertian").
 pub const SPECTRALON: f64 = 0.99;
+
+/// Pixels seen or lit more grazing than this (`cos θ`, 81°) are left out: the rim mixes sphere
+/// and background, and dividing by `cos θi` there multiplies the noise.
+pub const MIN_COS: f64 = 0.15;
 
 /// One plan step's merged exposure series.
 #[derive(Debug, Clone)]
@@ -310,6 +316,17 @@ pub struct Transfer {
     pub pixels: [usize; 2],
 }
 
+/// A same-angle reconstruction's cost (thesis figure 4.7): how many components bring the
+/// residual energy under 1 % and 0.1 %.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct SameAngle {
+    pub light_deg: f64,
+    /// Observed bins at this angle (the samples of its PCA).
+    pub bins: usize,
+    pub components_1pc: usize,
+    pub components_01pc: usize,
+}
+
 /// One sphere's fit.
 #[derive(Debug, Clone)]
 pub struct SphereFit {
@@ -318,9 +335,9 @@ pub struct SphereFit {
     pub disc: Disc,
     pub samples: Vec<Sample>,
     pub binned: Binned,
-    /// Same-angle PCA (the first PCA angle): components for residual energy under 1 % and
-    /// 0.1 %, and the residual with 10.
-    pub same_angle: (usize, usize, f64),
+    /// Same-angle PCA, one per PCA angle: each angle's samples binned (the BRRDF as stored)
+    /// and decomposed on their own.
+    pub same_angle: Vec<SameAngle>,
     pub transfer: Option<Transfer>,
 }
 
@@ -335,6 +352,8 @@ pub struct BrrdfFit {
     pub pca_angles: Vec<f64>,
     /// What the fit left out, and why.
     pub notes: Vec<String>,
+    /// The frames' size, pixels.
+    pub size: (u32, u32),
 }
 
 /// Fits session `dir` with the Spectralon session `spectralon` (else `[plan.fit] spectralon`).
@@ -445,8 +464,22 @@ pub fn fit_merged(m: &Merged, scaling: Scaling, spec: FitSpec) -> Result<BrrdfFi
         m.steps.iter().map(|s| ((s.geometry, s.pair), s)).collect();
     let wo = [0.0, 0.0, 1.0];
     let mut spheres = Vec::new();
+    // The PCA set: each angle asked for, as the geometry acquired nearest it (the arm's
+    // steps round the angle); one not acquired is an error naming it.
     let pca_angles = match &spec.pca_angles {
-        Some(a) => a.clone(),
+        Some(asked) => asked
+            .iter()
+            .map(|&a| {
+                geometries.iter().map(|g| g.1).find(|g| (g - a).abs() < 0.05).ok_or_else(|| {
+                    fail(format!(
+                        "{}: [plan.fit] pca_angles: {a}° is not among the light angles acquired ({}): \
+                         list angles of [plan.gonio] light_angles",
+                        m.dir.display(),
+                        geometries.iter().map(|g| format!("{:.1}°", g.1)).collect::<Vec<_>>().join(", ")
+                    ))
+                })
+            })
+            .collect::<Result<Vec<f64>, FitError>>()?,
         None => {
             let n = geometries.len();
             let mut v = vec![geometries[0].1, geometries[n / 2].1, geometries[n - 1].1];
@@ -469,7 +502,7 @@ pub fn fit_merged(m: &Merged, scaling: Scaling, spec: FitSpec) -> Result<BrrdfFi
                     let Some(n) = disc.normal(x, y, 0.95) else { continue };
                     let Some(a) = angles(n, wi, wo) else { continue };
                     let ci = a.1.cos();
-                    if ci < 0.3 || a.0.cos() < 0.3 {
+                    if ci < MIN_COS || a.0.cos() < MIN_COS {
                         continue;
                     }
                     let mut ok = true;
@@ -507,17 +540,32 @@ pub fn fit_merged(m: &Merged, scaling: Scaling, spec: FitSpec) -> Result<BrrdfFi
             binner.add(s.angles.0, s.angles.1, s.angles.2, &s.values);
         }
         let binned = binner.finish(2 * spec.bins);
-        let at = |deg: f64| (deg * 1e6).round() as i64;
-        let in_set = |s: &Sample| pca_angles.iter().any(|&a| at(a) == at(s.light_deg));
-        // Same angle: the first PCA angle's samples on their own.
-        let first: Vec<Vec<f64>> = samples
-            .iter()
-            .filter(|s| at(s.light_deg) == at(pca_angles[0]))
-            .map(|s| s.values.clone())
-            .collect();
-        let same = Pca::new(&first, 0);
-        let need = |limit: f64| (0..=pairs.len()).find(|&n| same.residual(n) < limit).unwrap_or(pairs.len());
-        let same_angle = (need(0.01), need(0.001), same.residual(10));
+        let in_set = |s: &Sample| pca_angles.contains(&s.light_deg);
+        // Same angle: each PCA angle's samples binned, decomposed on their own.
+        let mut same_angle = Vec::new();
+        for &a in &pca_angles {
+            let mut b = Binner::new(spec.bins, pairs.len());
+            for s in samples.iter().filter(|s| s.light_deg == a) {
+                b.add(s.angles.0, s.angles.1, s.angles.2, &s.values);
+            }
+            let binned = b.finish(0);
+            let k = pairs.len();
+            let rows: Vec<Vec<f64>> = (0..binned.count.len())
+                .filter(|&i| binned.count[i] > 0)
+                .map(|i| binned.values[i * k..(i + 1) * k].iter().map(|&v| f64::from(v)).collect())
+                .collect();
+            if rows.len() < 2 {
+                continue;
+            }
+            let pca = Pca::new(&rows, 0);
+            let need = |limit: f64| (0..=k).find(|&n| pca.residual(n) < limit).unwrap_or(k);
+            same_angle.push(SameAngle {
+                light_deg: a,
+                bins: rows.len(),
+                components_1pc: need(0.01),
+                components_01pc: need(0.001),
+            });
+        }
         let transfer = transfer(&samples, &pairs, &pca_angles, &spec, &in_set);
         spheres.push(SphereFit {
             name: ["top", "bottom"][d].to_string(),
@@ -528,7 +576,15 @@ pub fn fit_merged(m: &Merged, scaling: Scaling, spec: FitSpec) -> Result<BrrdfFi
             transfer,
         });
     }
-    Ok(BrrdfFit { pairs, scaling, spec, spheres, pca_angles, notes: Vec::new() })
+    Ok(BrrdfFit {
+        pairs,
+        scaling,
+        spec,
+        spheres,
+        pca_angles,
+        notes: Vec::new(),
+        size: (m.width as u32, m.height as u32),
+    })
 }
 
 /// PSNR of `got` against `want` over samples, dB: the peak is `want`'s largest value.
@@ -615,8 +671,51 @@ struct BinnedHeader<'a> {
     values: String,
 }
 
+/// The spheres at light angle `light_deg` as a bispectral image in the layout of Fichet et al.
+/// (2021): each pixel's scaled entries times π (a reflectance factor: Spectralon's diagonal
+/// reads 0.99), zero off the spheres.
+pub fn spectral_image(fit: &BrrdfFit, light_deg: f64) -> BispectralImage {
+    let (w, h) = fit.size;
+    let n = w as usize * h as usize;
+    let mut img = BispectralImage::new(w, h);
+    let pi = std::f64::consts::PI;
+    for (j, &(ex, em)) in fit.pairs.iter().enumerate() {
+        let mut plane = vec![0.0f32; n];
+        for s in fit.spheres.iter().flat_map(|s| &s.samples).filter(|s| s.light_deg == light_deg) {
+            plane[s.y as usize * w as usize + s.x as usize] = (s.values[j] * pi) as f32;
+        }
+        if ex == em {
+            img.diagonal.insert(Nm(f64::from(ex)), plane);
+        } else {
+            img.reradiation.insert((Nm(f64::from(ex)), Nm(f64::from(em))), plane);
+        }
+    }
+    img
+}
+
+/// The spheres at light angle `light_deg` rendered under `light` with the CIE 1931 observer:
+/// linear sRGB per pixel (each sample's reflected radiance at its `cos θi`), zero off the
+/// spheres.
+pub fn render(fit: &BrrdfFit, light_deg: f64, light: Illuminant) -> Vec<[f64; 3]> {
+    let (w, h) = fit.size;
+    let pairs: Vec<(f64, f64)> = fit.pairs.iter().map(|&(i, o)| (f64::from(i), f64::from(o))).collect();
+    let r = Renderer::new(&pairs, light);
+    let mut out = vec![[0.0; 3]; w as usize * h as usize];
+    for s in fit.spheres.iter().flat_map(|s| &s.samples).filter(|s| s.light_deg == light_deg) {
+        let xyz = r.xyz(&s.values).map(|v| v * s.angles.1.cos());
+        out[s.y as usize * w as usize + s.x as usize] = xyz_to_linear_srgb(xyz);
+    }
+    out
+}
+
+/// The illuminants of the renderings: daylight, tungsten and the wheel's violet LED.
+pub const RENDER_ILLUMINANTS: [Illuminant; 3] =
+    [Illuminant::D65, Illuminant::A, Illuminant::Led { centre: 400.0, fwhm: 15.0 }];
+
 /// Writes the fit's files into `out`: per sphere the binned BRRDF (`brrdf-<sphere>.json` and
-/// `.f32`) and the PCA choice (`pca-<sphere>.json`), and the spectral scaling (`scaling.json`).
+/// `.f32`) and the PCA choice (`pca-<sphere>.json`), the spectral scaling (`scaling.json`),
+/// per PCA angle the bispectral image (`spectral-<angle>deg.exr`), and the first PCA angle
+/// rendered in sRGB under D65, illuminant A and a 400 nm LED (`render-<light>.png`).
 pub fn write_outputs(fit: &BrrdfFit, out: &Path) -> Result<Vec<PathBuf>, FitError> {
     std::fs::create_dir_all(out).map_err(|e| fail(format!("{}: {e}", out.display())))?;
     let write = |p: PathBuf, bytes: Vec<u8>| -> Result<PathBuf, FitError> {
@@ -643,7 +742,7 @@ pub fn write_outputs(fit: &BrrdfFit, out: &Path) -> Result<Vec<PathBuf>, FitErro
         let pca = serde_json::json!({
             "sphere": s.name,
             "pca_angles_deg": fit.pca_angles,
-            "same_angle_components": { "residual_1pc": s.same_angle.0, "residual_0.1pc": s.same_angle.1 },
+            "same_angle": s.same_angle,
             "transfer": s.transfer,
         });
         let json = serde_json::to_string_pretty(&pca).map_err(|e| fail(e.to_string()))? + "\n";
@@ -658,5 +757,22 @@ pub fn write_outputs(fit: &BrrdfFit, out: &Path) -> Result<Vec<PathBuf>, FitErro
     });
     let json = serde_json::to_string_pretty(&scaling).map_err(|e| fail(e.to_string()))? + "\n";
     files.push(write(out.join("scaling.json"), json.into_bytes())?);
+    for &a in &fit.pca_angles {
+        let p = out.join(format!("spectral-{:.0}deg.exr", a));
+        spectral_image(fit, a).write(&p).map_err(|e| fail(e.to_string()))?;
+        files.push(p);
+    }
+    if let Some(&a) = fit.pca_angles.first() {
+        for light in RENDER_ILLUMINANTS {
+            let rgb = render(fit, a, light);
+            let data: Vec<f32> =
+                rgb.iter().flat_map(|p| p.map(|v| linear_to_srgb(v.clamp(0.0, 1.0) as f32))).collect();
+            let img =
+                Image { width: fit.size.0, height: fit.size.1, channels: 3, data, encoding: Encoding::Srgb };
+            let p = out.join(format!("render-{}.png", light.name()));
+            write_png(&p, &img, BitDepth::Eight).map_err(|e| fail(e.to_string()))?;
+            files.push(p);
+        }
+    }
     Ok(files)
 }

@@ -6,10 +6,12 @@
 //! - [`scaling`]: the spectral scaling `s(λo, λi)` from a Spectralon session (§4.4.2).
 //! - [`geometry`]: the spheres found in a frame, each pixel's normal and `(θo, θi, φd)`.
 //! - [`binning`]: samples binned in `(θo, θi, φd)`, empty bins filled by diffusion (§4.4.3).
+//! - [`colorimetry`]: bispectral samples rendered under an illuminant with the CIE 1931 observer.
 //! - [`spectra`]: source, filter and sensor spectra and bispectral materials in closed form
 //!   (the virtual scene's truth).
 
 pub mod binning;
+pub mod colorimetry;
 pub mod geometry;
 pub mod pca;
 pub mod scaling;

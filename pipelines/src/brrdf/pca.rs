@@ -8,6 +8,7 @@
 //! A sample is one vectorised reradiation matrix: its value at each of the `K` wavelength pairs.
 
 use lightrig_imaging::linalg::{cond, gram, pinv, sym_eigen};
+use rayon::prelude::*;
 
 /// The principal components of a set of bispectral samples.
 #[derive(Debug, Clone, PartialEq)]
@@ -32,7 +33,16 @@ impl Pca {
             }
         }
         let f: Vec<f64> = samples.iter().flat_map(|s| s.iter().zip(&mean).map(|(v, m)| v - m)).collect();
-        let (energy, vectors) = sym_eigen(&gram(&f, samples.len(), k), k);
+        // FᵀF, its rows shared out over the cores in blocks (summed after).
+        let block = 2048 * k.max(1);
+        let g = f.par_chunks(block).map(|rows| gram(rows, rows.len() / k.max(1), k)).reduce(
+            || vec![0.0; k * k],
+            |mut a, b| {
+                a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
+                a
+            },
+        );
+        let (energy, vectors) = sym_eigen(&g, k);
         let basis = (0..n.min(k)).map(|c| (0..k).map(|i| vectors[i * k + c]).collect()).collect();
         Pca { mean, basis, energy: energy.into_iter().map(|e| e.max(0.0)).collect() }
     }
