@@ -4,6 +4,7 @@
 
 use lightrig_cli::demo::brrdf::{
     run_brrdf, BrrdfDemoOptions, DIAGONAL_TOLERANCE, MAX_COMPONENTS, MIN_PSNR, RERADIATION_TOLERANCE,
+    SPARSE_MIN_PSNR,
 };
 use lightrig_host::fit::brrdf::fit_session;
 
@@ -43,6 +44,25 @@ fn the_quick_brrdf_demo_scales_bins_and_reconstructs_against_the_truth() {
         assert!(r.fit.pca_angles.iter().any(|p| (p - a).abs() < 0.01), "{:?}", r.fit.pca_angles);
     }
     assert!(t.psnr_saturated[0] >= MIN_PSNR, "saturated PCA, non-specular: {} dB", t.psnr_saturated[0]);
+    // The loop closed in the one session: the PCA chose five pairs once the dense angles were
+    // in; the other two angles took only those, and came back whole through the PCA.
+    let choice =
+        lightrig_host::steer::Choice::load(&out.join("spheres/session")).unwrap().expect("the choice");
+    assert_eq!(choice.pairs.len(), 5);
+    assert_eq!(choice.from_light_deg.len(), 4, "{:?}", choice.from_light_deg);
+    let (s, _) = lightrig_host::session::Session::read(out.join("spheres/session")).unwrap();
+    assert!(s.is_done());
+    assert_eq!(s.manifest().plan.steps.len(), 4 * 170 + 2 * 5);
+    for sphere in &r.fit.spheres {
+        let angles: std::collections::BTreeSet<i64> =
+            sphere.samples.iter().filter(|x| x.reconstructed).map(|x| x.light_deg.round() as i64).collect();
+        assert_eq!(angles.into_iter().collect::<Vec<_>>(), [100, 120], "{}", sphere.name);
+        assert!(sphere.reconstructed > 100, "{}: {}", sphere.name, sphere.reconstructed);
+    }
+    for (k, p) in r.sparse_psnr.iter().enumerate() {
+        assert!(*p >= SPARSE_MIN_PSNR, "sphere {k}: reconstructed angles {p} dB against the truth");
+    }
+    assert!(r.exposure_s.0 < 0.7 * r.exposure_s.1, "{:?}", r.exposure_s);
     // Binned: every bin filled, the observed ones counted.
     for s in &r.fit.spheres {
         assert!(s.binned.observed() > 300, "{}", s.binned.observed());
@@ -78,10 +98,14 @@ fn the_quick_brrdf_demo_scales_bins_and_reconstructs_against_the_truth() {
     let len = std::fs::metadata(out.join("fit/brrdf-bottom.f32")).unwrap().len();
     assert_eq!(len, 32u64.pow(3) * 153 * 4, "32³ bins × 153 pairs × f32");
 
-    // Bad input: no Spectralon session, and a sphere session given as the Spectralon one.
+    // Bad input: no Spectralon session (the calibration session's own rig names none), a
+    // missing one, and a sphere session given as the Spectralon one.
     let spheres = out.join("spheres/session");
-    let e = fit_session(&spheres, None, &|_, _| {}).unwrap_err().to_string();
+    let cal = out.join("spectralon/session");
+    let e = fit_session(&cal, None, &|_, _| {}).unwrap_err().to_string();
     assert!(e.contains("no Spectralon session") && e.contains("--spectralon"), "{e}");
+    // The steered session names its Spectralon session in [plan.fit]: no flag needed.
+    assert_eq!(fit_session(&spheres, None, &|_, _| {}).unwrap().pairs, r.fit.pairs);
     let e = fit_session(&spheres, Some(&out.join("nowhere")), &|_, _| {}).unwrap_err().to_string();
     assert!(e.contains("nowhere") && e.contains("Spectralon session is missing"), "{e}");
     let e = fit_session(&spheres, Some(&spheres), &|_, _| {}).unwrap_err().to_string();

@@ -489,6 +489,10 @@ fn run_steps<T: Transport>(
         if session.steps_done().contains(&step.id) {
             continue;
         }
+        // A step decided now (the PCA-steered plan's chosen pairs), from what the session holds.
+        let dir = session.dir().to_path_buf();
+        let decided = client.busy(|| step.resolve(&dir)).map_err(AcquireError::Preparation)?;
+        let step = decided.as_ref().unwrap_or(step);
         let requests = step_requests(step);
         let prepared_by = if requests.is_empty() {
             None

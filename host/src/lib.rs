@@ -11,6 +11,7 @@
 //! - [`frames`]: frame sources (a watched directory of numbered files).
 //! - [`session`]: the session directory: manifest, journal, frames, resume, pairing.
 //! - [`acquire`]: the acquisition engine: plan steps → device → journaled, paired frames.
+//! - [`steer`]: the PCA-steered bispectral plan's choice of pairs, made inside the session.
 //! - [`fit`]: per-rig session readers feeding `lightrig_pipelines` (`fit::lls`, `fit::firs`).
 
 pub mod acquire;
@@ -25,4 +26,5 @@ pub mod plan;
 pub mod response;
 pub mod rigfile;
 pub mod session;
+pub mod steer;
 pub mod transport;

@@ -219,3 +219,80 @@ fn plan_cameras_are_picked_by_name_or_index_and_mistakes_name_the_line() {
         assert!(e.contains("disco.toml:"), "names the file and line: {e}");
     }
 }
+
+#[test]
+fn a_pca_steered_bispectral_plan_takes_every_pair_at_its_dense_angles_and_decides_the_rest_when_reached() {
+    use lightrig_host::steer::{Choice, CHOICE_FILE};
+    let path = example("bispectral.toml");
+    let steered = |extra: &str| {
+        let text = std::fs::read_to_string(&path)
+            .unwrap()
+            .replace(
+                "light_angles = [0, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100, 110, 120, 130, 140, 150]",
+                "light_angles = [0, 35, 70, 100, 140]",
+            )
+            .replace("[plan.gonio]", &format!("[plan.steer]\n{extra}\n\n[plan.gonio]"));
+        RigFile::parse(&text, &path).unwrap()
+    };
+    let rig = steered("dense_angles = [0, 70, 140]\nselect = 5");
+    let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
+    // Three dense angles × 170 pairs first, then two angles × 5 chosen pairs.
+    assert_eq!(plan.steps.len(), 3 * 170 + 2 * 5);
+    assert!(plan.steps[..510].iter().all(|s| s.meta["chosen"].is_null() && s.meta["excitation_nm"].is_u64()));
+    let sparse = &plan.steps[510..];
+    assert!(sparse.iter().all(|s| s.meta["excitation_nm"].is_null()));
+    assert_eq!(
+        sparse.iter().map(|s| s.meta["chosen"].as_u64().unwrap()).collect::<Vec<_>>(),
+        [0, 1, 2, 3, 4, 0, 1, 2, 3, 4]
+    );
+    // Optical exposure: 520 steps' series against 5 × 170.
+    let (planned, dense) = (
+        plan.meta["optical_exposure_s"].as_f64().unwrap(),
+        plan.meta["dense_optical_exposure_s"].as_f64().unwrap(),
+    );
+    assert!((planned / dense - 520.0 / 850.0).abs() < 1e-12, "{planned} / {dense}");
+    // Reached in a session holding a choice, a sparse step becomes that pair's step: the same
+    // triggers, the wavelengths in its meta, the wheel at the pair's slot.
+    let dir = std::env::temp_dir().join(format!("lightrig-steer-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let choice = Choice {
+        pairs: vec![[400, 520], [500, 500], [440, 540], [600, 600], [700, 700]],
+        from_light_deg: vec![0.0, 70.0, 140.0],
+        cond: 2.0,
+    };
+    choice.save(&dir).unwrap();
+    assert_eq!(Choice::load(&dir).unwrap(), Some(choice));
+    let step = sparse[1].resolve(&dir).unwrap().expect("a steered step resolves");
+    assert_eq!(
+        (step.id, step.meta["excitation_nm"].as_u64(), step.meta["emission_nm"].as_u64()),
+        (sparse[1].id, Some(500), Some(500))
+    );
+    assert_eq!(step.meta["chosen"], 1);
+    assert_eq!(step.meta["host"]["light_filter_nm"], 500);
+    let white = 6; // the wheel's `white` slot carries the xenon's 500 nm
+    assert!(step
+        .items()
+        .iter()
+        .any(|i| matches!(i.action, Action::FilterWheel { slot, .. } if slot == white)));
+    assert_eq!(step.triggers, sparse[1].triggers);
+    let led = sparse[0].resolve(&dir).unwrap().unwrap();
+    assert!(
+        led.items().iter().any(|i| matches!(i.action, Action::FilterWheel { slot: 2, .. })),
+        "led-400 is slot 2"
+    );
+    assert!(plan.steps[0].resolve(&dir).unwrap().is_none(), "a dense step is what it is");
+    // A choice naming a pair the plan does not take is refused, naming the file.
+    Choice { pairs: vec![[390, 520]; 5], from_light_deg: vec![], cond: 1.0 }.save(&dir).unwrap();
+    let e = sparse[0].resolve(&dir).unwrap_err();
+    assert!(e.contains(CHOICE_FILE) && e.contains("390→520 nm"), "{e}");
+    // Without a choice and without a Spectralon session named, the step says what is missing.
+    std::fs::remove_file(dir.join(CHOICE_FILE)).unwrap();
+    let e = sparse[0].resolve(&dir).unwrap_err();
+    assert!(e.contains("[plan.fit] spectralon"), "{e}");
+    std::fs::remove_dir_all(&dir).ok();
+    // A dense angle the gonio does not take is a rig-file error.
+    let e = from_rig::plan(&steered("dense_angles = [0, 65]\nselect = 5"), &virtual_device_info())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("plan.steer.dense_angles") && e.contains("65"), "{e}");
+}

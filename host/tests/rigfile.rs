@@ -108,7 +108,7 @@ fn examples_have_their_methods_and_peripherals() {
     assert_eq!(example("fluorescent-immersion.toml").method, Method::FluorescentImmersion);
     let bispectral = example("bispectral.toml");
     assert_eq!(bispectral.method, Method::Bispectral);
-    assert_eq!(bispectral.filter_wheels[0].slots, 8);
+    assert_eq!(bispectral.filter_wheels[0].slots, 7);
     assert!(bispectral.plan["tunable_filter"].is_table());
     assert_eq!(example("lls-gantry.toml").method, Method::LinearLightSource);
     let display = example("brdf-display.toml");
@@ -647,9 +647,9 @@ fn errors_carry_their_parts() {
     let rig = example("bispectral.toml");
     assert_eq!(
         rig.line_of("plan.tunable_filter.range_nm"),
-        rig.line_of("plan.tunable_filter").map(|l| l + 2)
+        rig.line_of("plan.tunable_filter").map(|l| l + 4)
     );
-    assert_eq!(rig.filter_slot(0, "led-405"), Ok(3));
+    assert_eq!(rig.filter_slot(0, "led-400"), Ok(2));
     assert_eq!(rig.stepper_named("light-arm").map(|s| s.axis), Some(1));
     assert_eq!(rig.stepper_steps(1, -168.0), Ok(-149_333), "-168° at 8000/9 steps/deg");
 }

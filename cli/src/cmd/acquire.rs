@@ -315,6 +315,17 @@ fn print_summary(plan: &Plan, info: &DeviceInfo) {
         info.board,
         info.tick_hz
     );
+    // The bispectral plan's optical exposure (the thesis counts cost in it), steered or not.
+    if let (Some(t), Some(dense)) =
+        (plan.meta["optical_exposure_s"].as_f64(), plan.meta["dense_optical_exposure_s"].as_f64())
+    {
+        eprintln!(
+            "optical exposure {:.1} h; every pair at every angle would take {:.1} h ({:.0} %)",
+            t / 3600.0,
+            dense / 3600.0,
+            100.0 * t / dense.max(1e-9)
+        );
+    }
 }
 
 fn progress_printer(start: std::time::Instant) -> impl FnMut(Progress) {

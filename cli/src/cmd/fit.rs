@@ -153,9 +153,10 @@ fn fit_brrdf(session: &Path, spectralon: Option<&Path>, out: &Path) -> ExitCode 
         println!("{} wavelength pairs; PCA angles {}", f.pairs.len(), angles.join(", "));
         for s in &f.spheres {
             println!(
-                "{} sphere: {} samples, {} of {} bins observed",
+                "{} sphere: {} samples ({} reconstructed from the chosen pairs), {} of {} bins observed",
                 s.name,
                 s.samples.len(),
+                s.reconstructed,
                 s.binned.observed(),
                 s.binned.n.pow(3),
             );

@@ -39,6 +39,10 @@ use crate::session::{trigger_events, Session};
 /// Spectralon's reflectance (§4.4.2: "99 % quasi-Lambertian").
 pub const SPECTRALON: f64 = 0.99;
 
+/// Reconstructing an angle from the chosen pairs uses the components that leave less than this
+/// share of the PCA set's energy (at most as many as pairs were chosen).
+pub const KEEP_RESIDUAL: f64 = 1e-3;
+
 /// Pixels seen or lit more grazing than this (`cos θ`, 81°) are left out: the rim mixes sphere
 /// and background, and dividing by `cos θi` there multiplies the noise.
 pub const MIN_COS: f64 = 0.15;
@@ -169,12 +173,32 @@ pub fn read(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<Merged, 
     let response = crate::response::for_session(&rig, dir, camera).map_err(fail)?;
     let triggers = trigger_events(dir).map_err(|e| fail(e.to_string()))?;
     let tick_hz = f64::from(manifest.device.tick_hz);
+    let choice = crate::steer::Choice::load(dir).map_err(fail)?;
     let mut jobs = Vec::new();
     for s in &manifest.plan.steps {
         let meta = &s.extra["meta"];
-        let (Some(ex), Some(em)) = (meta["excitation_nm"].as_u64(), meta["emission_nm"].as_u64()) else {
-            continue;
-        };
+        // A PCA-steered step's pair is the session's choice (made when it was reached); before
+        // the choice, it has none and is left out.
+        let pair =
+            match (meta["excitation_nm"].as_u64(), meta["emission_nm"].as_u64(), meta["chosen"].as_u64()) {
+                (Some(ex), Some(em), _) => (ex as u16, em as u16),
+                (_, _, Some(j)) => match &choice {
+                    Some(c) => {
+                        let [ex, em] = *c.pairs.get(j as usize).ok_or_else(|| {
+                            fail(format!(
+                                "{}: step {} takes chosen pair {j} but {} holds {}",
+                                dir.display(),
+                                s.id,
+                                crate::steer::CHOICE_FILE,
+                                c.pairs.len()
+                            ))
+                        })?;
+                        (ex, em)
+                    }
+                    None => continue,
+                },
+                _ => continue,
+            };
         let frames = session.camera_frames_of(s.id, camera);
         if frames.is_empty() {
             return Err(fail(format!(
@@ -193,13 +217,7 @@ pub fn read(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<Merged, 
         }
         let light = meta["light"].as_i64().unwrap_or(0);
         let light_deg = arm.units(light).unwrap_or(0.0);
-        jobs.push((
-            s.id,
-            meta["geometry"].as_u64().unwrap_or(0) as usize,
-            light_deg,
-            (ex as u16, em as u16),
-            images,
-        ));
+        jobs.push((s.id, meta["geometry"].as_u64().unwrap_or(0) as usize, light_deg, pair, images));
     }
     if jobs.is_empty() {
         return Err(fail(format!(
@@ -295,6 +313,8 @@ pub struct Sample {
     pub half_deg: f64,
     /// Scaled BRRDF per pair (the fit's `pairs`), sr⁻¹.
     pub values: Vec<f64>,
+    /// Reconstructed through the PCA from the chosen pairs (a PCA-steered plan's other angles).
+    pub reconstructed: bool,
 }
 
 /// The angle transfer (thesis figure 4.12): a geometry left out of the PCA set, its samples
@@ -339,6 +359,8 @@ pub struct SphereFit {
     /// and decomposed on their own.
     pub same_angle: Vec<SameAngle>,
     pub transfer: Option<Transfer>,
+    /// Samples reconstructed from the chosen pairs.
+    pub reconstructed: usize,
 }
 
 /// The whole fit.
@@ -375,33 +397,7 @@ pub fn fit_session(
             )))
         }
     };
-    if !cal_dir.join("manifest.json").exists() {
-        return Err(fail(format!(
-            "{}: the Spectralon session is missing (no manifest.json): acquire it with \
-             `lightrig acquire RIG --set plan.sample='\"spectralon\"'`",
-            cal_dir.display()
-        )));
-    }
-    let cal = read(&cal_dir, &|_, _| {})?;
-    if cal.rig.plan.get("sample").and_then(|v| v.as_str()) != Some("spectralon") {
-        return Err(fail(format!(
-            "{}: not a Spectralon session (its rig file's [plan] sample is not \"spectralon\")",
-            cal_dir.display()
-        )));
-    }
-    let mut rows = spectralon_rows(&cal)?;
-    // An excitation whose diagonal the camera filter cannot reach (a near-UV LED below its
-    // range) has no Spectralon scale: its pairs are left out, and said so.
-    let mut dropped = Vec::new();
-    let excitations: std::collections::BTreeSet<u16> = rows.iter().map(|r| r.0 .0).collect();
-    for ex in excitations {
-        if !rows.iter().any(|r| r.0 == (ex, ex)) {
-            dropped.push(ex);
-        }
-    }
-    rows.retain(|r| !dropped.contains(&r.0 .0));
-    let scaling = Scaling::new(&rows, |nm| spec.band_integral(f64::from(nm)), spec.step_nm, SPECTRALON)
-        .map_err(|e| fail(format!("{}: {e}", cal_dir.display())))?;
+    let (scaling, dropped) = scaling_from(&cal_dir, &spec)?;
     let mut m = m;
     let left_out = |ex: u16| m.steps.iter().filter(|s| s.pair.0 == ex).count();
     let counts: Vec<(u16, usize)> = dropped.iter().map(|&ex| (ex, left_out(ex))).collect();
@@ -414,6 +410,74 @@ pub fn fit_session(
         ));
     }
     Ok(fit)
+}
+
+/// The spectral scaling from the Spectralon session in `cal_dir`, and the excitations it cannot
+/// scale (their diagonal lies outside the camera filter's range: their pairs are left out).
+pub fn scaling_from(cal_dir: &Path, spec: &FitSpec) -> Result<(Scaling, Vec<u16>), FitError> {
+    if !cal_dir.join("manifest.json").exists() {
+        return Err(fail(format!(
+            "{}: the Spectralon session is missing (no manifest.json): acquire it with \
+             `lightrig acquire RIG --set plan.sample='\"spectralon\"'`",
+            cal_dir.display()
+        )));
+    }
+    let cal = read(cal_dir, &|_, _| {})?;
+    if cal.rig.plan.get("sample").and_then(|v| v.as_str()) != Some("spectralon") {
+        return Err(fail(format!(
+            "{}: not a Spectralon session (its rig file's [plan] sample is not \"spectralon\")",
+            cal_dir.display()
+        )));
+    }
+    let mut rows = spectralon_rows(&cal)?;
+    let mut dropped = Vec::new();
+    let excitations: std::collections::BTreeSet<u16> = rows.iter().map(|r| r.0 .0).collect();
+    for ex in excitations {
+        if !rows.iter().any(|r| r.0 == (ex, ex)) {
+            dropped.push(ex);
+        }
+    }
+    rows.retain(|r| !dropped.contains(&r.0 .0));
+    let scaling = Scaling::new(&rows, |nm| spec.band_integral(f64::from(nm)), spec.step_nm, SPECTRALON)
+        .map_err(|e| fail(format!("{}: {e}", cal_dir.display())))?;
+    Ok((scaling, dropped))
+}
+
+/// The PCA-steered plan's choice for the session in `dir` (its dense steps done), scaled by the
+/// Spectralon session in `cal_dir`: the saturated PCA of every full sample of both spheres,
+/// `select` pairs chosen greedily (thesis §4.5).
+pub fn choose(dir: &Path, cal_dir: &Path, select: usize) -> Result<crate::steer::Choice, FitError> {
+    let mut m = read(dir, &|_, _| {})?;
+    let mut spec = FitSpec::from_rig(&m.rig)?;
+    let (scaling, dropped) = scaling_from(cal_dir, &spec)?;
+    m.steps.retain(|s| !dropped.contains(&s.pair.0));
+    spec.select = select;
+    let fit = fit_merged(&m, scaling, spec)?;
+    let set: Vec<Vec<f64>> = fit.spheres.iter().flat_map(|s| &s.samples).map(|s| s.values.clone()).collect();
+    if set.len() < select {
+        return Err(fail(format!(
+            "{}: {} samples on the spheres, too few to choose {select} pairs",
+            dir.display(),
+            set.len()
+        )));
+    }
+    let sat = SaturatedPca::new(&set, select, saturation_scale(&set));
+    let chosen = sat.pca.select_pairs(select);
+    let mut from: Vec<f64> = fit.spheres.iter().flat_map(|s| &s.samples).map(|s| s.light_deg).collect();
+    from.sort_by(f64::total_cmp);
+    from.dedup();
+    Ok(crate::steer::Choice {
+        pairs: chosen.iter().map(|&j| [fit.pairs[j].0, fit.pairs[j].1]).collect(),
+        from_light_deg: from,
+        cond: sat.pca.condition(&chosen),
+    })
+}
+
+/// Where the saturation bends: the median of the samples' largest entries (their diffuse level).
+fn saturation_scale(set: &[Vec<f64>]) -> f64 {
+    let mut peaks: Vec<f64> = set.iter().map(|s| s.iter().copied().fold(0.0, f64::max)).collect();
+    peaks.sort_by(f64::total_cmp);
+    peaks.get(peaks.len() / 2).copied().unwrap_or(1.0).max(1e-9)
 }
 
 /// The fit of merged sphere steps with a spectral scaling.
@@ -462,7 +526,6 @@ pub fn fit_merged(m: &Merged, scaling: Scaling, spec: FitSpec) -> Result<BrrdfFi
     // Steps by (geometry, pair).
     let index: BTreeMap<(usize, PairNm), &StepImage> =
         m.steps.iter().map(|s| ((s.geometry, s.pair), s)).collect();
-    let wo = [0.0, 0.0, 1.0];
     let mut spheres = Vec::new();
     // The PCA set: each angle asked for, as the geometry acquired nearest it (the arm's
     // steps round the angle); one not acquired is an error naming it.
@@ -489,49 +552,45 @@ pub fn fit_merged(m: &Merged, scaling: Scaling, spec: FitSpec) -> Result<BrrdfFi
     };
     for (d, disc) in discs.iter().enumerate() {
         let mut samples = Vec::new();
+        let mut sparse = Vec::new();
         for &(g, light_deg) in &geometries {
-            let wi = light_dir(light_deg);
-            let steps: Vec<Option<&&StepImage>> = pairs.iter().map(|p| index.get(&(g, *p))).collect();
-            if steps.iter().any(Option::is_none) {
-                // A sparse geometry (only some pairs): not a full sample.
-                continue;
+            // The pairs this geometry took: all of them, or (a PCA-steered plan's other angles)
+            // the chosen few, reconstructed below.
+            let taken: Vec<usize> =
+                (0..pairs.len()).filter(|&j| index.contains_key(&(g, pairs[j]))).collect();
+            let steps: Vec<&StepImage> = taken.iter().map(|&j| index[&(g, pairs[j])]).collect();
+            let got = pixel_samples(disc, (w, h), (g, light_deg), (&taken, &pairs), &steps, &scaling)?;
+            if taken.len() == pairs.len() {
+                samples.extend(got);
+            } else {
+                sparse.push((taken, got));
             }
-            let mut raw = vec![0.0; pairs.len()];
-            for y in (disc.cy - disc.r).max(0.0) as usize..((disc.cy + disc.r).ceil() as usize).min(h) {
-                for x in (disc.cx - disc.r).max(0.0) as usize..((disc.cx + disc.r).ceil() as usize).min(w) {
-                    let Some(n) = disc.normal(x, y, 0.95) else { continue };
-                    let Some(a) = angles(n, wi, wo) else { continue };
-                    let ci = a.1.cos();
-                    if ci < MIN_COS || a.0.cos() < MIN_COS {
-                        continue;
-                    }
-                    let mut ok = true;
-                    for (r, s) in raw.iter_mut().zip(&steps) {
-                        let v = s.map_or(f32::NAN, |s| s.rate[y * w + x]);
-                        ok &= v.is_finite();
-                        *r = f64::from(v) / ci;
-                    }
-                    if !ok {
-                        continue;
-                    }
-                    let mut values = vec![0.0; pairs.len()];
-                    scaling.apply(&pairs, &raw, &mut values).map_err(|e| fail(e.to_string()))?;
-                    let hv = [wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]];
-                    let hl = (hv[0] * hv[0] + hv[1] * hv[1] + hv[2] * hv[2]).sqrt();
-                    let half_deg = ((n[0] * hv[0] + n[1] * hv[1] + n[2] * hv[2]) / hl)
-                        .clamp(-1.0, 1.0)
-                        .acos()
-                        .to_degrees();
-                    samples.push(Sample {
-                        geometry: g,
-                        light_deg,
-                        x: x as u32,
-                        y: y as u32,
-                        normal: n,
-                        angles: a,
-                        half_deg,
-                        values,
-                    });
+        }
+        // Sparse geometries: each sample whole again through the saturated PCA of the PCA set.
+        let set: Vec<Vec<f64>> =
+            samples.iter().filter(|s| pca_angles.contains(&s.light_deg)).map(|s| s.values.clone()).collect();
+        let mut reconstructed = 0;
+        if !sparse.is_empty() {
+            let count = sparse.iter().map(|(t, _)| t.len()).max().unwrap_or(0);
+            if set.len() < count {
+                return Err(fail(format!(
+                    "{}: the {} sphere has {} samples at the PCA angles, too few to reconstruct from",
+                    m.dir.display(),
+                    ["top", "bottom"][d],
+                    set.len()
+                )));
+            }
+            let mut sat = SaturatedPca::new(&set, count, saturation_scale(&set));
+            // Only the components that hold energy: a sphere whose samples are nearly of rank one
+            // (a non-fluorescent paint) would otherwise fit the chosen pairs' noise with the rest.
+            let keep = (1..=count).find(|&n| sat.pca.residual(n) < KEEP_RESIDUAL).unwrap_or(count);
+            sat.pca.basis.truncate(keep);
+            for (taken, got) in sparse {
+                for mut s in got {
+                    s.values = sat.reconstruct(&taken, &s.values);
+                    s.reconstructed = true;
+                    samples.push(s);
+                    reconstructed += 1;
                 }
             }
         }
@@ -574,6 +633,7 @@ pub fn fit_merged(m: &Merged, scaling: Scaling, spec: FitSpec) -> Result<BrrdfFi
             binned,
             same_angle,
             transfer,
+            reconstructed,
         });
     }
     Ok(BrrdfFit {
@@ -585,6 +645,61 @@ pub fn fit_merged(m: &Merged, scaling: Scaling, spec: FitSpec) -> Result<BrrdfFi
         notes: Vec::new(),
         size: (m.width as u32, m.height as u32),
     })
+}
+
+/// The samples of one sphere at one geometry: every pixel inside the disc lit and seen within
+/// [`MIN_COS`], its values at the pairs `taken` (indices into `pairs`, read from `steps`) over
+/// `cos θi`, scaled.
+fn pixel_samples(
+    disc: &Disc,
+    (w, h): (usize, usize),
+    (g, light_deg): (usize, f64),
+    (taken, pairs): (&[usize], &[PairNm]),
+    steps: &[&StepImage],
+    scaling: &Scaling,
+) -> Result<Vec<Sample>, FitError> {
+    let wi = light_dir(light_deg);
+    let wo = [0.0, 0.0, 1.0];
+    let sub: Vec<PairNm> = taken.iter().map(|&j| pairs[j]).collect();
+    let mut raw = vec![0.0; taken.len()];
+    let mut out = Vec::new();
+    for y in (disc.cy - disc.r).max(0.0) as usize..((disc.cy + disc.r).ceil() as usize).min(h) {
+        for x in (disc.cx - disc.r).max(0.0) as usize..((disc.cx + disc.r).ceil() as usize).min(w) {
+            let Some(n) = disc.normal(x, y, 0.95) else { continue };
+            let Some(a) = angles(n, wi, wo) else { continue };
+            let ci = a.1.cos();
+            if ci < MIN_COS || a.0.cos() < MIN_COS {
+                continue;
+            }
+            let mut ok = true;
+            for (r, s) in raw.iter_mut().zip(steps) {
+                let v = s.rate[y * w + x];
+                ok &= v.is_finite();
+                *r = f64::from(v) / ci;
+            }
+            if !ok {
+                continue;
+            }
+            let mut values = vec![0.0; taken.len()];
+            scaling.apply(&sub, &raw, &mut values).map_err(|e| fail(e.to_string()))?;
+            let hv = [wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]];
+            let hl = (hv[0] * hv[0] + hv[1] * hv[1] + hv[2] * hv[2]).sqrt();
+            let half_deg =
+                ((n[0] * hv[0] + n[1] * hv[1] + n[2] * hv[2]) / hl).clamp(-1.0, 1.0).acos().to_degrees();
+            out.push(Sample {
+                geometry: g,
+                light_deg,
+                x: x as u32,
+                y: y as u32,
+                normal: n,
+                angles: a,
+                half_deg,
+                values,
+                reconstructed: false,
+            });
+        }
+    }
+    Ok(out)
 }
 
 /// PSNR of `got` against `want` over samples, dB: the peak is `want`'s largest value.
@@ -619,10 +734,10 @@ fn transfer(
     };
     let held = samples
         .iter()
-        .filter(|s| !in_set(s))
+        .filter(|s| !in_set(s) && !s.reconstructed)
         .map(|s| s.light_deg)
         .min_by(|a, b| (a - mid).abs().total_cmp(&(b - mid).abs()))?;
-    let out: Vec<&Sample> = samples.iter().filter(|s| s.light_deg == held).collect();
+    let out: Vec<&Sample> = samples.iter().filter(|s| s.light_deg == held && !s.reconstructed).collect();
     if set.is_empty() || out.is_empty() {
         return None;
     }
@@ -630,10 +745,7 @@ fn transfer(
     let plain = Pca::new(&set, count);
     let chosen = plain.select_pairs(count);
     // The saturation bends at the samples' typical largest value (their diffuse level).
-    let mut peaks: Vec<f64> = set.iter().map(|s| s.iter().copied().fold(0.0, f64::max)).collect();
-    peaks.sort_by(f64::total_cmp);
-    let scale = peaks[peaks.len() / 2].max(1e-9);
-    let sat = SaturatedPca::new(&set, count, scale);
+    let sat = SaturatedPca::new(&set, count, saturation_scale(&set));
     let chosen_sat = sat.pca.select_pairs(count);
     let mut result = Transfer {
         held_out_deg: held,

@@ -13,6 +13,7 @@
 use lightrig_protocol::sequence::{Action, AxisRef, WaitFor};
 use serde_json::json;
 
+use std::path::Path;
 use std::sync::Arc;
 
 use super::{Plan, PlanError, Step};
@@ -70,62 +71,118 @@ pub fn full_pairs(grid: &[u16], slot_for: impl Fn(u16) -> u8) -> Vec<Pair> {
     out
 }
 
+/// Chooses the steered plan's pairs for the session in a directory (see [`Steer::choose`]).
+pub type Chooser = Arc<dyn Fn(&Path) -> Result<Vec<Pair>, String> + Send + Sync>;
+
+/// The PCA-steered acquisition (thesis §4.5): the geometries in `dense` take every pair; the
+/// others only `select` pairs, chosen by `choose` from what the session holds when the first
+/// of them is reached (the dense geometries come first).
+#[derive(Clone)]
+pub struct Steer {
+    /// Indices into [`BispectralParams::geometries`] taken with every pair.
+    pub dense: Vec<usize>,
+    /// Pairs taken at each other geometry.
+    pub select: usize,
+    /// The chosen pairs for the session in a directory (its dense steps done), at least `select`.
+    pub choose: Chooser,
+}
+
+/// One geometry and pair's step: the axes and the wheel moved, the exposure series taken.
+fn pair_step(p: &Arc<BispectralParams>, id: u32, g: usize, pair: Pair, extra: &serde_json::Value) -> Step {
+    let (sample, light) = p.geometries[g];
+    let mut meta = json!({
+        "geometry": g, "sample": sample, "light": light,
+        "excitation_nm": pair.excitation, "emission_nm": pair.emission, "slot": pair.slot,
+        "exposures": p.exposures,
+        "host": { "light_filter_nm": pair.excitation, "camera_filter_nm": pair.emission },
+    });
+    if let (Some(m), Some(e)) = (meta.as_object_mut(), extra.as_object()) {
+        m.extend(e.clone());
+    }
+    let name = format!("geometry {g} {}→{} nm", pair.excitation, pair.emission);
+    let p = Arc::clone(p);
+    Step::new(id, name, meta, move |b| {
+        for axis in
+            [AxisRef::Stepper(p.sample_axis), AxisRef::Stepper(p.light_axis), AxisRef::FilterWheel(p.wheel)]
+        {
+            b.settle(axis, p.timeout);
+        }
+        // Both axes and the wheel move together; wait for all three.
+        b.then(Action::StepperMove { axis: p.sample_axis, target: sample, profile: Default::default() });
+        b.then(Action::StepperMove { axis: p.light_axis, target: light, profile: Default::default() });
+        b.then(Action::FilterWheel { wheel: p.wheel, slot: pair.slot });
+        b.until(WaitFor::MoveDone(AxisRef::Stepper(p.sample_axis)), p.timeout);
+        b.until(WaitFor::MoveDone(AxisRef::Stepper(p.light_axis)), p.timeout);
+        b.until(WaitFor::MoveDone(AxisRef::FilterWheel(p.wheel)), p.timeout);
+        for (e, &exposure) in p.exposures.iter().enumerate() {
+            b.shoot_all(&p.cameras, exposure, format!("exposure {e}"));
+            b.wait(exposure.saturating_add(p.readout).max(p.min_interval));
+        }
+    })
+}
+
 /// The bispectral plan: one step per geometry and pair.
 pub fn plan(p: &BispectralParams) -> Result<Plan, PlanError> {
+    plan_steered(p, None)
+}
+
+/// The bispectral plan, PCA-steered with `steer`: the dense geometries' steps first, every
+/// pair; then each other geometry's `select` steps, each deciding its pair when reached. The
+/// plan's `meta` holds the optical exposure time against the dense plan's
+/// (`optical_exposure_s`, `dense_optical_exposure_s`).
+pub fn plan_steered(p: &BispectralParams, steer: Option<Steer>) -> Result<Plan, PlanError> {
     if p.geometries.is_empty() || p.pairs.is_empty() || p.exposures.is_empty() {
         return Err(PlanError("bispectral: geometries, pairs and exposures must not be empty".into()));
     }
     if p.cameras.is_empty() {
         return Err(PlanError("bispectral: no camera to trigger".into()));
     }
-    let shared = Arc::new(p.clone());
-    let mut steps = Vec::new();
-    for (g, &(sample, light)) in p.geometries.iter().enumerate() {
-        for &pair in &p.pairs {
-            let meta = json!({
-                "geometry": g, "sample": sample, "light": light,
-                "excitation_nm": pair.excitation, "emission_nm": pair.emission, "slot": pair.slot,
-                "exposures": p.exposures,
-                "host": { "light_filter_nm": pair.excitation, "camera_filter_nm": pair.emission },
-            });
-            let id = steps.len() as u32;
-            let name = format!("geometry {g} {}→{} nm", pair.excitation, pair.emission);
-            let p = Arc::clone(&shared);
-            steps.push(Step::new(id, name, meta, move |b| {
-                for axis in [
-                    AxisRef::Stepper(p.sample_axis),
-                    AxisRef::Stepper(p.light_axis),
-                    AxisRef::FilterWheel(p.wheel),
-                ] {
-                    b.settle(axis, p.timeout);
-                }
-                // Both axes and the wheel move together; wait for all three.
-                b.then(Action::StepperMove {
-                    axis: p.sample_axis,
-                    target: sample,
-                    profile: Default::default(),
-                });
-                b.then(Action::StepperMove {
-                    axis: p.light_axis,
-                    target: light,
-                    profile: Default::default(),
-                });
-                b.then(Action::FilterWheel { wheel: p.wheel, slot: pair.slot });
-                b.until(WaitFor::MoveDone(AxisRef::Stepper(p.sample_axis)), p.timeout);
-                b.until(WaitFor::MoveDone(AxisRef::Stepper(p.light_axis)), p.timeout);
-                b.until(WaitFor::MoveDone(AxisRef::FilterWheel(p.wheel)), p.timeout);
-                for (e, &exposure) in p.exposures.iter().enumerate() {
-                    b.shoot_all(&p.cameras, exposure, format!("exposure {e}"));
-                    b.wait(exposure.saturating_add(p.readout).max(p.min_interval));
-                }
-            }));
+    if let Some(s) = &steer {
+        if s.dense.is_empty() || s.select == 0 || s.select > p.pairs.len() {
+            return Err(PlanError(format!(
+                "bispectral: a steered plan needs dense geometries and 1 to {} chosen pairs",
+                p.pairs.len()
+            )));
         }
     }
-    Ok(Plan {
-        method: "bispectral".into(),
-        tick_hz: p.tick_hz,
-        steps,
-        frame_bytes: p.frame_bytes,
-        meta: serde_json::Value::Null,
-    })
+    let shared = Arc::new(p.clone());
+    let none = serde_json::Value::Null;
+    let mut steps = Vec::new();
+    let dense = |g: usize| steer.as_ref().is_none_or(|s| s.dense.contains(&g));
+    for g in (0..p.geometries.len()).filter(|&g| dense(g)) {
+        for &pair in &p.pairs {
+            steps.push(pair_step(&shared, steps.len() as u32, g, pair, &none));
+        }
+    }
+    if let Some(s) = &steer {
+        for g in (0..p.geometries.len()).filter(|&g| !dense(g)) {
+            for j in 0..s.select {
+                let id = steps.len() as u32;
+                let extra = json!({ "chosen": j });
+                // Planned with the first pair (the same triggers whatever is chosen); decided
+                // when the acquisition reaches it.
+                let placeholder = pair_step(&shared, id, g, p.pairs[0], &extra);
+                let (sample, light) = p.geometries[g];
+                let meta = json!({
+                    "geometry": g, "sample": sample, "light": light, "chosen": j, "exposures": p.exposures,
+                });
+                let step = Step { name: format!("geometry {g} chosen pair {j}"), meta, ..placeholder };
+                let (choose, shared) = (Arc::clone(&s.choose), Arc::clone(&shared));
+                steps.push(step.resolved_by(Arc::new(move |dir: &Path| {
+                    let chosen = choose(dir)?;
+                    let pair = *chosen.get(j).ok_or_else(|| {
+                        format!("the PCA chose {} pairs where the plan takes {}", chosen.len(), j + 1)
+                    })?;
+                    Ok(pair_step(&shared, id, g, pair, &json!({ "chosen": j })))
+                })));
+            }
+        }
+    }
+    let series_s = p.exposures.iter().map(|&e| f64::from(e)).sum::<f64>() / f64::from(p.tick_hz);
+    let dense_steps = p.geometries.len() * p.pairs.len();
+    let meta = json!({
+            "optical_exposure_s": series_s * steps.len() as f64,
+        "dense_optical_exposure_s": series_s * dense_steps as f64,
+    });
+    Ok(Plan { method: "bispectral".into(), tick_hz: p.tick_hz, steps, frame_bytes: p.frame_bytes, meta })
 }

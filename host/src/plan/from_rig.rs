@@ -716,6 +716,42 @@ fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         None => vec![pulse(rig, &cameras, hz)?],
     };
     let readout = us(rig, "readout_us", num(rig, "readout_us", Some(1000.0))?, hz)?;
+    // The PCA-steered plan (`[plan.steer]`): light angles taken with every pair, and how many
+    // pairs the others get.
+    let steer = match rig.plan.get("steer").and_then(|v| v.as_table()) {
+        None => None,
+        Some(t) => {
+            let bad = |k: &str, what: &str| rig.error(&format!("plan.steer.{k}"), what);
+            let dense: Vec<f64> = t
+                .get("dense_angles")
+                .and_then(|v| v.as_array())
+                .and_then(|a| {
+                    a.iter().map(|x| x.as_float().or_else(|| x.as_integer().map(|i| i as f64))).collect()
+                })
+                .ok_or_else(|| bad("dense_angles", "must be a list of light-arm angles, degrees"))?;
+            let select = t
+                .get("select")
+                .and_then(|v| v.as_integer())
+                .filter(|n| (1..=64).contains(n))
+                .ok_or_else(|| bad("select", "must be the number of pairs per other angle, 1 to 64"))?
+                as usize;
+            let mut idx = Vec::new();
+            for a in &dense {
+                let steps = rig.stepper_steps(light.axis, *a)?;
+                let found: Vec<usize> =
+                    geometries.iter().enumerate().filter(|(_, g)| g.1 == steps).map(|(i, _)| i).collect();
+                if found.is_empty() {
+                    return Err(bad("dense_angles", &format!("{a}° is not among [plan.gonio] light_angles")));
+                }
+                idx.extend(found);
+            }
+            Some(brrdf::Steer {
+                dense: idx,
+                select,
+                choose: crate::steer::chooser(rig.clone(), pairs.clone(), select),
+            })
+        }
+    };
     let p = brrdf::BispectralParams {
         sample_axis: sample.axis,
         light_axis: light.axis,
@@ -730,7 +766,7 @@ fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         frame_bytes: frame_bytes(rig)?,
         tick_hz: hz,
     };
-    brrdf::plan(&p).map_err(|e| rig.error("plan", e.0))
+    brrdf::plan_steered(&p, steer).map_err(|e| rig.error("plan", e.0))
 }
 
 #[cfg(test)]

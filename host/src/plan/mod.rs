@@ -55,7 +55,15 @@ pub struct Step {
     /// Builds the items and shots, without the closing marker.
     #[serde(skip)]
     make: Arc<dyn Fn(&mut StepBuilder) + Send + Sync>,
+    /// For a step whose content the acquisition decides when it gets there (the PCA-steered
+    /// bispectral plan's chosen pairs): gives the step to run, from the session directory.
+    #[serde(skip)]
+    resolve: Option<Resolver>,
 }
+
+/// Decides a step when the acquisition reaches it: the session directory in, the step to run
+/// (same id, trigger counts and lasers) or why not out.
+pub type Resolver = Arc<dyn Fn(&std::path::Path) -> Result<Step, String> + Send + Sync>;
 
 /// A step's sequence, built: its items and the triggers they fire.
 #[derive(Debug, Clone, PartialEq)]
@@ -90,7 +98,27 @@ impl Step {
             Action::Laser { channel, on: true } => mask | 1u8.checked_shl(u32::from(channel)).unwrap_or(0),
             _ => mask,
         });
-        Step { id, name: name.into(), min_ticks, triggers, lasers, meta, make: Arc::new(make) }
+        Step { id, name: name.into(), min_ticks, triggers, lasers, meta, make: Arc::new(make), resolve: None }
+    }
+
+    /// This step, decided when the acquisition reaches it by `resolve` (see [`Resolver`]).
+    pub fn resolved_by(mut self, resolve: Resolver) -> Step {
+        self.resolve = Some(resolve);
+        self
+    }
+
+    /// The step to run: this one, or what its resolver decides for the session in `dir`. A
+    /// decision that changes the step's id, triggers or lasers is refused.
+    pub fn resolve(&self, dir: &std::path::Path) -> Result<Option<Step>, String> {
+        let Some(r) = &self.resolve else { return Ok(None) };
+        let step = r(dir)?;
+        if step.id != self.id || step.triggers != self.triggers || step.lasers != self.lasers {
+            return Err(format!(
+                "step {} ({}): its resolved form fires other triggers or lasers than planned",
+                self.id, self.name
+            ));
+        }
+        Ok(Some(step))
     }
 
     /// The step's items and shots, built now.
