@@ -70,3 +70,27 @@ fn a_steered_session_waits_for_its_spectralon_session_then_resumes_chooses_and_f
     assert!(reconstructed.iter().all(|&n| n > 100), "{text}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_series_clipped_in_every_exposure_is_named_with_what_to_do() {
+    let dir: PathBuf = std::env::temp_dir().join(format!("lightrig-clipped-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let spheres = dir.join("spheres");
+    // One exposure 64 times what fills half the well on white: the spheres clip.
+    let a = acquire(&spheres, &["plan.gonio.light_angles=[0]", "plan.exposures_us=[1280000]"]);
+    assert!(a.status.success(), "{}", said(&a));
+    let out = dir.join("fit");
+    let fit = lightrig(&[
+        "fit",
+        "brrdf",
+        spheres.to_str().unwrap(),
+        "--spectralon",
+        dir.join("cal").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let text = said(&fit);
+    assert!(!fit.status.success(), "{text}");
+    assert!(text.contains("clipped in every exposure") && text.contains("shorter exposure"), "{text}");
+    std::fs::remove_dir_all(&dir).ok();
+}

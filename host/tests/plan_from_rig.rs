@@ -161,6 +161,17 @@ fn the_bispectral_example_plans_every_pair_above_the_diagonal() {
     let rig = RigFile::parse(&text, &path).unwrap();
     let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
     assert_eq!(plan.summary().steps, 16 * 2);
+    // A pair the filters cannot reach is a rig-file error naming it.
+    for (pairs, says) in
+        [("[[400, 750]]", "camera filter reaches 400-720 nm"), ("[[390, 520]]", "nothing excites at 390 nm")]
+    {
+        let text = std::fs::read_to_string(&path)
+            .unwrap()
+            .replace("[plan.tunable_filter]", &format!("pairs = {pairs}\n[plan.tunable_filter]"));
+        let rig = RigFile::parse(&text, &path).unwrap();
+        let e = from_rig::plan(&rig, &virtual_device_info()).unwrap_err().to_string();
+        assert!(e.contains("plan.pairs") && e.contains(says), "{e}");
+    }
     // The Spectralon session: each excitation's row within two bands of its diagonal.
     let text =
         std::fs::read_to_string(&path).unwrap().replace("sample = \"spheres\"", "sample = \"spectralon\"");

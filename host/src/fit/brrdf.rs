@@ -231,6 +231,19 @@ pub fn read(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<Merged, 
         .into_par_iter()
         .map(|(step, geometry, light_deg, pair, images)| {
             let (size, rate) = bracket::merge(&images, None, 1, &response)?;
+            // Pixels clipped in every exposure have no value: a few (a highlight's core) are
+            // left out of the fit, more mean the series is too long.
+            let clipped = rate.iter().filter(|v| v.is_nan()).count();
+            if clipped * 100 > rate.len() {
+                return Err(fail(format!(
+                    "{}: step {step} ({}→{} nm): {clipped} of {} pixels clipped in every exposure of the \
+                     series: add a shorter exposure to [plan] exposures_us",
+                    dir.display(),
+                    pair.0,
+                    pair.1,
+                    rate.len()
+                )));
+            }
             progress(done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1, total);
             Ok((size, StepImage { step, geometry, light_deg, pair, rate }))
         })

@@ -688,7 +688,28 @@ fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
                     }
                     _ => return Err(bad()),
                 };
-                Ok(Pair { excitation: ex, emission: em, slot: slot_of(ex).ok_or_else(bad)? })
+                // The camera filter must reach the emission.
+                if let Some((from, to)) = range("range_nm")? {
+                    if !(from..=to).contains(&i64::from(em)) {
+                        return Err(rig.error(
+                            "plan.pairs",
+                            format!(
+                                "[{ex}, {em}]: the camera filter reaches {from}-{to} nm \
+                                 ([plan.tunable_filter] range_nm), not {em} nm"
+                            ),
+                        ));
+                    }
+                }
+                let slot = slot_of(ex).ok_or_else(|| {
+                    rig.error(
+                        "plan.pairs",
+                        format!(
+                            "[{ex}, {em}]: no `led-{ex}` slot on the wheel and {ex} nm is outside the light \
+                             filter's excitation_range_nm: nothing excites at {ex} nm"
+                        ),
+                    )
+                })?;
+                Ok(Pair { excitation: ex, emission: em, slot })
             })
             .collect::<Result<_, _>>()?,
         None => {
