@@ -258,8 +258,7 @@ pub fn run_brrdf(opts: &BrrdfDemoOptions) -> Result<BrrdfDemoResult, CliError> {
                 let d = fitted.pairs.iter().position(|&p| p == (ex, ex)).map(|d| t[d]);
                 if ex == em {
                     diag.push((s.values[j] / t[j] - 1.0).abs());
-                } else if let Some(d) = d.filter(|d| em >= ex + 40 && t[j] >= 0.01 * d) {
-                    let _ = d;
+                } else if d.is_some_and(|d| em >= ex + 40 && t[j] >= 0.01 * d) {
                     rerad.push((s.values[j] / t[j] - 1.0).abs());
                 }
             }

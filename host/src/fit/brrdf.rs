@@ -275,13 +275,11 @@ pub fn spectralon_rows(m: &Merged) -> Result<Vec<(PairNm, f64)>, FitError> {
     let (w, h) = (m.width, m.height);
     let mut acc: BTreeMap<PairNm, (f64, u32)> = BTreeMap::new();
     for s in m.steps.iter().filter(|s| s.light_deg.abs() < 60.0) {
-        let (mut sum, mut n, mut clipped) = (0.0, 0u32, 0u32);
+        let (mut sum, mut n) = (0.0, 0u32);
         for y in h / 4..h - h / 4 {
             for x in w / 4..w - w / 4 {
                 let v = s.rate[y * w + x];
-                if v.is_nan() {
-                    clipped += 1;
-                } else {
+                if !v.is_nan() {
                     sum += f64::from(v);
                     n += 1;
                 }
@@ -297,7 +295,6 @@ pub fn spectralon_rows(m: &Merged) -> Result<Vec<(PairNm, f64)>, FitError> {
                 s.pair.1
             )));
         }
-        let _ = clipped;
         let e = acc.entry(s.pair).or_default();
         e.0 += sum / f64::from(n) / s.light_deg.to_radians().cos();
         e.1 += 1;
