@@ -188,44 +188,78 @@ fn bispectral_filters_on_serial_ports_are_tuned_by_the_host() {
     assert_eq!(got, wanted);
 }
 
+/// The DISCO example at 192 × 124 pixels (its focal length scaled to match).
+const DISCO_SMALL: [(&str, &str); 2] = [("image", "image = [192, 124]"), ("focal_px", "focal_px = 450")];
+
+/// Where the virtual DISCO camera sees the beam at galvo `code` enter the pebble (camera
+/// position `position`, turntable at `deg`): `Some(pixel)` if it enters and the camera sees the
+/// entry point, `None` if it misses the object; `Some(None)` if hidden.
+fn disco_spot(rig: &Path, code: [u16; 2], position: usize, deg: f64) -> Option<Option<[f64; 2]>> {
+    use lightrig_pipelines::disco::optics::{cast, point_of, surface_map};
+    use lightrig_pipelines::vec3::{norm, sub};
+    let rig = lightrig_host::rigfile::RigFile::load(rig).unwrap();
+    let scene = lightrig_sim::scenes::disco::DiscoScene::new(&rig, 3).unwrap();
+    let world = lightrig_pipelines::disco::optics::turned(&scene.mesh, deg);
+    let p = &scene.setup.projector;
+    let hit = cast(&scene.mesh, &world, p.eye, p.ray([f64::from(code[0]), f64::from(code[1])]))?;
+    let (entry, _) = point_of(&scene.mesh, &world, deg, &hit);
+    let cam = scene.setup.cameras[position].1;
+    let (px, _) = cam.project(entry)?;
+    let map = surface_map(&scene.mesh, &world, &cam);
+    let seen = map[px[1] as usize * cam.width as usize + px[0] as usize]
+        .is_some_and(|h| norm(sub(point_of(&scene.mesh, &world, deg, &h).0, entry)) < 1.0);
+    Some(seen.then_some(px))
+}
+
 #[test]
 fn disco_frames_show_the_spot_where_each_trigger_pointed_the_galvos() {
     let dir = scratch("disco");
-    let rig = example(&dir, "disco.toml", &[("views", "views = 1"), ("spot_grid", "spot_grid = [3, 2]")]);
+    let mut edits = vec![("views", "views = 1"), ("spot_grid", "spot_grid = [5, 3]")];
+    edits.extend(DISCO_SMALL);
+    let rig = example(&dir, "disco.toml", &edits);
     let session = dir.join("session");
     let s = acquire(&rig, &session);
     let triggers = trigger_events(&session).unwrap();
-    let mut spots = 0;
+    let (mut seen, mut missed, mut white) = (0, 0, 0);
     for f in s.frame_index() {
         let t = &triggers[&(f.sequence, f.item)];
         let img = lightrig_imaging::io::read(session.join(&f.file)).unwrap();
-        let (w, h) = (img.width as usize, img.height as usize);
-        let px = |x: usize, y: usize| &img.data[(y * w + x) * 3..(y * w + x) * 3 + 3];
-        let (mut best, mut at) = (0.0f32, (0, 0));
-        for y in 0..h {
-            for x in 0..w {
-                let v: f32 = px(x, y).iter().sum();
-                if v > best {
-                    (best, at) = (v, (x, y));
-                }
-            }
-        }
-        if t.snapshot.lasers == 0 {
+        assert_eq!(img.channels, 1, "a grey HDR camera");
+        let w = img.width as usize;
+        let (best, at) =
+            img.data.iter().enumerate().fold((f32::MIN, 0), |b, (i, &v)| if v > b.0 { (v, i) } else { b });
+        let at = [(at % w) as f64 + 0.5, (at / w) as f64 + 0.5];
+        let step = &s.manifest().plan.steps[f.step as usize];
+        let meta = &step.extra["meta"];
+        let g = t.snapshot.galvos[0];
+        assert_eq!(t.snapshot.lasers.count_ones(), 1, "one laser at a time");
+        if meta["kind"] == "white" {
+            // The white target, lit at the zero codes.
+            white += 1;
+            assert_eq!([g.x, g.y], [32768, 32768]);
+            assert!(best > 1.0, "{best}");
             continue;
         }
-        spots += 1;
-        // The card maps code c to c·size/65536 (continuous, pixel centres at +0.5).
-        let g = t.snapshot.galvos[0];
-        let want = (f64::from(g.x) * w as f64 / 65536.0, f64::from(g.y) * h as f64 / 65536.0);
-        let (dx, dy) = (at.0 as f64 + 0.5 - want.0, at.1 as f64 + 0.5 - want.1);
-        assert!(dx.abs() <= 1.0 && dy.abs() <= 1.0, "frame {}: peak {at:?}, spot at {want:?}", f.frame);
-        // In the laser's colour: 635 nm (channel 0) red, 532 nm green, 476 nm blue.
-        let c = px(at.0, at.1);
-        let dominant = (0..3).max_by(|&a, &b| c[a].total_cmp(&c[b])).unwrap();
-        assert_eq!(1u8 << dominant, t.snapshot.lasers, "frame {}: {c:?}", f.frame);
+        let position = meta["camera_position"].as_u64().unwrap() as usize;
+        match disco_spot(&rig, [g.x, g.y], position, 0.0) {
+            None => {
+                // The beam misses the object: the frame holds only the sensor's read noise.
+                missed += 1;
+                assert!(best < 0.01, "frame {}: {best}", f.frame);
+            }
+            Some(Some(want)) => {
+                seen += 1;
+                let d = ((at[0] - want[0]).powi(2) + (at[1] - want[1]).powi(2)).sqrt();
+                assert!(d <= 1.5, "frame {}: peak {at:?}, spot at {want:?}", f.frame);
+                assert!(best > 100.0, "{best}");
+            }
+            Some(None) => {}
+        }
     }
-    // 6 spots × 3 lasers; the registration frame has no laser.
-    assert_eq!(spots, 18);
+    assert_eq!(white, 3, "a white-balance frame per laser");
+    // 15 spots × 3 lasers at each of 2 camera positions: some hit and are seen, the grid's
+    // corners miss the pebble.
+    assert!(seen >= 6 && missed >= 6, "seen {seen}, missed {missed}");
 }
 
 #[cfg(unix)]
@@ -287,11 +321,18 @@ fn every_camera_of_the_rig_fires_at_every_spot_unless_the_plan_picks_some() {
     let rig = example(
         &dir,
         "disco.toml",
-        &[("views", "views = 1"), ("spot_grid", "spot_grid = [2, 2]"), ("[plan]", SIDE_CAMERA)],
+        &[
+            ("views", "views = 1"),
+            ("spot_grid", "spot_grid = [2, 2]"),
+            ("[plan]", SIDE_CAMERA),
+            ("white_balance", "white_balance = false"),
+            DISCO_SMALL[0],
+            DISCO_SMALL[1],
+        ],
     );
     let session = dir.join("session");
     let s = acquire(&rig, &session);
-    // 4 spots × 3 lasers, on each camera.
+    // 4 spots × 3 lasers, on each camera (at each of the two camera positions).
     let step = &s.manifest().plan.steps[0];
     assert_eq!((step.expected(0), step.expected(1)), (12, 12));
     let triggers = trigger_events(&session).unwrap();
@@ -304,27 +345,20 @@ fn every_camera_of_the_rig_fires_at_every_spot_unless_the_plan_picks_some() {
         // Both cameras render the spot where the trigger pointed the galvos.
         let img = lightrig_imaging::io::read(session.join(&f.file)).unwrap();
         let w = img.width as usize;
-        let peak = (0..img.data.len() / 3)
-            .max_by(|&a, &b| {
-                img.data[a * 3..a * 3 + 3]
-                    .iter()
-                    .sum::<f32>()
-                    .total_cmp(&img.data[b * 3..b * 3 + 3].iter().sum())
-            })
-            .unwrap();
-        let want = (f64::from(g.x) * w as f64 / 65536.0, f64::from(g.y) * img.height as f64 / 65536.0);
-        let at = ((peak % w) as f64 + 0.5, (peak / w) as f64 + 0.5);
-        assert!(
-            (at.0 - want.0).abs() <= 1.0 && (at.1 - want.1).abs() <= 1.0,
-            "cam {}: {at:?} vs {want:?}",
-            f.camera
-        );
+        let peak = (0..img.data.len()).max_by(|&a, &b| img.data[a].total_cmp(&img.data[b])).unwrap();
+        let position =
+            s.manifest().plan.steps[f.step as usize].extra["meta"]["camera_position"].as_u64().unwrap();
+        if let Some(Some(want)) = disco_spot(&rig, [g.x, g.y], position as usize, 0.0) {
+            let at = ((peak % w) as f64 + 0.5, (peak / w) as f64 + 0.5);
+            let d = ((at.0 - want[0]).powi(2) + (at.1 - want[1]).powi(2)).sqrt();
+            assert!(d <= 1.5, "cam {}: {at:?} vs {want:?}", f.camera);
+        }
     }
     for list in &mut by_camera {
         list.sort();
     }
     // The same instants, the same spots, the same lasers: one exposure seen by two cameras.
-    assert_eq!(by_camera[0].len(), 12);
+    assert_eq!(by_camera[0].len(), 24);
     assert_eq!(by_camera[0], by_camera[1]);
     // The side camera's 60 ms minimum interval sets the spacing of both.
     let ticks: Vec<u64> = by_camera[0].iter().map(|t| t.0).collect();
@@ -340,6 +374,9 @@ fn every_camera_of_the_rig_fires_at_every_spot_unless_the_plan_picks_some() {
             ("views", "views = 1\ncameras = [\"side\"]"),
             ("spot_grid", "spot_grid = [2, 2]"),
             ("[plan]", SIDE_CAMERA),
+            ("white_balance", "white_balance = false"),
+            DISCO_SMALL[0],
+            DISCO_SMALL[1],
         ],
     );
     let s = acquire(&rig, &dir.join("session"));

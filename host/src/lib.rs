@@ -18,6 +18,7 @@ pub mod acquire;
 pub mod bringup;
 pub mod client;
 pub mod clock;
+pub mod disco;
 pub mod filter;
 pub mod fit;
 pub mod frames;

@@ -50,8 +50,26 @@ fn a_small_disco_rig_plans_views_lasers_and_spots() {
     let text = text.replace("views = 72", "views = 4").replace("spot_grid = [64, 64]", "spot_grid = [3, 2]");
     let rig = RigFile::parse(&text, &example("disco.toml")).unwrap();
     let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
-    assert_eq!(plan.summary().steps, 4);
-    assert_eq!(plan.summary().triggers, 4 * 3 * 6);
+    // The white balance, then 4 views at each of the 2 camera positions.
+    assert_eq!(plan.summary().steps, 1 + 2 * 4);
+    assert_eq!(plan.summary().triggers, 3 + 2 * 4 * 3 * 6);
+    // The spots span `spot_window_deg` (±5.5° × ±6.5° optical) about the zero codes.
+    let g = &plan.meta["grid"];
+    let code = |deg: f64| (32768.0 + deg.to_radians() * 1e6 / 10.6526).round() as i64;
+    assert_eq!(g[0][0].as_i64().unwrap(), code(-5.5));
+    assert_eq!(g[2][0].as_i64().unwrap(), code(5.5));
+    assert_eq!(g[0][1].as_i64().unwrap(), code(6.5) - 2 * (code(6.5) - 32768), "y is mirrored");
+    assert_eq!(plan.steps[0].meta["kind"], "white");
+    assert_eq!(plan.steps[5].meta["camera_position"], 1);
+    assert!(plan.steps[5].meta["operator"].as_str().unwrap().contains("`left`"));
+    // A window beyond the galvo's range is refused, naming the key.
+    let wide = text.replace(
+        "spot_window_deg = [[-5.5, 5.5], [-6.5, 6.5]]",
+        "spot_window_deg = [[-25, 25], [-6.5, 6.5]]",
+    );
+    let rig = RigFile::parse(&wide, &example("disco.toml")).unwrap();
+    let e = from_rig::plan(&rig, &virtual_device_info()).unwrap_err().to_string();
+    assert!(e.contains("plan.spot_window_deg") && e.contains("outside the galvo"), "{e}");
 }
 
 #[test]
@@ -203,7 +221,8 @@ fn plan_cameras_are_picked_by_name_or_index_and_mistakes_name_the_line() {
     };
     let triggers_per_camera = |rig: &RigFile| {
         let plan = from_rig::plan(rig, &virtual_device_info()).unwrap();
-        let items = plan.steps[0].items();
+        // Step 0 is the white balance; step 1 the first view.
+        let items = plan.steps[1].items();
         let widths: Vec<(u8, u32)> = items
             .iter()
             .filter_map(|i| match i.action {
@@ -212,7 +231,7 @@ fn plan_cameras_are_picked_by_name_or_index_and_mistakes_name_the_line() {
             })
             .take(2)
             .collect();
-        (plan.steps[0].triggers.clone(), widths)
+        (plan.steps[1].triggers.clone(), widths)
     };
     // Both cameras by default, fired together with the longer pulse (300 µs) as the exposure.
     let rig = RigFile::parse(&text, &path).unwrap();

@@ -23,12 +23,13 @@ fn the_full_disco_plan_holds_heads_and_builds_one_step_at_a_time() {
 
     let (plan, peak, kept) = measured(|| from_rig::plan(&rig, &info).unwrap());
     let s = plan.summary();
-    assert_eq!((s.steps, s.triggers), (72, 72 * 3 * 64 * 64));
+    // The white balance (a frame per laser), then 72 views at each of the two camera positions.
+    assert_eq!((s.steps, s.triggers), (1 + 2 * 72, 3 + 2 * 72 * 3 * 64 * 64));
     // One view's sequence: a move, and per laser on/ready/off around
     // 4096 × (jump, trigger); ≈ 50 k items.
-    let items_per_view = plan.steps[0].items().len();
+    let items_per_view = plan.steps[1].items().len();
     assert!(items_per_view > 3 * 64 * 64 * 2, "{items_per_view}");
-    let all_items = 72 * items_per_view * std::mem::size_of::<Item>();
+    let all_items = 2 * 72 * items_per_view * std::mem::size_of::<Item>();
     eprintln!(
         "plan: peak {:.1} MB, kept {:.1} MB; all items would be {:.1} MB (+ labels)",
         peak as f64 / 1e6,
@@ -48,9 +49,9 @@ fn the_full_disco_plan_holds_heads_and_builds_one_step_at_a_time() {
         }
         on
     });
-    assert_eq!(lasers, 72 * 3, "three lasers per view");
+    assert_eq!(lasers, 3 + 2 * 72 * 3, "three lasers per view and for the white balance");
     let one_body = {
-        let b = plan.steps[0].body();
+        let b = plan.steps[1].body();
         b.items.capacity() * std::mem::size_of::<Item>()
             + b.shots.iter().map(|s| std::mem::size_of_val(s) + s.label.capacity()).sum::<usize>()
     };

@@ -10,9 +10,11 @@
 //!   renders with it; the fit's faster [`lls::TraceModel`] is tested against it).
 //! - [`firs`]: fluorescent immersion range scanning (Hullin et al. 2008).
 //! - [`brrdf`]: the bispectral BRRDF's PCA-steered acquisition maths (Hullin et al. 2010).
+//! - [`disco`]: DISCO, translucent objects measured with a laser spot (Goesele et al. 2004).
 //! - [`display`]: the BRDF display's wave maths (Hullin et al. 2011).
 
 pub mod brrdf;
+pub mod disco;
 pub mod display;
 pub mod firs;
 pub mod lls;

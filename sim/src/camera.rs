@@ -374,9 +374,10 @@ pub fn render_exposure<S: Scene + ?Sized>(
     frame_key: u64,
 ) -> Image {
     let (w, h) = scene.size();
-    let mut img = Image::new(w, h, 3);
+    let ch = if sensor.grey { 1 } else { 3 };
+    let mut img = Image::new(w, h, ch as u8);
     let exposure_s = states.first().map_or(0.0, |(_, s)| s.exposure_s);
-    img.data.par_chunks_mut(w as usize * 3).enumerate().for_each(|(y, row)| {
+    img.data.par_chunks_mut(w as usize * ch).enumerate().for_each(|(y, row)| {
         for x in 0..w {
             let mut l = [0.0; 3];
             for (f, state) in states {
@@ -385,10 +386,13 @@ pub fn render_exposure<S: Scene + ?Sized>(
                     l[c] += f * r[c];
                 }
             }
-            for c in 0..3 {
-                let i = (y * w as usize + x as usize) * 3 + c;
+            if sensor.grey {
+                l[0] = (l[0] + l[1] + l[2]) / 3.0;
+            }
+            for c in 0..ch {
+                let i = (y * w as usize + x as usize) * ch + c;
                 let key = mix(frame_key).wrapping_add(i as u64);
-                row[x as usize * 3 + c] = sensor.expose(l[c], exposure_s, key);
+                row[x as usize * ch + c] = sensor.expose(l[c], exposure_s, key);
             }
         }
     });

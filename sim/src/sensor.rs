@@ -54,6 +54,8 @@ pub struct Sensor {
     pub depth: Depth,
     /// Noise seed.
     pub seed: u64,
+    /// A monochrome sensor: one channel, the mean of the scene's three.
+    pub grey: bool,
 }
 
 impl Default for Sensor {
@@ -65,6 +67,7 @@ impl Default for Sensor {
             response: Response::Linear,
             depth: Depth::U16,
             seed: 1,
+            grey: false,
         }
     }
 }

@@ -105,10 +105,14 @@ fn disco_never_triggers_while_the_mirrors_move() {
     let grid: Vec<Xy> = (0..3)
         .flat_map(|i| (0..3).map(move |j| Xy { x: 20_000 + 10_000 * i, y: 20_000 + 10_000 * j }))
         .collect();
+    let white = Xy { x: 32_768, y: 32_768 };
     let p = disco::DiscoParams {
         turntable: 1,
         views: vec![0, 2_000, 4_000],
         lasers: vec![0, 1],
+        positions: vec!["front".into(), "left".into()],
+        frames_per_spot: 2,
+        white: Some(white),
         galvo: 0,
         grid: grid.clone(),
         cameras: vec![0],
@@ -121,20 +125,37 @@ fn disco_never_triggers_while_the_mirrors_move() {
         tick_hz: 1_000_000,
     };
     let plan = disco::plan(&p).unwrap();
-    assert_eq!(plan.summary().triggers, 3 * (1 + 2 * 9));
+    // The white balance (one frame per laser), then per position and view: the registration
+    // frame and two frames per spot and laser.
+    let per_view = 1 + 2 * 9 * 2;
+    assert_eq!(plan.summary().triggers, 2 + 2 * 3 * per_view);
+    // The operator places the white target, then the object, then moves the camera once.
+    let ops: Vec<(u32, String)> = plan
+        .steps
+        .iter()
+        .filter_map(|s| s.meta.get("operator").and_then(|o| o.as_str()).map(|o| (s.id, o.to_string())))
+        .collect();
+    assert_eq!(ops.len(), 3, "{ops:?}");
+    assert_eq!((ops[0].0, ops[1].0, ops[2].0), (0, 1, 4));
+    assert!(ops[2].1.contains("`left`"), "{}", ops[2].1);
+    assert_eq!(plan.steps[4].meta["camera_position"], 1);
     let triggers = run(&mut c, &plan);
-    assert_eq!(triggers.len(), 57);
+    assert_eq!(triggers.len(), 2 + 6 * per_view);
     let board = c.transport().device().rig().board();
     let jumps: Vec<u64> =
         board.changes(|o| matches!(o, Output::Galvo { .. })).iter().map(|c| c.tick).collect();
-    for (k, t) in triggers.iter().enumerate() {
-        let (view, r) = (k / 19, k % 19);
+    for (k, t) in triggers[..2].iter().enumerate() {
+        assert_eq!(t.snapshot.galvos[0], white);
+        assert_eq!(t.snapshot.lasers, 1 << k, "white balance: one laser at a time");
+    }
+    for (k, t) in triggers[2..].iter().enumerate() {
+        let (view, r) = ((k / per_view) % 3, k % per_view);
         assert_eq!(t.snapshot.axes[1], [0, 2_000, 4_000][view]);
         if r == 0 {
             assert_eq!(t.snapshot.lasers, 0b100, "registration under the spotlight");
             continue;
         }
-        let (laser, point) = ((r - 1) / 9, (r - 1) % 9);
+        let (laser, point) = ((r - 1) / 18, ((r - 1) % 18) / 2);
         assert_eq!(t.snapshot.galvos[0], grid[point]);
         assert_eq!(t.snapshot.lasers, 1 << laser, "one laser at a time, emitting");
         // The last jump before this trigger was at least `settle` earlier.

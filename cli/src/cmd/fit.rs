@@ -4,14 +4,14 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use lightrig_host::fit::{brrdf, display, firs, lls};
+use lightrig_host::fit::{brrdf, disco, display, firs, lls};
 
 use crate::error::{FAILURE, USAGE};
 
 /// Arguments of `lightrig fit`.
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Pipeline: `lls`, `firs-surface`, `firs-volume`, `display` or `brrdf`.
+    /// Pipeline: `lls`, `firs-surface`, `firs-volume`, `display`, `brrdf` or `disco`.
     pub pipeline: String,
     /// Session directory.
     pub session: PathBuf,
@@ -27,6 +27,10 @@ pub struct Args {
     /// `[plan.fit] spectralon`).
     #[arg(long)]
     pub spectralon: Option<PathBuf>,
+    /// `disco`: the object's scanned mesh, PLY (else the rig file's `[plan.fit] mesh`, relative
+    /// to the session directory).
+    #[arg(long)]
+    pub mesh: Option<PathBuf>,
 }
 
 /// Runs `lightrig fit`.
@@ -37,9 +41,10 @@ pub fn run(args: &Args) -> ExitCode {
         "firs-volume" => fit_firs_volume(&args.session, &args.out),
         "display" | "brdf-display" => fit_display(&args.session, args.calibration.as_deref(), &args.out),
         "brrdf" | "bispectral" => fit_brrdf(&args.session, args.spectralon.as_deref(), &args.out),
+        "disco" => fit_disco(&args.session, args.mesh.as_deref(), &args.out),
         other => {
             eprintln!(
-                "error: `lightrig fit {other}`: the pipelines are: lls, firs-surface, firs-volume, display, brrdf"
+                "error: `lightrig fit {other}`: the pipelines are: lls, firs-surface, firs-volume, display, brrdf, disco"
             );
             ExitCode::from(USAGE)
         }
@@ -179,6 +184,46 @@ fn fit_brrdf(session: &Path, spectralon: Option<&Path>, out: &Path) -> ExitCode 
             }
         }
         brrdf::write_outputs(&f, out)
+    }))
+}
+
+/// `lightrig fit disco SESSION --out DIR [--mesh FILE.ply]`.
+fn fit_disco(session: &Path, mesh: Option<&Path>, out: &Path) -> ExitCode {
+    let bar = crate::demo::bar(true, 0, "frames");
+    let b = bar.clone();
+    let fit = disco::fit_session(session, mesh, &move |done, total| {
+        b.set_length(total);
+        b.set_position(done);
+    });
+    bar.finish_and_clear();
+    report_files(fit.and_then(|f| {
+        let n = f.mesh.vertices.len();
+        println!(
+            "{} views, {} laser frames: {} resampled, {} beam off the object or grazing, {} held out",
+            f.views, f.frames, f.used, f.missed, f.held_out_frames
+        );
+        println!(
+            "F: {n} vertices, {} of {} columns lit, {} of {} entries measured, the rest interpolated",
+            f.lit_columns,
+            n,
+            f.observed.iter().filter(|&&o| o).count(),
+            n * n
+        );
+        if f.spots_seen > 0 {
+            println!(
+                "spot seen in {} frames: its peak {:.2} mm (median) from the projector's entry point",
+                f.spots_seen, f.peak_offset_mm
+            );
+        }
+        if f.held_out.frames > 0 {
+            println!(
+                "held-out spots: {} frames predicted from F, relative RMS error {:.1} % (median; beyond {:.1} mm of the spot)",
+                f.held_out.frames,
+                100.0 * f.held_out.median_rel_rms,
+                f.held_out.near_mm
+            );
+        }
+        disco::write_outputs(&f, out)
     }))
 }
 

@@ -5,6 +5,7 @@
 //! ground truth's scene file, progress bars and the report's tables ([`Report`]).
 
 pub mod brrdf;
+pub mod disco;
 pub mod display;
 pub mod firs;
 pub mod lls;
@@ -32,7 +33,7 @@ use crate::error::{err, failure, io, CliError, FAILURE, INPUT, USAGE};
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Method: `lls` (linear light source), `firs` (fluorescent immersion), `display` (BRDF
-    /// display) or `brrdf` (bispectral).
+    /// display), `brrdf` (bispectral) or `disco` (translucent objects).
     #[arg(default_value = "lls")]
     pub method: String,
     /// A small scene for a quick check (about half a minute).
@@ -93,7 +94,24 @@ pub fn run(args: &Args) -> ExitCode {
         eprintln!("error: --step-mm {step}: the brrdf demo has no gantry; it is for `lightrig demo lls`");
         return ExitCode::from(USAGE);
     }
-    let missed = if brrdf {
+    let disco = args.method == "disco";
+    if let Some(step) = args.step_mm.filter(|_| disco) {
+        eprintln!("error: --step-mm {step}: the disco demo has no gantry; it is for `lightrig demo lls`");
+        return ExitCode::from(USAGE);
+    }
+    let missed = if disco {
+        let opts = disco::DiscoDemoOptions {
+            quick: args.quick,
+            out: args.out.join("disco"),
+            seed: args.seed,
+            progress: true,
+            real_time: args.real_time,
+        };
+        disco::run_disco(&opts).map(|r| {
+            eprintln!("report: {}", r.report.display());
+            r.missed()
+        })
+    } else if brrdf {
         let opts = brrdf::BrrdfDemoOptions {
             quick: args.quick,
             out: args.out.join("brrdf"),
@@ -143,7 +161,7 @@ pub fn run(args: &Args) -> ExitCode {
         })
     } else {
         eprintln!(
-            "error: `lightrig demo {}`: the methods with a demo are: lls, firs, display, brrdf",
+            "error: `lightrig demo {}`: the methods with a demo are: lls, firs, display, brrdf, disco",
             args.method
         );
         return ExitCode::from(USAGE);

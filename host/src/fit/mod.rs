@@ -10,6 +10,8 @@
 //!
 //! - [`brrdf`]: `lightrig fit brrdf`: a bispectral session scaled by its Spectralon session,
 //!   binned per sphere, and the PCA-steered reconstruction measured on it.
+//! - [`disco`]: `lightrig fit disco`: a DISCO session's frames resampled into the throughput
+//!   factor matrix `F` and filled on the mesh.
 //! - [`bracket`]: an exposure bracket merged through the camera's response.
 //!
 //! Each returns a [`FitError`]: one message that says what was wrong, where (file, step,
@@ -17,6 +19,7 @@
 
 pub mod bracket;
 pub mod brrdf;
+pub mod disco;
 pub mod display;
 pub mod firs;
 pub mod lls;

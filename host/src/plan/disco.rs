@@ -2,10 +2,14 @@
 //! object on a turntable, for each view and each laser colour; the camera records each
 //! impulse response.
 //!
-//! One step per view: the turntable goes to the view's angle; a registration frame is taken
-//! under the spotlights; then for each laser: on, warm up, and for every grid point: jump (the
-//! device blanks the lasers while the mirrors settle), wait out the settle time, expose. No
-//! frame is triggered while the mirrors move.
+//! First, with `white`, the white balance (section 4.4): the operator places the white target,
+//! and each laser in turn puts its spot on it at the galvo's zero codes. Then one step per view,
+//! camera position by camera position (the paper's acquisition order): the first view at a
+//! position asks the operator to move the camera there (`meta.operator`); the turntable goes to
+//! the view's angle; a registration frame is taken under the spotlights; then for each laser:
+//! on, warm up, and for every grid point: jump (the device blanks the lasers while the mirrors
+//! settle), wait out the settle time, expose `frames_per_spot` frames. No frame is triggered
+//! while the mirrors move.
 
 use lightrig_protocol::config::Xy;
 use lightrig_protocol::sequence::{Action, WaitFor};
@@ -24,6 +28,12 @@ pub struct DiscoParams {
     pub views: Vec<i32>,
     /// Laser channels, in capture order (e.g. 635, 532, 476 nm).
     pub lasers: Vec<u8>,
+    /// Camera positions, by name, in capture order (at least one).
+    pub positions: Vec<String>,
+    /// Frames per spot (and laser).
+    pub frames_per_spot: u32,
+    /// The white balance step first, its spot at these codes.
+    pub white: Option<Xy>,
     /// Galvo pair.
     pub galvo: u8,
     /// Spot positions, DAC codes.
@@ -60,35 +70,73 @@ pub fn plan(p: &DiscoParams) -> Result<Plan, PlanError> {
     if p.cameras.is_empty() {
         return Err(PlanError("disco: no camera to trigger".into()));
     }
+    if p.positions.is_empty() || p.frames_per_spot == 0 {
+        return Err(PlanError("disco: at least one camera position and one frame per spot".into()));
+    }
     // Shared by every step's builder (the grid alone is 4096 points at 64²).
     let shared = Arc::new(p.clone());
     let mut steps = Vec::new();
-    for (v, &angle) in p.views.iter().enumerate() {
+    if let Some(code) = p.white {
         let p = Arc::clone(&shared);
         let meta = json!({
-            "view": v, "turntable": angle, "lasers": p.lasers, "registration": p.spotlight.is_some(),
+            "kind": "white", "camera_position": 0, "lasers": p.lasers,
+            "operator": format!("camera at position `{}`; place the white target where the rig file's [plan.fit] white_target says", p.positions[0]),
         });
-        steps.push(Step::new(v as u32, format!("view {v}"), meta, move |b| {
-            b.move_to(p.turntable, angle, p.timeout);
-            if let Some(s) = p.spotlight {
-                b.then(Action::Laser { channel: s, on: true });
-                b.until(WaitFor::LaserReady(s), p.timeout);
-                b.shoot_all(&p.cameras, p.exposure, "registration");
-                b.wait(p.frame_gap);
-                b.then(Action::Laser { channel: s, on: false });
-            }
+        steps.push(Step::new(0, "white balance".to_string(), meta, move |b| {
             for &laser in &p.lasers {
+                b.then(Action::GalvoPoint { galvo: p.galvo, to: code });
                 b.then(Action::Laser { channel: laser, on: true });
                 b.until(WaitFor::LaserReady(laser), p.timeout);
-                for (k, &point) in p.grid.iter().enumerate() {
-                    b.then(Action::GalvoPoint { galvo: p.galvo, to: point });
-                    b.wait(p.settle);
-                    b.shoot_all(&p.cameras, p.exposure, format!("laser {laser} point {k}"));
-                    b.wait(p.frame_gap);
-                }
+                b.wait(p.settle);
+                b.shoot_all(&p.cameras, p.exposure, format!("white laser {laser}"));
+                b.wait(p.frame_gap);
                 b.then(Action::Laser { channel: laser, on: false });
             }
         }));
+    }
+    for (c, position) in p.positions.iter().enumerate() {
+        for (v, &angle) in p.views.iter().enumerate() {
+            let p = Arc::clone(&shared);
+            let mut meta = json!({
+                "kind": "view", "view": v, "camera_position": c, "turntable": angle, "lasers": p.lasers,
+                "registration": p.spotlight.is_some(), "frames_per_spot": p.frames_per_spot,
+            });
+            if v == 0 && (c > 0 || p.white.is_some()) {
+                let mut op = String::new();
+                if c == 0 {
+                    op.push_str("remove the white target; place the object on the turntable");
+                } else {
+                    op.push_str(&format!("move the camera to position `{position}` as calibrated"));
+                }
+                meta["operator"] = json!(op);
+            }
+            let id = steps.len() as u32;
+            let name =
+                if p.positions.len() > 1 { format!("{position} view {v}") } else { format!("view {v}") };
+            steps.push(Step::new(id, name, meta, move |b| {
+                b.move_to(p.turntable, angle, p.timeout);
+                if let Some(s) = p.spotlight {
+                    b.then(Action::Laser { channel: s, on: true });
+                    b.until(WaitFor::LaserReady(s), p.timeout);
+                    b.shoot_all(&p.cameras, p.exposure, "registration");
+                    b.wait(p.frame_gap);
+                    b.then(Action::Laser { channel: s, on: false });
+                }
+                for &laser in &p.lasers {
+                    b.then(Action::Laser { channel: laser, on: true });
+                    b.until(WaitFor::LaserReady(laser), p.timeout);
+                    for (k, &point) in p.grid.iter().enumerate() {
+                        b.then(Action::GalvoPoint { galvo: p.galvo, to: point });
+                        b.wait(p.settle);
+                        for _ in 0..p.frames_per_spot {
+                            b.shoot_all(&p.cameras, p.exposure, format!("laser {laser} point {k}"));
+                            b.wait(p.frame_gap);
+                        }
+                    }
+                    b.then(Action::Laser { channel: laser, on: false });
+                }
+            }));
+        }
     }
     // The spot grid is the same in every view: once, in the plan's `meta`.
     let plan_meta = json!({ "grid": p.grid.iter().map(|q| [q.x, q.y]).collect::<Vec<_>>() });

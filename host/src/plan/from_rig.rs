@@ -6,9 +6,12 @@
 //! - linear-light-source: `pass_mm = [from, to]`, `step_mm` (1.0), `exposures_us` (the
 //!   camera's pulse), `settle_ms` (20), `readout_us` (1000), `passes` (every pass the rig has
 //!   lights for: lasers named `light-tube`, `stripe`, `backlight`), `frame_bytes`.
-//! - disco: `views` (turntable positions over a full turn), `spot_grid = [nx, ny]` over the
-//!   galvo range, `lasers` (names, in order), `registration` (name of a spotlight output),
-//!   `exposure_us`, `readout_us`, `frame_bytes`.
+//! - disco: `views` (turntable positions over a full turn), `spot_grid = [nx, ny]` over
+//!   `spot_window_deg = [[x0, x1], [y0, y1]]` (optical degrees from the zero codes; the galvo's
+//!   range without it), `lasers` (names, in order), `frames_per_spot` (1), `camera_positions`
+//!   (see [`crate::disco`]), `white_balance` (default: whether `[plan.fit] white_target` is
+//!   given), `registration` (name of a spotlight output), `exposure_us`, `readout_us`,
+//!   `frame_bytes`.
 //!
 //! - fluorescent-immersion: `views` (turntable positions over a full turn), `sheet_positions`
 //!   (spread over `sweep_codes = [first, last]`, by default the galvo's X range; Y at its zero
@@ -255,13 +258,43 @@ fn disco_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         }
         (u32::from(lo) + (u32::from(hi) - u32::from(lo)) * k / (n - 1)) as u16
     };
+    // `spot_window_deg = [[x0, x1], [y0, y1]]`: the grid's span in optical degrees from the
+    // zero codes (the object's extent as the projector sees it), else the galvo's whole range.
+    let window = match rig.plan.get("spot_window_deg") {
+        None => None,
+        Some(v) => {
+            let w: [[f64; 2]; 2] = v.clone().try_into().map_err(|_| {
+                rig.error(
+                    "plan.spot_window_deg",
+                    "must be [[x_from, x_to], [y_from, y_to]] in optical degrees",
+                )
+            })?;
+            Some(w)
+        }
+    };
+    let range =
+        |axis: &crate::rigfile::GalvoAxisSpec, k: usize, name: &str| -> Result<(u16, u16), RigError> {
+            let Some(w) = window else { return Ok((axis.min_code, axis.max_code)) };
+            let code = |deg: f64| f64::from(axis.zero_code) + deg.to_radians() * 1e6 / axis.urad_per_code;
+            let (a, b) = (code(w[k][0]), code(w[k][1]));
+            let (lo, hi) = (a.min(b).round(), a.max(b).round());
+            if lo < f64::from(axis.min_code) || hi > f64::from(axis.max_code) {
+                return Err(rig.error(
+                    "plan.spot_window_deg",
+                    format!(
+                        "the {name} span reaches codes {lo}..{hi}, outside the galvo's {}..{}",
+                        axis.min_code, axis.max_code
+                    ),
+                ));
+            }
+            Ok((lo as u16, hi as u16))
+        };
+    let (x_lo, x_hi) = range(&galvo.x, 0, "x")?;
+    let (y_lo, y_hi) = range(&galvo.y, 1, "y")?;
     let mut points = Vec::new();
     for j in 0..ny {
         for i in 0..nx {
-            points.push(Xy {
-                x: spread(galvo.x.min_code, galvo.x.max_code, nx, i),
-                y: spread(galvo.y.min_code, galvo.y.max_code, ny, j),
-            });
+            points.push(Xy { x: spread(x_lo, x_hi, nx, i), y: spread(y_lo, y_hi, ny, j) });
         }
     }
     let lasers = match names(rig, "lasers")? {
@@ -276,10 +309,24 @@ fn disco_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
     };
     let cameras = plan_cameras(rig)?;
     let exposure = exposure(rig, &cameras, hz)?;
+    let positions = crate::disco::camera_positions(rig)?.into_iter().map(|p| p.name).collect();
+    let frames_per_spot = num(rig, "frames_per_spot", Some(1.0))?;
+    if !(1.0..=1000.0).contains(&frames_per_spot) || frames_per_spot.fract() != 0.0 {
+        return Err(rig.error("plan.frames_per_spot", "must be a whole number from 1 to 1000"));
+    }
+    let has_white = rig.plan.get("fit").and_then(|f| f.get("white_target")).is_some();
+    let white = match rig.plan.get("white_balance") {
+        None => has_white,
+        Some(v) => v.as_bool().ok_or_else(|| rig.error("plan.white_balance", "must be true or false"))?,
+    }
+    .then_some(Xy { x: galvo.x.zero_code, y: galvo.y.zero_code });
     let p = disco::DiscoParams {
         turntable,
         views: view_steps,
         lasers,
+        positions,
+        frames_per_spot: frames_per_spot as u32,
+        white,
         galvo: galvo.galvo,
         grid: points,
         cameras: indices(&cameras),

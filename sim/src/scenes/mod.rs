@@ -4,11 +4,13 @@
 //! - [`firs`]: the fluorescent-immersion tank scene and its ground truth.
 //! - [`display`]: the BRDF display's liquid surface, driven by the coils' samples.
 //! - [`bispectral`]: the gonioreflectometer's coated spheres (or Spectralon), spectra in closed form.
-//! - [`card`]: the test card for the rig without a scene of its own yet (DISCO).
+//! - [`disco`]: the translucent pebble on the turntable under the laser spot, its `F` known.
+//! - [`card`]: the test card, for a DISCO rig file without the `[plan.fit]` geometry.
 //! - [`scene_for`]: a rig file's scene, for `lightrig acquire` with `source = { kind = "virtual" }`.
 
 pub mod bispectral;
 pub mod card;
+pub mod disco;
 pub mod display;
 pub mod firs;
 pub mod lls;
@@ -33,7 +35,9 @@ use crate::sensor::Sensor;
 /// - bispectral: the coated spheres ([`bispectral::BispectralScene`], 160 × 100; Spectralon
 ///   with `[plan] sample = "spectralon"`), Spectralon at 550 nm through the white slot filling
 ///   half the well at the camera's pulse width;
-/// - DISCO: the [`card::CardScene`] test card (160 × 120).
+/// - DISCO: the translucent pebble ([`disco::DiscoScene`], 642 vertices) at the size
+///   `[plan.fit] image` gives, in float frames (an HDR camera); without `[plan.fit]`, the
+///   [`card::CardScene`] test card (160 × 120).
 pub fn scene_for(rig: &RigFile, seed: u64) -> (Box<dyn Scene + Send>, Sensor) {
     let laser = |names: &[&str]| {
         rig.lasers.iter().find(|l| l.name.as_deref().is_some_and(|n| names.contains(&n))).map(|l| l.channel)
@@ -83,9 +87,21 @@ pub fn scene_for(rig: &RigFile, seed: u64) -> (Box<dyn Scene + Send>, Sensor) {
             (Box::new(scene), sensor)
         }
         Method::Disco => {
+            let pulse_s = rig.cameras.first().map_or(1e-3, |c| c.pulse_us * 1e-6).max(1e-6);
+            if let Ok(scene) = disco::DiscoScene::new(rig, 3) {
+                // A grey HDR camera: float frames; the spot's peak (radiance about 0.1) at 10⁸ e⁻,
+                // so that the far field, 10⁻⁵ of it, still collects a thousand.
+                let sensor = Sensor {
+                    gain: 1e8 / (0.1 * pulse_s),
+                    depth: crate::sensor::Depth::Float,
+                    grey: true,
+                    seed,
+                    ..Sensor::default()
+                };
+                return (Box::new(scene), sensor);
+            }
             let card = card::CardScene::new(rig, 160, 120);
             // A laser spot on white fills half the well at the camera's own pulse width.
-            let pulse_s = rig.cameras.first().map_or(1e-3, |c| c.pulse_us * 1e-6).max(1e-6);
             let sensor = Sensor { gain: 15_000.0 / (card.spot * pulse_s), seed, ..Sensor::default() };
             (Box::new(card), sensor)
         }

@@ -1,0 +1,94 @@
+//! DISCO end to end: the quick demo (the white balance and the translucent pebble on the
+//! virtual rig, `lightrig fit disco`'s pipeline) against the scene's true throughput factors,
+//! `F`'s file read back, and the fit's errors on bad input.
+
+use lightrig_cli::demo::disco::{run_disco, DiscoDemoOptions, INTERPOLATED_TOLERANCE, OBSERVED_TOLERANCE};
+use lightrig_host::fit::disco::{fit_session, read_matrix, F_FORMAT};
+
+#[test]
+fn the_quick_disco_demo_measures_f_against_the_truth() {
+    let out = std::env::temp_dir().join(format!("lightrig-disco-demo-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let opts = DiscoDemoOptions { quick: true, out: out.clone(), seed: 1, progress: false, real_time: false };
+    let r = run_disco(&opts).unwrap();
+    assert!(r.missed().is_empty(), "{:?}", r.targets());
+    let (f, a) = (&r.fit, &r.accuracy);
+    for c in 0..3 {
+        assert!(a.observed[c] <= OBSERVED_TOLERANCE, "channel {c}: {:?}", a.observed);
+        assert!(a.interpolated[c] <= INTERPOLATED_TOLERANCE, "channel {c}: {:?}", a.interpolated);
+    }
+    assert!(a.symmetric);
+    assert!(a.entries[0] > 10_000 && a.entries[1] > 5_000, "{:?}", a.entries);
+    // 4 turntable views × 2 camera positions; 16 × 16 spots × 3 lasers each.
+    assert_eq!((f.views, f.frames), (8, 8 * 256 * 3));
+    assert_eq!(f.used + f.missed + f.held_out_frames, f.frames);
+    assert!(f.used > 2000 && f.lit_columns > 400, "{} frames used, {} columns lit", f.used, f.lit_columns);
+    // The white balance recovers the lasers' fluxes as the camera sees them (the scene's
+    // 1 : 0.85 : 0.6) and the beam's width (σ 0.85 mm).
+    assert!(
+        (f.flux[1] / f.flux[0] - 0.85).abs() < 0.01 && (f.flux[2] / f.flux[0] - 0.6).abs() < 0.01,
+        "{:?}",
+        f.flux
+    );
+    assert!((f.beam_sigma_mm - 0.85).abs() < 0.05, "{}", f.beam_sigma_mm);
+    // The spot's peak on the mesh lies within a fraction of a millimetre of the entry point.
+    assert!(f.spots_seen > 1000 && f.peak_offset_mm < 0.5, "{} {}", f.spots_seen, f.peak_offset_mm);
+    // Held-out spots: predicted from F beyond the near field.
+    assert!(f.held_out.frames > 300 && f.held_out.median_rel_rms < 0.3, "{:?}", f.held_out);
+
+    // F's file: the upper triangle, read back as the fit's matrix, exactly symmetric.
+    let n = f.mesh.vertices.len();
+    let fit_dir = out.join("fit");
+    let back = read_matrix(&fit_dir, n).unwrap();
+    assert_eq!(back, f.matrix.values);
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(fit_dir.join("F.json")).unwrap()).unwrap();
+    assert_eq!(json["format"], F_FORMAT);
+    assert_eq!(json["vertices"], n);
+    let bits = std::fs::read(fit_dir.join("F-observed.bits")).unwrap();
+    assert_eq!(bits.len(), (n * (n + 1) / 2).div_ceil(8));
+    let set: u32 = bits.iter().map(|b| b.count_ones()).sum();
+    let upper =
+        (0..n).flat_map(|k| (k..n).map(move |r| (r, k))).filter(|&(r, k)| f.observed[k * n + r]).count();
+    assert_eq!(set as usize, upper);
+
+    // Bad input, each refused with what and what to do, nothing written.
+    let session = out.join("session");
+    let none = |_: u64, _: u64| {};
+    let e = fit_session(&session, Some(&out.join("nowhere.ply")), &none).unwrap_err().0;
+    assert!(e.contains("nowhere.ply") && e.contains("--mesh"), "{e}");
+    let e = fit_session(&out, None, &none).unwrap_err().0;
+    assert!(e.contains("manifest") || e.contains("session"), "not a session: {e}");
+    // A frame of the wrong size (a camera ROI changed mid-run): named, with the sizes.
+    let (s, _) = lightrig_host::session::Session::read(&session).unwrap();
+    let frame = s.frame_index().into_iter().nth(10).unwrap();
+    let small = lightrig_imaging::io::Image::new(64, 32, 1);
+    lightrig_imaging::io::write_exr(
+        session.join(&frame.file),
+        &small,
+        lightrig_imaging::io::ExrPrecision::Float,
+    )
+    .unwrap();
+    let e = fit_session(&session, None, &none).unwrap_err().0;
+    assert!(e.contains(&frame.file) && e.contains("64 × 32") && e.contains("192 × 124"), "{e}");
+    std::fs::remove_dir_all(&out).ok();
+}
+
+#[test]
+fn a_session_of_another_rig_is_refused() {
+    use lightrig_host::acquire::plan_summary;
+    use lightrig_host::plan::from_rig;
+    use lightrig_host::rigfile::RigFile;
+    use lightrig_host::session::{Manifest, Session};
+    let dir = std::env::temp_dir().join(format!("lightrig-disco-other-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/rigs/lls-gantry.toml");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let rig = RigFile::parse(&text, &path).unwrap();
+    let info = lightrig_firmware::sim::virtual_device_info();
+    let plan = from_rig::plan(&rig, &info).unwrap();
+    Session::create(&dir, Manifest::new(text, &info, plan_summary(&plan))).unwrap();
+    let e = fit_session(&dir, None, &|_, _| {}).unwrap_err().0;
+    assert!(e.contains("linear-light-source") && e.contains("DISCO sessions"), "{e}");
+    std::fs::remove_dir_all(&dir).ok();
+}

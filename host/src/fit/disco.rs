@@ -1,0 +1,598 @@
+//! `lightrig fit disco`: a DISCO session → the object's throughput factor matrix `F`.
+//!
+//! The glue between a session on disk and [`lightrig_pipelines::disco`]:
+//!
+//! 1. **White balance** (section 4.4): the `white` step's frames, one per laser, each summed
+//!    over the white target's area, give the camera's gain times each laser's flux
+//!    ([`flux_scale`]) — absolute, so `F` comes out in mm⁻².
+//! 2. **Per view, once** (section 5): the object turned to the view's turntable angle (from the
+//!    trigger snapshots) and seen from its camera position ([`ViewMap`]): visible vertices,
+//!    their pixels, Fresnel terms and confidences.
+//! 3. **Per frame** (section 6.1): the beam's entry point from the calibrated projector and the
+//!    galvo code in the trigger's snapshot ([`incidence`]); whether the camera sees the spot
+//!    and where its sub-pixel peak lies (a check of the calibration, reported); the frame
+//!    resampled at the visible vertices into the entry triangle's three columns by barycentric
+//!    weight ([`Accumulator`]), lasers into R, G, B by wavelength, views combined by
+//!    confidence. Frames are streamed a chunk at a time: memory is `F` plus one chunk.
+//! 4. **Interpolation** (section 6.2, [`interpolate`]): missing entries and never-lit columns
+//!    filled on the mesh, `F` made symmetric.
+//! 5. **Held out**: with `[plan.fit] held_out = N`, every N-th spot of the grid is left out of
+//!    1–4 and its frames predicted from `F` afterwards ([`HeldOut`]).
+
+use std::collections::HashMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use lightrig_pipelines::disco::falloff;
+use lightrig_pipelines::disco::interpolate::{interpolate, FillParams, FillReport, Matrix};
+use lightrig_pipelines::disco::mesh::SurfaceMesh;
+use lightrig_pipelines::disco::optics::{point_of, Pinhole};
+use lightrig_pipelines::disco::resample::{
+    background_sigma, beam_sigma, flux_scale, incidence, spot_peak, Accumulator, Incidence, ViewLimits,
+    ViewMap,
+};
+use lightrig_pipelines::firs::mesh::{read_ply, write_ply};
+use lightrig_pipelines::vec3::{norm, sub, V3};
+use lightrig_protocol::event::TriggerEvent;
+use rayon::prelude::*;
+use serde_json::{json, Value};
+
+use super::{fail, FitError};
+use crate::disco::DiscoSetup;
+use crate::rigfile::RigFile;
+use crate::session::{trigger_events, FrameRecord, Session};
+
+/// A frame is noise below this many background σ.
+pub const FLOOR_SIGMAS: f32 = 5.0;
+
+/// The held-out spots' frames predicted from the fitted `F`.
+#[derive(Debug, Clone, Default)]
+pub struct HeldOut {
+    /// Frames predicted.
+    pub frames: usize,
+    /// Pixels compared (on the object, above the noise floor, beyond `near_mm` of the spot).
+    pub pixels: usize,
+    /// Relative RMS error of the prediction over those pixels, `√(Σ(p−m)²/Σm²)`, median over
+    /// frames.
+    pub median_rel_rms: f64,
+    /// The near field left out, mm from the entry point (the local term's domain).
+    pub near_mm: f64,
+}
+
+/// What the fit made.
+#[derive(Debug, Clone)]
+pub struct DiscoFit {
+    pub mesh: SurfaceMesh,
+    /// `F`, filled and symmetric (mm⁻²).
+    pub matrix: Matrix,
+    /// Entries measured (before the fill), `k·n + r`.
+    pub observed: Vec<bool>,
+    pub fill: FillReport,
+    /// Gain × flux per colour channel (R, G, B lasers), from the white balance.
+    pub flux: [f64; 3],
+    /// The beam's σ, mm, from its spot on the white target.
+    pub beam_sigma_mm: f64,
+    /// Views (turntable angle × camera position).
+    pub views: usize,
+    /// Laser frames read; of them, resampled into `F`; whose beam missed the object or entered
+    /// too grazing; held out.
+    pub frames: usize,
+    pub used: usize,
+    pub missed: usize,
+    pub held_out_frames: usize,
+    /// Frames whose spot the camera saw, and the median distance between the spot's sub-pixel
+    /// peak on the mesh and the projector's entry point, mm.
+    pub spots_seen: usize,
+    pub peak_offset_mm: f64,
+    /// Columns whose incident vertex was lit.
+    pub lit_columns: usize,
+    pub held_out: HeldOut,
+    /// The fall-off taken out for the interpolation, per channel (none: too few entries).
+    pub falloff: Option<[falloff::Falloff; 3]>,
+}
+
+/// One laser frame to resample.
+struct Job {
+    view: usize,
+    channel: usize,
+    code: [u16; 2],
+    file: PathBuf,
+    held_out: bool,
+}
+
+/// A frame's result, computed in parallel.
+struct Done {
+    view: usize,
+    channel: usize,
+    inc: Option<Incidence>,
+    img: Vec<f32>,
+    floor: f32,
+    peak_offset: Option<f64>,
+    held_out: bool,
+}
+
+/// Colour channel of each of the plan's three lasers: by wavelength, longest red.
+pub fn colour_channels(rig: &RigFile, lasers: &[u8]) -> Result<HashMap<u8, usize>, FitError> {
+    let mut l: Vec<(u16, u8)> = lasers
+        .iter()
+        .map(|&c| rig.lasers.iter().find(|x| x.channel == c).map(|x| (x.wavelength_nm, c)))
+        .collect::<Option<_>>()
+        .ok_or_else(|| fail("the plan names a laser the rig file lacks"))?;
+    if l.len() != 3 {
+        return Err(fail(format!(
+            "[plan] lasers: a DISCO fit needs three lasers (red, green, blue), the plan has {}",
+            l.len()
+        )));
+    }
+    l.sort_by_key(|x| std::cmp::Reverse(x.0));
+    Ok(l.iter().enumerate().map(|(k, &(_, c))| (c, k)).collect())
+}
+
+fn read_plane(path: &Path, w: u32, h: u32) -> Result<Vec<f32>, FitError> {
+    let img = lightrig_imaging::io::read(path).map_err(|e| fail(format!("{}: {e}", path.display())))?;
+    if img.width != w || img.height != h {
+        return Err(fail(format!(
+            "{}: the frame is {} × {}, the rig file's [plan.fit] image is {w} × {h}; fix image (or the camera's ROI)",
+            path.display(),
+            img.width,
+            img.height
+        )));
+    }
+    let c = usize::from(img.channels.max(1));
+    Ok(img.data.iter().step_by(c).copied().collect())
+}
+
+/// Reads and fits the DISCO session in `dir`; `mesh` overrides `[plan.fit] mesh`. `progress`
+/// gets (frames done, frames in all).
+pub fn fit_session(
+    dir: &Path,
+    mesh: Option<&Path>,
+    progress: &(dyn Fn(u64, u64) + Sync),
+) -> Result<DiscoFit, FitError> {
+    let (s, _) = Session::read(dir).map_err(|e| fail(e.to_string()))?;
+    let m = s.manifest();
+    let method = m.plan.extra.get("method").and_then(Value::as_str).unwrap_or("");
+    if method != "disco" {
+        return Err(fail(format!(
+            "{}: a `{method}` session; `lightrig fit disco` reads DISCO sessions",
+            dir.display()
+        )));
+    }
+    if !s.is_done() {
+        return Err(fail(format!("{}: not complete; `lightrig resume` it first", dir.display())));
+    }
+    let rig = RigFile::parse(&m.rig, &dir.join("manifest.json"))
+        .map_err(|e| fail(format!("{}: the session's rig file: {e}", dir.display())))?;
+    let setup = DiscoSetup::from_rig(&rig).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
+    let mesh_path = match (mesh, &setup.mesh) {
+        (Some(p), _) => p.to_path_buf(),
+        (None, Some(p)) => dir.join(p),
+        (None, None) => {
+            return Err(fail(format!(
+            "{}: no mesh: give `--mesh FILE.ply` or `[plan.fit] mesh` (relative to the session directory)",
+            dir.display()
+        )))
+        }
+    };
+    let mesh = {
+        let mut f = std::fs::File::open(&mesh_path).map_err(|e| {
+            fail(format!(
+                "{}: the object's mesh: {e}; give the scanned mesh with --mesh or [plan.fit] mesh",
+                mesh_path.display()
+            ))
+        })?;
+        SurfaceMesh::new(&read_ply(&mut f).map_err(|e| fail(format!("{}: {e}", mesh_path.display())))?)
+    };
+    if mesh.vertices.len() < 4 || mesh.triangles.is_empty() {
+        return Err(fail(format!("{}: the mesh has no surface", mesh_path.display())));
+    }
+    let camera = s.pipeline_camera(None).map_err(fail)?;
+    let triggers = trigger_events(dir).map_err(|e| fail(e.to_string()))?;
+    let table = rig
+        .stepper_named("turntable")
+        .or_else(|| rig.steppers.iter().find(|x| x.kind == lightrig_protocol::config::AxisKind::Rotary))
+        .ok_or_else(|| fail("the rig file has no turntable (a rotary [[stepper]])"))?;
+    let limits = ViewLimits { eta: setup.eta, ..ViewLimits::default() };
+    let (w, h) = (setup.cameras[0].1.width, setup.cameras[0].1.height);
+    let plan_meta = m.plan.extra.get("meta").cloned().unwrap_or(Value::Null);
+    let grid: Vec<[u16; 2]> = plan_meta
+        .get("grid")
+        .and_then(Value::as_array)
+        .map(|a| {
+            a.iter().filter_map(|p| Some([p.get(0)?.as_u64()? as u16, p.get(1)?.as_u64()? as u16])).collect()
+        })
+        .unwrap_or_default();
+    let trig = |f: &FrameRecord| -> Result<&TriggerEvent, FitError> {
+        triggers.get(&(f.sequence, f.item)).ok_or_else(|| {
+            fail(format!("{}: frame {} has no trigger record in the journal", dir.display(), f.file))
+        })
+    };
+
+    // 1. White balance.
+    let mut flux = [f64::NAN; 3];
+    let mut beam_sigma_mm = 0.0;
+    let mut lasers_of_plan: Vec<u8> = Vec::new();
+    let mut views: Vec<(usize, f64)> = Vec::new();
+    let mut jobs: Vec<Job> = Vec::new();
+    let mut white_seen = false;
+    for p in &m.plan.steps {
+        let meta = p.extra.get("meta").cloned().unwrap_or(Value::Null);
+        if lasers_of_plan.is_empty() {
+            lasers_of_plan = meta
+                .get("lasers")
+                .and_then(Value::as_array)
+                .map(|a| a.iter().filter_map(|x| x.as_u64().map(|v| v as u8)).collect())
+                .unwrap_or_default();
+        }
+        let kind = meta.get("kind").and_then(Value::as_str).unwrap_or("view");
+        let frames = s.camera_frames_of(p.id, camera);
+        if kind == "white" {
+            white_seen = true;
+            let channels = colour_channels(&rig, &lasers_of_plan)?;
+            let (_, cam) = setup.cameras[0];
+            let mut sums = [(0.0, 0usize); 3];
+            let mut widths = Vec::new();
+            for f in &frames {
+                let t = trig(f)?;
+                let Some((_, &c)) = channels.iter().find(|(l, _)| t.snapshot.lasers & (1 << **l) != 0) else {
+                    continue;
+                };
+                let img = read_plane(&dir.join(&f.file), w, h)?;
+                let code = t.snapshot.galvos.first().map_or([0.0; 2], |g| [f64::from(g.x), f64::from(g.y)]);
+                let centre = beam_on_plane(&setup, code);
+                sums[c].0 += flux_scale(&img, &cam, &setup.white, centre, 25.0);
+                sums[c].1 += 1;
+                widths.extend(beam_sigma(&img, &cam, &setup.white, setup.projector.ray(code), centre, 10.0));
+            }
+            for c in 0..3 {
+                if sums[c].1 > 0 {
+                    flux[c] = sums[c].0 / sums[c].1 as f64;
+                }
+            }
+            if !widths.is_empty() {
+                beam_sigma_mm = widths.iter().sum::<f64>() / widths.len() as f64;
+            }
+            continue;
+        }
+        let pos = meta.get("camera_position").and_then(Value::as_u64).unwrap_or(0) as usize;
+        if pos >= setup.cameras.len() {
+            return Err(fail(format!(
+                "step {} ({}): camera position {pos}, but [plan] camera_positions has {}",
+                p.id,
+                p.name,
+                setup.cameras.len()
+            )));
+        }
+        let channels = colour_channels(&rig, &lasers_of_plan)?;
+        for f in &frames {
+            let t = trig(f)?;
+            let Some(&c) = channels.iter().find(|(l, _)| t.snapshot.lasers & (1 << **l) != 0).map(|(_, c)| c)
+            else {
+                continue; // the registration frame
+            };
+            let steps = t.snapshot.axes.get(usize::from(table.axis)).copied().unwrap_or(0);
+            let deg = table.units(i64::from(steps)).unwrap_or(0.0);
+            let view = match views.iter().position(|&(q, d)| q == pos && (d - deg).abs() < 1e-6) {
+                Some(v) => v,
+                None => {
+                    views.push((pos, deg));
+                    views.len() - 1
+                }
+            };
+            let code = t.snapshot.galvos.first().map_or([0, 0], |g| [g.x, g.y]);
+            let index = grid.iter().position(|&g| g == code).unwrap_or(0);
+            let held_out = setup.held_out > 1 && index % setup.held_out == setup.held_out / 2;
+            jobs.push(Job { view, channel: c, code, file: dir.join(&f.file), held_out });
+        }
+    }
+    if !white_seen || flux.iter().any(|f| !f.is_finite() || *f <= 0.0) {
+        return Err(fail(format!(
+            "{}: no usable white balance (a `white` step with one frame per laser on the white target); acquire with `white_balance = true` and [plan.fit] white_target",
+            dir.display()
+        )));
+    }
+
+    // 2–3. Views once, frames streamed.
+    let maps: Vec<ViewMap> = views
+        .par_iter()
+        .map(|&(pos, deg)| ViewMap::new(&mesh, &setup.cameras[pos].1, deg, &limits))
+        .collect();
+    let n = mesh.vertices.len();
+    let mut acc = Accumulator::new(&mesh);
+    let total = jobs.len() as u64;
+    let (mut used, mut missed, mut seen, mut offsets) = (0usize, 0usize, 0usize, Vec::new());
+    let mut held: Vec<Done> = Vec::new();
+    let near_mm = 2.0 * mesh.mean_edge();
+    let mut done_count = 0u64;
+    for chunk in jobs.chunks(64) {
+        let results: Vec<Result<Done, FitError>> = chunk
+            .par_iter()
+            .map(|j| {
+                let img = read_plane(&j.file, w, h)?;
+                let map = &maps[j.view];
+                let origin = setup.projector.eye;
+                let dir_ = setup.projector.ray([f64::from(j.code[0]), f64::from(j.code[1])]);
+                let inc = incidence(&mesh, &map.world, map.turntable_deg, origin, dir_, &limits);
+                let floor = FLOOR_SIGMAS * background_sigma(&img, &map.surface, 7);
+                let peak_offset = inc.as_ref().and_then(|inc| spot_offset(&mesh, map, inc, &img, floor));
+                Ok(Done {
+                    view: j.view,
+                    channel: j.channel,
+                    inc,
+                    img,
+                    floor,
+                    peak_offset,
+                    held_out: j.held_out,
+                })
+            })
+            .collect();
+        for r in results {
+            let d = r?;
+            done_count += 1;
+            if let Some(o) = d.peak_offset {
+                seen += 1;
+                offsets.push(o);
+            }
+            let Some(inc) = d.inc else {
+                missed += 1;
+                continue;
+            };
+            if d.held_out {
+                // Keep only what the prediction needs: the frame is compared after the fit.
+                held.push(Done { inc: Some(inc), ..d });
+                continue;
+            }
+            acc.add(&mesh, &maps[d.view], &inc, &d.img, d.channel, flux[d.channel], d.floor);
+            used += 1;
+        }
+        progress(done_count, total);
+    }
+    // Twice: the gradients the neighbouring columns show give a first `F` and its fall-off;
+    // the fall-off's own gradient then moves each mean to its vertex (far less noisy than a
+    // plane through a few neighbours' means).
+    let (mut values, mut weights) = acc.nodal(&mesh, beam_sigma_mm, None);
+    let first = Matrix { n, values: values.clone(), weight: weights.clone() };
+    if let Some(f) = falloff::fit(&mesh, &first, 2.0 * mesh.mean_edge()) {
+        (values, weights) = acc.nodal(&mesh, beam_sigma_mm, Some(f.map(|x| x.s)));
+    }
+    drop(first);
+    drop(acc);
+    let observed: Vec<bool> = weights.iter().map(|&w| w > 0.0).collect();
+    let lit_columns = (0..n).filter(|&k| observed[k * n + k]).count();
+    let mut matrix =
+        Matrix { n, values, weight: observed.iter().map(|&o| if o { 1.0 } else { 0.0 }).collect() };
+    // 4. On `F` without its overall fall-off (see `falloff`'s docs), so that what the camera's
+    // dynamic range cannot reach continues the measured decay.
+    let d_min = 0.5 * mesh.mean_edge();
+    let rates = falloff::fit(&mesh, &matrix, 2.0 * mesh.mean_edge());
+    if let Some(s) = rates {
+        falloff::apply(&mesh, &mut matrix, s, d_min, true);
+    }
+    let fill = interpolate(&mut matrix, &mesh.rings, &FillParams::default());
+    if let Some(s) = rates {
+        falloff::apply(&mesh, &mut matrix, s, d_min, false);
+    }
+    // 5.
+    let held_out = predict_held_out(&mesh, &matrix, &maps, &held, &flux, near_mm);
+    offsets.sort_by(f64::total_cmp);
+    Ok(DiscoFit {
+        observed,
+        fill,
+        flux,
+        views: views.len(),
+        frames: jobs.len(),
+        used,
+        missed,
+        held_out_frames: held.len(),
+        spots_seen: seen,
+        peak_offset_mm: offsets.get(offsets.len() / 2).copied().unwrap_or(f64::NAN),
+        lit_columns,
+        held_out,
+        falloff: rates,
+        beam_sigma_mm,
+        mesh,
+        matrix,
+    })
+}
+
+/// Where the beam at `code` meets the white target's plane.
+fn beam_on_plane(setup: &DiscoSetup, code: [f64; 2]) -> V3 {
+    let d = setup.projector.ray(code);
+    let t = &setup.white;
+    let o = setup.projector.eye;
+    let dn = lightrig_pipelines::vec3::dot(d, t.normal);
+    let s =
+        if dn.abs() < 1e-12 { 0.0 } else { lightrig_pipelines::vec3::dot(sub(t.point, o), t.normal) / dn };
+    lightrig_pipelines::vec3::add(o, lightrig_pipelines::vec3::scale(d, s))
+}
+
+/// If the camera sees the entry point, the distance from it to the spot's sub-pixel peak on
+/// the mesh, mm.
+fn spot_offset(mesh: &SurfaceMesh, map: &ViewMap, inc: &Incidence, img: &[f32], floor: f32) -> Option<f64> {
+    let cam: &Pinhole = &map.camera;
+    let (px, _) = cam.project(inc.point)?;
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let (x, y) = (px[0].floor(), px[1].floor());
+    if x < 0.0 || y < 0.0 || x as usize >= w || y as usize >= h {
+        return None;
+    }
+    // Hidden: the pixel sees another part of the surface.
+    let hit = map.surface[y as usize * w + x as usize]?;
+    let (p, _) = point_of(mesh, &map.world, map.turntable_deg, &hit);
+    if norm(sub(p, inc.point)) > mesh.mean_edge() {
+        return None;
+    }
+    let peak = spot_peak(img, w, h, px, 4, floor)?;
+    let d = cam.ray(peak[0], peak[1]);
+    let on = lightrig_pipelines::disco::optics::cast(mesh, &map.world, cam.eye, d)?;
+    let (q, _) = point_of(mesh, &map.world, map.turntable_deg, &on);
+    Some(norm(sub(q, inc.point)))
+}
+
+/// Each held-out frame predicted from `F`: at every object pixel, the vertices' predicted
+/// `Σk βk F(r, k)` interpolated by the pixel's barycentric weights in log, times
+/// `Ft_o·Ft_i·Φ/π`, against the frame.
+fn predict_held_out(
+    mesh: &SurfaceMesh,
+    f: &Matrix,
+    maps: &[ViewMap],
+    held: &[Done],
+    flux: &[f64; 3],
+    near_mm: f64,
+) -> HeldOut {
+    let n = mesh.vertices.len();
+    let per_frame: Vec<(f64, usize)> = held
+        .par_iter()
+        .filter_map(|d| {
+            let inc = d.inc.as_ref()?;
+            let map = &maps[d.view];
+            let tri = mesh.triangles[inc.hit.triangle as usize];
+            // Predicted exitant Rd per vertex (column mix), then radiance at each vertex.
+            let mut vertex_rd = vec![f64::NAN; n];
+            for vv in &map.vertices {
+                let r = vv.vertex as usize;
+                let mut s = 0.0;
+                for (k, &col) in tri.iter().enumerate() {
+                    s += f64::from(inc.hit.bary[k]) * f64::from(f.values[col as usize * n + r][d.channel]);
+                }
+                vertex_rd[r] = s;
+            }
+            let cam = &map.camera;
+            let (mut se, mut sm, mut count) = (0.0, 0.0, 0usize);
+            for (i, hit) in map.surface.iter().enumerate() {
+                let Some(hit) = hit else { continue };
+                let t = mesh.triangles[hit.triangle as usize];
+                if t.iter().any(|&v| vertex_rd[v as usize].is_nan()) {
+                    continue;
+                }
+                let (p, nrm) = point_of(mesh, &map.world, map.turntable_deg, hit);
+                if norm(sub(p, inc.point)) < near_mm {
+                    continue;
+                }
+                let measured = f64::from(d.img[i]);
+                if measured <= f64::from(d.floor) {
+                    continue;
+                }
+                // Between vertices in log: the fall-off is exponential (linear Gouraud would
+                // overshoot mid-triangle by the edge's fall-off).
+                if t.iter().any(|&v| vertex_rd[v as usize] <= 0.0) {
+                    continue;
+                }
+                let rd: f64 =
+                    (0..3).map(|k| f64::from(hit.bary[k]) * vertex_rd[t[k] as usize].ln()).sum::<f64>().exp();
+                let cos_o =
+                    lightrig_pipelines::vec3::dot(nrm, lightrig_pipelines::vec3::normalize(sub(cam.eye, p)));
+                let ft_o = lightrig_pipelines::disco::dipole::fresnel_transmittance(1.3, cos_o);
+                let predicted = rd * ft_o * inc.fresnel * flux[d.channel] / std::f64::consts::PI;
+                se += (predicted - measured).powi(2);
+                sm += measured * measured;
+                count += 1;
+            }
+            (count > 0).then(|| ((se / sm).sqrt(), count))
+        })
+        .collect();
+    let mut errs: Vec<f64> = per_frame.iter().map(|p| p.0).collect();
+    errs.sort_by(f64::total_cmp);
+    HeldOut {
+        frames: per_frame.len(),
+        pixels: per_frame.iter().map(|p| p.1).sum(),
+        median_rel_rms: errs.get(errs.len() / 2).copied().unwrap_or(f64::NAN),
+        near_mm,
+    }
+}
+
+/// `F`'s file format tag.
+pub const F_FORMAT: &str = "lightrig-disco-F 1";
+
+/// Writes the fit's outputs into `out`: `object.ply` (the mesh the columns index), `F.f32` and
+/// `F.json` (the matrix: see [`write_matrix`]), `F-observed.bits`, `fit.json` (the numbers).
+pub fn write_outputs(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitError> {
+    std::fs::create_dir_all(out).map_err(|e| fail(format!("{}: {e}", out.display())))?;
+    let io = |p: &Path, e: std::io::Error| fail(format!("{}: {e}", p.display()));
+    let ply = out.join("object.ply");
+    let mut f = std::io::BufWriter::new(std::fs::File::create(&ply).map_err(|e| io(&ply, e))?);
+    write_ply(&fit.mesh.mesh(), &mut f).and_then(|_| f.flush()).map_err(|e| io(&ply, e))?;
+    let mut files = vec![ply];
+    files.extend(write_matrix(&fit.matrix, &fit.observed, out)?);
+    let summary = out.join("fit.json");
+    let j = json!({
+        "vertices": fit.mesh.vertices.len(),
+        "views": fit.views,
+        "frames": fit.frames, "resampled": fit.used, "beam_missed_or_grazing": fit.missed,
+        "held_out_frames": fit.held_out_frames,
+        "spots_seen": fit.spots_seen, "peak_offset_mm_median": fit.peak_offset_mm,
+        "lit_columns": fit.lit_columns,
+        "observed_entries": fit.observed.iter().filter(|&&o| o).count(),
+        "white_balance_gain_flux_rgb": fit.flux,
+        "fill": format!("{:?}", fit.fill),
+        "held_out": { "frames": fit.held_out.frames, "pixels": fit.held_out.pixels,
+                      "median_relative_rms": fit.held_out.median_rel_rms, "near_field_excluded_mm": fit.held_out.near_mm },
+    });
+    std::fs::write(&summary, serde_json::to_string_pretty(&j).unwrap_or_default() + "\n")
+        .map_err(|e| io(&summary, e))?;
+    files.push(summary);
+    Ok(files)
+}
+
+/// Writes `F` (symmetric) as its upper triangle: `F.f32` holds, for `k` from 0 to n−1 and `r`
+/// from `k` to n−1, the entry `(r, k)` as three little-endian `f32` (R, G, B; mm⁻²);
+/// `F-observed.bits` one bit per entry in the same order (LSB first; set: measured, clear:
+/// interpolated); `F.json` says so.
+pub fn write_matrix(f: &Matrix, observed: &[bool], out: &Path) -> Result<Vec<PathBuf>, FitError> {
+    let n = f.n;
+    let io = |p: &Path, e: std::io::Error| fail(format!("{}: {e}", p.display()));
+    let (fp, bp, jp) = (out.join("F.f32"), out.join("F-observed.bits"), out.join("F.json"));
+    let entries = n * (n + 1) / 2;
+    let mut data = Vec::with_capacity(entries * 12);
+    let mut bits = vec![0u8; entries.div_ceil(8)];
+    let mut e = 0usize;
+    for k in 0..n {
+        for r in k..n {
+            for c in 0..3 {
+                data.extend_from_slice(&f.values[k * n + r][c].to_le_bytes());
+            }
+            if observed.get(k * n + r).copied().unwrap_or(false) {
+                bits[e / 8] |= 1 << (e % 8);
+            }
+            e += 1;
+        }
+    }
+    std::fs::write(&fp, &data).map_err(|e| io(&fp, e))?;
+    std::fs::write(&bp, &bits).map_err(|e| io(&bp, e))?;
+    let j = json!({
+        "format": F_FORMAT, "vertices": n, "entries": entries,
+        "layout": "upper triangle of the symmetric F: for k in 0..n, for r in k..n: F(r,k) as 3 little-endian f32 (R, G, B)",
+        "units": "mm^-2 (diffuse subsurface reflectance Rd between vertices r and k)",
+        "observed": "F-observed.bits: one bit per entry in the same order, LSB first; 1 = measured, 0 = interpolated",
+        "mesh": "object.ply (vertex order = matrix index)",
+    });
+    std::fs::write(&jp, serde_json::to_string_pretty(&j).unwrap_or_default() + "\n")
+        .map_err(|e| io(&jp, e))?;
+    Ok(vec![fp, bp, jp])
+}
+
+/// Reads `F.f32` back (for tests and tools): the full symmetric matrix.
+pub fn read_matrix(dir: &Path, n: usize) -> Result<Vec<[f32; 3]>, FitError> {
+    let p = dir.join("F.f32");
+    let data = std::fs::read(&p).map_err(|e| fail(format!("{}: {e}", p.display())))?;
+    if data.len() != n * (n + 1) / 2 * 12 {
+        return Err(fail(format!(
+            "{}: {} bytes, not the {} of {n} vertices",
+            p.display(),
+            data.len(),
+            n * (n + 1) / 2 * 12
+        )));
+    }
+    let mut out = vec![[0.0f32; 3]; n * n];
+    let mut i = 0;
+    for k in 0..n {
+        for r in k..n {
+            let v = [0, 1, 2]
+                .map(|c| f32::from_le_bytes(data[i + 4 * c..i + 4 * c + 4].try_into().unwrap_or([0; 4])));
+            out[k * n + r] = v;
+            out[r * n + k] = v;
+            i += 12;
+        }
+    }
+    Ok(out)
+}

@@ -1,0 +1,18 @@
+//! DISCO (Goesele et al. 2004): a translucent object's diffuse subsurface reflectance measured
+//! with a laser spot, as a vertex-to-vertex throughput factor matrix `F` (the global term) and
+//! local kernels.
+//!
+//! - [`mesh`]: the object's surface with its one-rings; the virtual rig's test object.
+//! - [`dipole`]: Jensen et al. 2001's dipole and Fresnel transmittance (the virtual object's
+//!   physics, and what kernels are compared with).
+//! - [`optics`]: turntable, pinhole camera, galvo projector, which surface point a pixel sees.
+//! - [`resample`]: per view once, per frame into columns of `F` (sections 5 and 6.1).
+//! - [`interpolate`]: filling `F` on the mesh (section 6.2), and [`falloff`]: the fall-off with
+//!   distance taken out while it does.
+
+pub mod dipole;
+pub mod falloff;
+pub mod interpolate;
+pub mod mesh;
+pub mod optics;
+pub mod resample;

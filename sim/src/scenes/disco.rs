@@ -1,0 +1,343 @@
+//! The DISCO scene: a translucent pebble on the turntable, lit by the galvo's laser spot and
+//! seen by a grey HDR camera from the rig file's camera positions.
+//!
+//! Physics (the paper's equation 1 with a beam): the object is marble (Jensen et al. 2001's
+//! measured σs′, σa; η = 1.3) with a vein of skin-like material through it, so it is
+//! inhomogeneous. Between an entry point `xi` and an exit point `xo` the diffuse reflectance
+//! `Rd(xi, xo)` is the mean of the two points' dipoles at their 3D distance (symmetric, as light
+//! transport is). The beam has a Gaussian profile of `beam_sigma_mm` (0.85 mm: the paper's
+//! ≈ 2 mm spot at half maximum), integrated with 3 × 3 Gauss–Hermite rays; each ray's flux
+//! enters through `Ft(η, ωi)`. A pixel sees the surface point its centre's ray hits:
+//! `Lo = Ft(η, ωo)/π · Σ_rays Φ_ray·Ft(η, ωi)·Rd(xi, xo)`. Each laser (635, 532, 476 nm) drives
+//! the dipole's red, green or blue channel; the grey camera sees it with its own sensitivity
+//! times the laser's power (`flux`, unknown to the fit: the white balance measures it).
+//!
+//! The white balance step (`meta.kind = "white"`) shows the white target instead: a Lambertian
+//! plane of the rig file's albedo, lit by the beam (`E = I(s)·cos θ`).
+//! Not modelled: surface (specular) reflection at the spot, the registration spotlights, a
+//! surface detail texture.
+
+use std::collections::HashMap;
+use std::sync::{Arc, RwLock};
+
+use lightrig_host::disco::DiscoSetup;
+use lightrig_host::rigfile::RigFile;
+use lightrig_pipelines::disco::dipole::{fresnel_transmittance, rd_between, Dipole, Medium, MARBLE, SKIN1};
+
+use lightrig_pipelines::disco::mesh::{pebble, SurfaceMesh};
+use lightrig_pipelines::disco::optics::{cast, point_of, surface_map, turned, Hit};
+use lightrig_pipelines::vec3::{add, cross, dot, norm, normalize, scale, sub, V3};
+use lightrig_protocol::config::AxisKind;
+
+use crate::camera::{RigState, Scene};
+
+/// The vein: the object-frame points within `half_width_mm` of a plane.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Vein {
+    pub normal: V3,
+    pub offset_mm: f64,
+    pub half_width_mm: f64,
+}
+
+/// A pixel's surface point in a view.
+#[derive(Debug, Clone, Copy)]
+struct Seen {
+    point: V3,
+    material: u8,
+    /// `Ft(η, ωo)/π`.
+    out: f64,
+}
+
+/// One beam ray inside the object.
+#[derive(Debug, Clone, Copy)]
+struct Entry {
+    point: V3,
+    material: u8,
+    /// Share of the flux times `Ft(η, ωi)`.
+    weight: f64,
+}
+
+type ViewKey = (usize, i64);
+/// A view's beam at a galvo code.
+type BeamKey = (ViewKey, [u16; 2]);
+
+/// The DISCO scene.
+pub struct DiscoScene {
+    pub setup: DiscoSetup,
+    pub mesh: SurfaceMesh,
+    /// Body, vein.
+    pub media: [Medium; 2],
+    pub vein: Vein,
+    pub beam_sigma_mm: f64,
+    /// Per laser channel: the dipole channel it drives and its flux as the camera sees it.
+    pub lasers: Vec<(u8, usize, f64)>,
+    turntable: Option<u8>,
+    dipoles: [[Dipole; 3]; 2],
+    views: RwLock<HashMap<ViewKey, Arc<Vec<Option<Seen>>>>>,
+    beams: RwLock<HashMap<BeamKey, Arc<Vec<Entry>>>>,
+}
+
+/// The dipole channel a laser wavelength drives.
+pub fn channel_of(nm: u16) -> usize {
+    match nm {
+        600.. => 0,
+        500..=599 => 1,
+        _ => 2,
+    }
+}
+
+/// 3-point Gauss–Hermite nodes (in σ) and weights.
+const GH: [(f64, f64); 3] =
+    [(-1.732_050_807_568_877_2, 1.0 / 6.0), (0.0, 2.0 / 3.0), (1.732_050_807_568_877_2, 1.0 / 6.0)];
+
+impl DiscoScene {
+    /// The scene for `rig` (its `[plan.fit]` geometry), the pebble from an icosphere of `level`
+    /// (3: 642 vertices, 4: 2 562).
+    pub fn new(rig: &RigFile, level: u32) -> Result<Self, String> {
+        let setup = DiscoSetup::from_rig(rig).map_err(|e| e.to_string())?;
+        let mesh = SurfaceMesh::new(&pebble(level, [24.0, 20.0, 30.0]));
+        // A grey camera's sensitivity falls towards the blue; the lasers are all 10 mW.
+        let lasers = rig
+            .lasers
+            .iter()
+            .map(|l| {
+                let c = channel_of(l.wavelength_nm);
+                (l.channel, c, [1.0, 0.85, 0.6][c])
+            })
+            .collect();
+        let media = [MARBLE, SKIN1];
+        Ok(DiscoScene {
+            setup,
+            mesh,
+            media,
+            vein: Vein { normal: normalize([1.0, 0.4, 0.8]), offset_mm: 24.0, half_width_mm: 3.0 },
+            beam_sigma_mm: 0.85,
+            lasers,
+            turntable: rig.steppers.iter().find(|s| s.kind == AxisKind::Rotary).map(|s| s.axis),
+            dipoles: [media[0].dipoles(), media[1].dipoles()],
+            views: RwLock::new(HashMap::new()),
+            beams: RwLock::new(HashMap::new()),
+        })
+    }
+
+    /// The medium at object-frame point `p`: 0 body, 1 vein.
+    pub fn material_at(&self, p: V3) -> u8 {
+        u8::from((dot(p, self.vein.normal) - self.vein.offset_mm).abs() < self.vein.half_width_mm)
+    }
+
+    /// Each vertex's medium.
+    pub fn vertex_materials(&self) -> Vec<u8> {
+        self.mesh.vertices.iter().map(|&p| self.material_at(p)).collect()
+    }
+
+    /// The true `Rd` between object-frame points `a` and `b`, channel `c`, mm⁻².
+    pub fn rd(&self, a: V3, b: V3, c: usize) -> f64 {
+        let (ma, mb) = (self.material_at(a), self.material_at(b));
+        rd_between(&self.dipoles[usize::from(ma)][c], &self.dipoles[usize::from(mb)][c], norm(sub(a, b)))
+    }
+
+    /// The true throughput factor `F(r, k)`: `Rd` between the two vertices, per channel
+    /// (symmetric).
+    pub fn truth(&self, r: usize, k: usize) -> [f64; 3] {
+        let (a, b) = (self.mesh.vertices[r], self.mesh.vertices[k]);
+        [0, 1, 2].map(|c| self.rd(a, b, c))
+    }
+
+    fn view_key(state: &RigState, deg: f64) -> ViewKey {
+        let pos = state.meta.get("camera_position").and_then(|v| v.as_u64()).unwrap_or(0) as usize;
+        (pos, (deg * 1000.0).round() as i64)
+    }
+
+    fn view(&self, key: ViewKey, deg: f64) -> Option<Arc<Vec<Option<Seen>>>> {
+        if let Some(v) = self.views.read().ok()?.get(&key) {
+            return Some(Arc::clone(v));
+        }
+        let cam = self.setup.cameras.get(key.0)?.1;
+        let world = turned(&self.mesh, deg);
+        let map: Vec<Option<Seen>> = surface_map(&self.mesh, &world, &cam)
+            .iter()
+            .map(|h| {
+                h.map(|hit| {
+                    let (p, n) = point_of(&self.mesh, &world, deg, &hit);
+                    let obj = self.object_point(&hit);
+                    let cos_o = dot(n, normalize(sub(cam.eye, p)));
+                    Seen {
+                        point: obj,
+                        material: self.material_at(obj),
+                        out: fresnel_transmittance(self.setup.eta, cos_o) / std::f64::consts::PI,
+                    }
+                })
+            })
+            .collect();
+        let map = Arc::new(map);
+        self.views.write().ok()?.insert(key, Arc::clone(&map));
+        Some(map)
+    }
+
+    fn object_point(&self, hit: &Hit) -> V3 {
+        let t = self.mesh.triangles[hit.triangle as usize];
+        (0..3).fold([0.0; 3], |p, k| add(p, scale(self.mesh.vertices[t[k] as usize], f64::from(hit.bary[k]))))
+    }
+
+    /// The beam's rays for galvo code `code` with the turntable at `deg`: where each enters
+    /// (object frame) and with what weight.
+    fn beam(&self, key: ViewKey, code: [u16; 2], deg: f64) -> Arc<Vec<Entry>> {
+        if let Some(b) = self.beams.read().ok().and_then(|m| m.get(&(key, code)).cloned()) {
+            return b;
+        }
+        let proj = &self.setup.projector;
+        let d = proj.ray([f64::from(code[0]), f64::from(code[1])]);
+        let u = normalize(cross(d, [0.0, 0.0, 1.0]));
+        let v = cross(u, d);
+        let world = turned(&self.mesh, deg);
+        let mut entries = Vec::new();
+        for &(a, wa) in &GH {
+            for &(b, wb) in &GH {
+                let o =
+                    add(proj.eye, add(scale(u, a * self.beam_sigma_mm), scale(v, b * self.beam_sigma_mm)));
+                let Some(hit) = cast(&self.mesh, &world, o, d) else { continue };
+                let (_, n) = point_of(&self.mesh, &world, deg, &hit);
+                let cos_i = -dot(n, d);
+                if cos_i <= 0.0 {
+                    continue;
+                }
+                let obj = self.object_point(&hit);
+                entries.push(Entry {
+                    point: obj,
+                    material: self.material_at(obj),
+                    weight: wa * wb * fresnel_transmittance(self.setup.eta, cos_i),
+                });
+            }
+        }
+        let b = Arc::new(entries);
+        if let Ok(mut m) = self.beams.write() {
+            // Frames come spot by spot: keep the cache small.
+            if m.len() > 64 {
+                m.clear();
+            }
+            m.insert((key, code), Arc::clone(&b));
+        }
+        b
+    }
+
+    /// The white target's radiance at pixel `(x, y)` of camera position `pos` with `flux` on
+    /// at code `code`.
+    fn white(&self, pos: usize, x: u32, y: u32, code: [u16; 2], flux: f64) -> f64 {
+        let Some(&(_, cam)) = self.setup.cameras.get(pos) else { return 0.0 };
+        let t = &self.setup.white;
+        let d = cam.ray(f64::from(x) + 0.5, f64::from(y) + 0.5);
+        let dn = dot(d, t.normal);
+        if dn.abs() < 1e-9 {
+            return 0.0;
+        }
+        let s = dot(sub(t.point, cam.eye), t.normal) / dn;
+        if s <= 0.0 {
+            return 0.0;
+        }
+        let p = add(cam.eye, scale(d, s));
+        let proj = &self.setup.projector;
+        let b = proj.ray([f64::from(code[0]), f64::from(code[1])]);
+        let rel = sub(p, proj.eye);
+        let perp = norm(sub(rel, scale(b, dot(rel, b))));
+        let sigma2 = self.beam_sigma_mm * self.beam_sigma_mm;
+        let intensity = flux / (2.0 * std::f64::consts::PI * sigma2) * (-perp * perp / (2.0 * sigma2)).exp();
+        t.albedo * intensity * dot(b, t.normal).abs() / std::f64::consts::PI
+    }
+}
+
+impl Scene for DiscoScene {
+    fn size(&self) -> (u32, u32) {
+        self.setup.cameras.first().map_or((1, 1), |(_, c)| (c.width, c.height))
+    }
+
+    fn radiance(&self, x: u32, y: u32, state: &RigState) -> [f64; 3] {
+        let on: Vec<(usize, f64)> =
+            self.lasers.iter().filter(|l| state.lasers & (1 << l.0) != 0).map(|l| (l.1, l.2)).collect();
+        let Some(&code) = state.galvos.first() else { return [0.0; 3] };
+        if on.is_empty() {
+            return [0.0; 3];
+        }
+        let deg = self.turntable.and_then(|a| state.axes.get(usize::from(a))).copied().unwrap_or(0.0);
+        let key = Self::view_key(state, deg);
+        if state.meta.get("kind").and_then(|k| k.as_str()) == Some("white") {
+            let v: f64 = on.iter().map(|&(_, f)| self.white(key.0, x, y, code, f)).sum();
+            return [v; 3];
+        }
+        let Some(view) = self.view(key, deg) else { return [0.0; 3] };
+        let w = self.size().0;
+        let Some(seen) = view[(y * w + x) as usize] else { return [0.0; 3] };
+        let beam = self.beam(key, code, deg);
+        let mut l = 0.0;
+        for &(c, flux) in &on {
+            let mo = &self.dipoles[usize::from(seen.material)][c];
+            let mut s = 0.0;
+            for e in beam.iter() {
+                s += e.weight
+                    * rd_between(
+                        mo,
+                        &self.dipoles[usize::from(e.material)][c],
+                        norm(sub(e.point, seen.point)),
+                    );
+            }
+            l += flux * s;
+        }
+        [seen.out * l; 3]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rig() -> RigFile {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/rigs/disco.toml");
+        RigFile::load(&path).unwrap()
+    }
+
+    #[test]
+    fn the_spot_glows_where_the_projector_points_and_falls_off_through_the_object() {
+        let scene = DiscoScene::new(&rig(), 2).unwrap();
+        let (_, cam) = scene.setup.cameras[0];
+        // Aim at the pebble's surface point facing between camera and projector.
+        let target = [22.0, -4.0, 30.0];
+        let code = scene.setup.projector.code_of(target).map(|c| c.round() as u16);
+        let red = rig().lasers.iter().find(|l| l.wavelength_nm == 635).unwrap().channel;
+        let state = RigState {
+            lasers: 1 << red,
+            galvos: vec![code],
+            axes: vec![0.0, 0.0],
+            meta: serde_json::json!({ "kind": "view", "camera_position": 0 }),
+            ..RigState::default()
+        };
+        let (px, _) = cam.project(target).unwrap();
+        let at = scene.radiance(px[0] as u32, px[1] as u32, &state)[0];
+        let (far, _) = cam.project([20.0, 8.0, 45.0]).unwrap();
+        let far = scene.radiance(far[0] as u32, far[1] as u32, &state)[0];
+        assert!(at > 1e-3 && far > 0.0 && far < at * 1e-2, "{at} {far}");
+        // The background is dark; the white step shows the target instead.
+        assert_eq!(scene.radiance(0, 0, &state), [0.0; 3]);
+        let white = RigState { meta: serde_json::json!({ "kind": "white" }), ..state };
+        let zero = scene.setup.projector.code_of(scene.setup.white.point).map(|c| c.round() as u16);
+        let white = RigState { galvos: vec![zero], ..white };
+        let (c, _) = cam.project(scene.setup.white.point).unwrap();
+        assert!(scene.radiance(c[0] as u32, c[1] as u32, &white)[0] > 0.01);
+    }
+
+    #[test]
+    fn the_truth_is_symmetric_and_decays_faster_in_blue() {
+        let scene = DiscoScene::new(&rig(), 2).unwrap();
+        let mats = scene.vertex_materials();
+        assert!(mats.contains(&1) && mats.contains(&0), "both media on the surface");
+        let a = scene.truth(3, 40);
+        assert_eq!(a, scene.truth(40, 3));
+        let near = scene.truth(3, scene.mesh.rings[3][0].0 as usize);
+        assert!(near[0] > a[0] && a[0] > a[1] && a[1] > a[2], "{near:?} {a:?}");
+        // Between two body vertices it is marble's dipole.
+        let (i, j) = (0..mats.len())
+            .flat_map(|i| (0..mats.len()).map(move |j| (i, j)))
+            .find(|&(i, j)| i != j && mats[i] == 0 && mats[j] == 0)
+            .unwrap();
+        let d = norm(sub(scene.mesh.vertices[i], scene.mesh.vertices[j]));
+        assert_eq!(scene.truth(i, j)[1], MARBLE.dipoles()[1].rd(d));
+    }
+}
