@@ -413,6 +413,11 @@ pub struct Progress {
     pub steps: usize,
     /// Frames stored in this run.
     pub frames: u64,
+    /// Triggers fired in this run, the running step's included: progress within a step (a
+    /// DISCO view is 12 288 frames).
+    pub triggered: u64,
+    /// Triggers of the steps this run had to do when it began.
+    pub to_trigger: u64,
 }
 
 /// How long to wait for a step's next frame after its sequence ended, µs: the step's frames
@@ -485,6 +490,14 @@ fn run_steps<T: Transport>(
     }
     let total = plan.steps.len();
     let mut frames = 0u64;
+    let done_before = session.steps_done();
+    let to_trigger: u64 = plan
+        .steps
+        .iter()
+        .filter(|s| !done_before.contains(&s.id))
+        .flat_map(|s| s.triggers.iter().map(|t| u64::from(t.1)))
+        .sum();
+    let mut triggered = 0u64;
     for step in &plan.steps {
         if session.steps_done().contains(&step.id) {
             continue;
@@ -507,8 +520,22 @@ fn run_steps<T: Transport>(
             }
             Some(by)
         };
-        frames += run_step(client, session, step, input, prepared_by.map(|by| (by, requests)))?;
-        progress(Progress { steps_done: session.steps_done().len(), steps: total, frames });
+        let steps_done = session.steps_done().len();
+        let step_start = triggered;
+        let mut within = |n: u64| {
+            triggered = step_start + n;
+            progress(Progress { steps_done, steps: total, frames, triggered, to_trigger });
+        };
+        frames += run_step(client, session, step, input, prepared_by.map(|by| (by, requests)), &mut within)?;
+        // A step's shots all fired (an abandoned attempt's are not counted twice).
+        triggered = step_start + step.triggers.iter().map(|t| u64::from(t.1)).sum::<u64>();
+        progress(Progress {
+            steps_done: session.steps_done().len(),
+            steps: total,
+            frames,
+            triggered,
+            to_trigger,
+        });
     }
     client.request(Command::Disarm).map_err(AcquireError::Device)?;
     client.busy(|| session.finish())?;
@@ -635,6 +662,7 @@ fn run_step<T: Transport>(
     step: &Step,
     input: &mut dyn FrameInput,
     prepared: Option<(String, Vec<String>)>,
+    triggered: &mut dyn FnMut(u64),
 ) -> Result<u64, AcquireError> {
     let attempt = session.next_attempt(step.id);
     let seq = sequence_id(step.id, attempt);
@@ -666,6 +694,7 @@ fn run_step<T: Transport>(
         if let Event::Trigger(t) = &e.event {
             if t.sequence == seq {
                 triggers.push(Trigger::from_event(t, e.host_us));
+                triggered(triggers.len() as u64);
                 if let Err(err) = input.on_trigger(t, e.host_us) {
                     failure = Some(AcquireError::Frames(err));
                 }

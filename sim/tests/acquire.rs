@@ -151,8 +151,21 @@ fn a_run_stores_one_frame_per_trigger_and_records_missing_and_duplicate_frames()
     let mut client = connect(SimBoard::default());
     let mut cam = TestCamera { drop: vec![5], duplicate: vec![30], ..Default::default() };
     let mut updates = Vec::new();
-    acquire::run(&mut client, &mut session, &plan, &mut cam, |p| updates.push(p.steps_done)).unwrap();
-    assert_eq!(updates, [1, 2, 3]);
+    acquire::run(&mut client, &mut session, &plan, &mut cam, |p| {
+        updates.push((p.steps_done, p.triggered, p.to_trigger))
+    })
+    .unwrap();
+    // Progress at every trigger within a step (21 each), then at the step's end.
+    let ends: Vec<usize> = updates.windows(2).filter(|w| w[1].0 > w[0].0).map(|w| w[1].0).collect();
+    assert_eq!(ends, [1, 2, 3]);
+    assert_eq!(updates.len(), 63 + 3);
+    assert!(updates.iter().all(|u| u.2 == 63));
+    assert_eq!(
+        updates[..21].iter().map(|u| (u.0, u.1)).collect::<Vec<_>>(),
+        (1..=21).map(|t| (0, t)).collect::<Vec<_>>()
+    );
+    assert_eq!(updates[21], (1, 21, 63));
+    assert_eq!(updates.last(), Some(&(3, 63, 63)));
     assert!(session.is_done());
     let frames: usize = plan.steps.iter().map(|s| session.frames_of(s.id).len()).sum();
     assert_eq!(frames, 62, "63 triggers, one frame lost");

@@ -328,20 +328,33 @@ fn print_summary(plan: &Plan, info: &DeviceInfo) {
     }
 }
 
+/// One status line, rewritten in place at most ten times a second: the triggers fired this run
+/// against those it has to fire (progress within a step, whose frames may take minutes), the
+/// rate and the time left at that rate.
 fn progress_printer(start: std::time::Instant) -> impl FnMut(Progress) {
+    let mut last: Option<std::time::Instant> = None;
     move |p: Progress| {
+        let now = std::time::Instant::now();
+        let recent = last.is_some_and(|l| now.duration_since(l).as_millis() < 100);
+        if recent && p.triggered < p.to_trigger {
+            return;
+        }
+        last = Some(now);
         let elapsed = start.elapsed().as_secs_f64().max(1e-3);
-        let done = p.steps_done.max(1) as f64;
-        let eta = elapsed / done * (p.steps - p.steps_done) as f64;
-        let bar = (20 * p.steps_done / p.steps.max(1)).min(20);
+        let rate = p.triggered as f64 / elapsed;
+        let left = p.to_trigger.saturating_sub(p.triggered);
+        let eta = if rate > 0.0 { format!("{:.0} s", left as f64 / rate) } else { "–".into() };
+        let bar = (20 * p.triggered / p.to_trigger.max(1)).min(20) as usize;
         eprint!(
-            "\r[{}{}] step {}/{}  {} frames  {:.1} frames/s  ETA {:.0} s   ",
+            "\r[{}{}] step {}/{}  {}/{} triggers  {} frames  {:.1} frames/s  ETA {}   ",
             "=".repeat(bar),
             " ".repeat(20 - bar),
             p.steps_done,
             p.steps,
+            p.triggered,
+            p.to_trigger,
             p.frames,
-            p.frames as f64 / elapsed,
+            rate,
             eta
         );
     }

@@ -171,7 +171,7 @@ pub fn run_disco(opts: &DiscoDemoOptions) -> Result<DiscoDemoResult, CliError> {
     std::fs::create_dir_all(out).map_err(io(out))?;
     let (level, sets): (u32, Vec<String>) = if opts.quick {
         (
-            std::env::var("DISCO_LEVEL").ok().and_then(|l| l.parse().ok()).unwrap_or(3),
+            3,
             vec![
                 "plan.views=4".into(),
                 "plan.spot_grid=[16, 16]".into(),
