@@ -33,8 +33,11 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     assert!((f.beam_sigma_mm - 0.85).abs() < 0.05, "{}", f.beam_sigma_mm);
     // The spot's peak on the mesh lies within a fraction of a millimetre of the entry point.
     assert!(f.spots_seen > 1000 && f.peak_offset_mm < 0.5, "{} {}", f.spots_seen, f.peak_offset_mm);
-    // Held-out spots: predicted from F beyond the near field.
-    assert!(f.held_out.frames > 300 && f.held_out.median_rel_rms < 0.3, "{:?}", f.held_out);
+    // Held-out spots: predicted from F beyond the near field (15 % at this seed).
+    assert!(f.held_out.frames > 300 && f.held_out.median_rel_rms < 0.2, "{:?}", f.held_out);
+    // Relit by a light no frame used, against the dipole integrated over the surface (22 %:
+    // the near field, which the local kernels will carry, is the global term's weak part).
+    assert!(r.relit_error < 0.3, "{}", r.relit_error);
 
     // F's file: the upper triangle, read back as the fit's matrix, exactly symmetric.
     let n = f.mesh.vertices.len();
@@ -45,6 +48,9 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
         serde_json::from_str(&std::fs::read_to_string(fit_dir.join("F.json")).unwrap()).unwrap();
     assert_eq!(json["format"], F_FORMAT);
     assert_eq!(json["vertices"], n);
+    for file in ["object.ply", "relit.exr", "relit.png", "relit-truth.png", "fit.json"] {
+        assert!(fit_dir.join(file).is_file(), "{file}");
+    }
     let bits = std::fs::read(fit_dir.join("F-observed.bits")).unwrap();
     assert_eq!(bits.len(), (n * (n + 1) / 2).div_ceil(8));
     let set: u32 = bits.iter().map(|b| b.count_ones()).sum();

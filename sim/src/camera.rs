@@ -107,7 +107,7 @@ impl<S: Scene> VirtualCamera<S> {
         dir: &Path,
     ) -> io::Result<Self> {
         std::fs::create_dir_all(dir)?;
-        let ext = if sensor.depth == Depth::Float { "exr" } else { "png" };
+        let ext = if matches!(sensor.depth, Depth::Float | Depth::Half) { "exr" } else { "png" };
         let input = DirectoryInput::new(camera, dir, &format!("{PATTERN}.{ext}"))
             .map_err(|e| io::Error::new(io::ErrorKind::InvalidInput, e))?;
         let max_axis = rig.steppers.iter().map(|s| usize::from(s.axis) + 1).max().unwrap_or(0);
@@ -355,6 +355,7 @@ impl<S: Scene> VirtualCamera<S> {
         let name = PATTERN.replace("{frame:06}", &format!("{n:06}"));
         let res = match self.sensor.depth {
             Depth::Float => write_exr(self.dir.join(format!("{name}.exr")), img, ExrPrecision::Float),
+            Depth::Half => write_exr(self.dir.join(format!("{name}.exr")), img, ExrPrecision::Half),
             Depth::U8 => write_png(self.dir.join(format!("{name}.png")), &img.to_srgb(), BitDepth::Eight),
             Depth::U12 | Depth::U16 => {
                 write_png(self.dir.join(format!("{name}.png")), img, BitDepth::Sixteen)

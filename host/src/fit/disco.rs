@@ -27,6 +27,7 @@ use lightrig_pipelines::disco::falloff;
 use lightrig_pipelines::disco::interpolate::{interpolate, FillParams, FillReport, Matrix};
 use lightrig_pipelines::disco::mesh::SurfaceMesh;
 use lightrig_pipelines::disco::optics::{point_of, Pinhole};
+use lightrig_pipelines::disco::relight;
 use lightrig_pipelines::disco::resample::{
     background_sigma, beam_sigma, flux_scale, incidence, spot_peak, Accumulator, Incidence, ViewLimits,
     ViewMap,
@@ -50,7 +51,8 @@ pub const FLOOR_SIGMAS: f32 = 5.0;
 pub struct HeldOut {
     /// Frames predicted.
     pub frames: usize,
-    /// Pixels compared (on the object, above the noise floor, beyond `near_mm` of the spot).
+    /// Pixels compared (on the object, above the noise floor, beyond `near_mm` of the spot, on
+    /// triangles clear of the entry triangle's vertices and their rings).
     pub pixels: usize,
     /// Relative RMS error of the prediction over those pixels, `√(Σ(p−m)²/Σm²)`, median over
     /// frames.
@@ -87,6 +89,9 @@ pub struct DiscoFit {
     /// Columns whose incident vertex was lit.
     pub lit_columns: usize,
     pub held_out: HeldOut,
+    /// The first camera position's camera (the relit picture's), and η.
+    pub camera: Pinhole,
+    pub eta: f64,
     /// The fall-off taken out for the interpolation, per channel (none: too few entries).
     pub falloff: Option<[falloff::Falloff; 3]>,
 }
@@ -390,6 +395,8 @@ pub fn fit_session(
         held_out,
         falloff: rates,
         beam_sigma_mm,
+        camera: setup.cameras[0].1,
+        eta: setup.eta,
         mesh,
         matrix,
     })
@@ -458,11 +465,20 @@ fn predict_held_out(
                 vertex_rd[r] = s;
             }
             let cam = &map.camera;
+            // The near field (the entry triangle's vertices and their rings) is the local
+            // kernels' domain: its triangles are left out, as are pixels within `near_mm`.
+            let mut near = vec![false; n];
+            for &v in &tri {
+                near[v as usize] = true;
+                for &(j, _) in &mesh.rings[v as usize] {
+                    near[j as usize] = true;
+                }
+            }
             let (mut se, mut sm, mut count) = (0.0, 0.0, 0usize);
             for (i, hit) in map.surface.iter().enumerate() {
                 let Some(hit) = hit else { continue };
                 let t = mesh.triangles[hit.triangle as usize];
-                if t.iter().any(|&v| vertex_rd[v as usize].is_nan()) {
+                if t.iter().any(|&v| vertex_rd[v as usize].is_nan() || near[v as usize]) {
                     continue;
                 }
                 let (p, nrm) = point_of(mesh, &map.world, map.turntable_deg, hit);
@@ -501,11 +517,53 @@ fn predict_held_out(
     }
 }
 
+/// The object lit by [`relight::side_light`] (a light no frame used) as the first camera
+/// position sees it with the turntable at 0°, rendered from `f` (`f(r, k)`; the fit's `F`, or a
+/// truth to compare with): linear RGB, 3 per pixel.
+pub fn relit(fit: &DiscoFit, f: &(dyn Fn(usize, usize) -> [f64; 3] + Sync)) -> Vec<f32> {
+    let light = relight::side_light(&fit.camera, 0.0);
+    let m = relight::exitance(&fit.mesh, f, &light, fit.eta);
+    relight::render(&fit.mesh, &m, &fit.camera, 0.0, fit.eta)
+}
+
+/// The exposure that puts `img`'s 99.5th percentile at 0.9.
+pub fn exposure_of(img: &[f32]) -> f32 {
+    let mut v: Vec<f32> = img.iter().copied().filter(|&x| x > 0.0).collect();
+    if v.is_empty() {
+        return 1.0;
+    }
+    let i = (v.len() * 995 / 1000).min(v.len() - 1);
+    let (_, p, _) = v.select_nth_unstable_by(i, f32::total_cmp);
+    0.9 / *p
+}
+
+/// Writes a relit picture as `name.exr` (linear) and `name.png` (× `exposure`, sRGB).
+pub fn write_relit(
+    img: &[f32],
+    cam: &Pinhole,
+    exposure: f32,
+    out: &Path,
+    name: &str,
+) -> Result<Vec<PathBuf>, FitError> {
+    use lightrig_imaging::io::{write_exr, write_png, BitDepth, Encoding, ExrPrecision, Image};
+    let mut im = Image::new(cam.width, cam.height, 3);
+    im.data.copy_from_slice(img);
+    let im = im.with_encoding(Encoding::Linear);
+    let (exr, png) = (out.join(format!("{name}.exr")), out.join(format!("{name}.png")));
+    write_exr(&exr, &im, ExrPrecision::Float).map_err(|e| fail(format!("{}: {e}", exr.display())))?;
+    let mut shown = im.clone();
+    shown.data.iter_mut().for_each(|v| *v = (*v * exposure).clamp(0.0, 1.0));
+    write_png(&png, &shown.to_srgb(), BitDepth::Eight)
+        .map_err(|e| fail(format!("{}: {e}", png.display())))?;
+    Ok(vec![exr, png])
+}
+
 /// `F`'s file format tag.
 pub const F_FORMAT: &str = "lightrig-disco-F 1";
 
 /// Writes the fit's outputs into `out`: `object.ply` (the mesh the columns index), `F.f32` and
-/// `F.json` (the matrix: see [`write_matrix`]), `F-observed.bits`, `fit.json` (the numbers).
+/// `F.json` (the matrix: see [`write_matrix`]), `F-observed.bits`, `relit.exr` and `relit.png`
+/// (the model under a light no frame used, [`relit`]), `fit.json` (the numbers).
 pub fn write_outputs(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitError> {
     std::fs::create_dir_all(out).map_err(|e| fail(format!("{}: {e}", out.display())))?;
     let io = |p: &Path, e: std::io::Error| fail(format!("{}: {e}", p.display()));
@@ -514,6 +572,9 @@ pub fn write_outputs(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitErro
     write_ply(&fit.mesh.mesh(), &mut f).and_then(|_| f.flush()).map_err(|e| io(&ply, e))?;
     let mut files = vec![ply];
     files.extend(write_matrix(&fit.matrix, &fit.observed, out)?);
+    let n = fit.matrix.n;
+    let img = relit(fit, &|r, k| fit.matrix.values[k * n + r].map(f64::from));
+    files.extend(write_relit(&img, &fit.camera, exposure_of(&img), out, "relit")?);
     let summary = out.join("fit.json");
     let j = json!({
         "vertices": fit.mesh.vertices.len(),

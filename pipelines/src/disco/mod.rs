@@ -9,10 +9,12 @@
 //! - [`resample`]: per view once, per frame into columns of `F` (sections 5 and 6.1).
 //! - [`interpolate`]: filling `F` on the mesh (section 6.2), and [`falloff`]: the fall-off with
 //!   distance taken out while it does.
+//! - [`relight`]: the model under a light no frame used (the global term rendered).
 
 pub mod dipole;
 pub mod falloff;
 pub mod interpolate;
 pub mod mesh;
 pub mod optics;
+pub mod relight;
 pub mod resample;

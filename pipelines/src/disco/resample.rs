@@ -235,6 +235,9 @@ type Sums = [[f32; 5]; 3];
 pub struct Accumulator {
     pub n: usize,
     sums: Vec<Sums>,
+    /// The near field's plain sums, per column `k` and slot (0: `k` itself, then `k`'s ring in
+    /// order), per channel: Σw, Σw·Rd.
+    near: Vec<[[f32; 2]; 3]>,
     /// Each vertex's tangent axes (object frame).
     tangents: Vec<[V3; 2]>,
 }
@@ -244,6 +247,17 @@ pub fn tangent_axes(n: V3) -> [V3; 2] {
     let a = if n[0].abs() < 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
     let t1 = normalize(crate::vec3::cross(n, a));
     [t1, crate::vec3::cross(n, t1)]
+}
+
+/// Near-field slots per column: the vertex and up to this many less one ring neighbours.
+const NEAR_SLOTS: usize = 9;
+
+/// The near-field slot of entry `(r, k)`: 0 for `r = k`, `1 + i` for `r` the `i`-th of `k`'s ring.
+fn near_slot(mesh: &SurfaceMesh, r: usize, k: usize) -> Option<usize> {
+    if r == k {
+        return Some(0);
+    }
+    mesh.rings[k].iter().position(|&(j, _)| j as usize == r).map(|i| i + 1).filter(|&s| s < NEAR_SLOTS)
 }
 
 /// An entry's mean is trusted when it is at least this many times its samples' noise floor
@@ -257,6 +271,7 @@ impl Accumulator {
         Accumulator {
             n,
             sums: vec![[[0.0; 5]; 3]; n * n],
+            near: vec![[[0.0; 2]; 3]; n * NEAR_SLOTS],
             tangents: mesh.normals.iter().map(|&v| tangent_axes(v)).collect(),
         }
     }
@@ -306,6 +321,11 @@ impl Accumulator {
                 e[2] += b * offsets[j][0];
                 e[3] += b * offsets[j][1];
                 e[4] += b * floor_rd;
+                if let Some(slot) = near_slot(mesh, vv.vertex as usize, col as usize) {
+                    let e = &mut self.near[col as usize * NEAR_SLOTS + slot][channel];
+                    e[0] += b;
+                    e[1] += b * (f64::from(v) * to_rd) as f32;
+                }
             }
         }
         taken
@@ -318,7 +338,8 @@ impl Accumulator {
     /// centroids of `k` and its one-ring (with fewer than three usable points, none). The beam's width
     /// taken out: a Gaussian beam of `beam_sigma_mm` measures `F·(1 + ½σ²|g|²)` to first order
     /// (the fall-off is convex). Entries seen in all three channels at [`MIN_FLOOR_RATIO`] ×
-    /// their noise floor are measured; their weight is the least channel's Σw.
+    /// their noise floor are measured; their weight is the least channel's Σw. The near field
+    /// (the diagonal and each one-ring) is the plain weighted mean instead (see inside).
     pub fn nodal(
         &self,
         mesh: &SurfaceMesh,
@@ -339,6 +360,19 @@ impl Accumulator {
             let xk = mesh.vertices[k];
             let tk = &self.tangents[k];
             for (r, slot) in col.iter_mut().enumerate() {
+                if let Some(ns) = near_slot(mesh, r, k) {
+                    // The near field: the barycentric split's plain mean, as the paper resamples.
+                    // It estimates `Rd` averaged over `k`'s hat function (blurred by the beam),
+                    // which is what carries the right energy when `F` is lit by a broad light
+                    // (Σk F(r, k)·Ak is then ∫ Rd(x, xr) dx); no single point value would.
+                    let e = &self.near[k * NEAR_SLOTS + ns];
+                    *slot = if e.iter().all(|c| c[0] > 0.0) {
+                        (e.map(|c| c[1] / c[0]), e.iter().map(|c| c[0]).fold(f32::MAX, f32::min))
+                    } else {
+                        ([0.0; 3], 0.0)
+                    };
+                    continue;
+                }
                 let mut v = [0.0f32; 3];
                 let mut ok = true;
                 let mut weight = f32::MAX;

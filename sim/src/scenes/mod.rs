@@ -89,11 +89,11 @@ pub fn scene_for(rig: &RigFile, seed: u64) -> (Box<dyn Scene + Send>, Sensor) {
         Method::Disco => {
             let pulse_s = rig.cameras.first().map_or(1e-3, |c| c.pulse_us * 1e-6).max(1e-6);
             if let Ok(scene) = disco::DiscoScene::new(rig, 3) {
-                // A grey HDR camera: float frames; the spot's peak (radiance about 0.1) at 10⁸ e⁻,
+                // A grey HDR camera: half-float frames; the spot's peak (radiance about 0.1) at 10⁸ e⁻,
                 // so that the far field, 10⁻⁵ of it, still collects a thousand.
                 let sensor = Sensor {
                     gain: 1e8 / (0.1 * pulse_s),
-                    depth: crate::sensor::Depth::Float,
+                    depth: crate::sensor::Depth::Half,
                     grey: true,
                     seed,
                     ..Sensor::default()
