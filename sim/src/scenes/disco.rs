@@ -226,8 +226,8 @@ impl DiscoScene {
                                 let e = light.irradiance * cos * fresnel_transmittance(eta, cos) * w;
                                 let mx = usize::from(self.material_at(x));
                                 let d = norm(sub(x, xr));
-                                for ch in 0..3 {
-                                    m[ch] += e * rd_between(&self.dipoles[mr][ch], &self.dipoles[mx][ch], d);
+                                for (ch, mc) in m.iter_mut().enumerate() {
+                                    *mc += e * rd_between(&self.dipoles[mr][ch], &self.dipoles[mx][ch], d);
                                 }
                             }
                         }
