@@ -19,7 +19,8 @@ use crate::error::{err, failure, io, CliError, INPUT};
 /// How the demo runs.
 #[derive(Debug, Clone)]
 pub struct DiscoDemoOptions {
-    /// A 642-vertex pebble at 192 × 124 pixels, 16 × 16 spots, four turntable views.
+    /// A 642-vertex pebble at 192 × 124 pixels, 16 × 16 spots (else 2 562 vertices at 768 × 496,
+    /// 24 × 24 spots); four turntable views at each of the two camera positions.
     pub quick: bool,
     /// Output directory (`object.ply`, `session/`, `camera/`, `fit/`, `report.md`).
     pub out: PathBuf,
@@ -275,7 +276,11 @@ fn write_report(
          (`sim/src/scenes/disco.rs`: {} with a vein of {}, Jensen et al. 2001's measured σs′, σa; η = 1.3; \
          dipole `Rd` made symmetric; a 2 mm beam): {} frames, {} views (turntable × camera position), fitted as \
          `lightrig fit disco` does. Truth: each entry is `Rd` between its two vertices.",
-        if opts.quick { " (quick: 4 turntable views, 16 × 16 spots, 192 × 124 px, 642 vertices)" } else { "" },
+        if opts.quick {
+            " (quick: 4 turntable views, 16 × 16 spots, 192 × 124 px, 642 vertices)"
+        } else {
+            " (4 turntable views, 24 × 24 spots, 768 × 496 px, 2 562 vertices)"
+        },
         scene.media[0].name,
         scene.media[1].name,
         r.frames,

@@ -378,7 +378,7 @@ pub fn fit_session(
         falloff::apply(&mesh, &mut matrix, s, d_min, false);
     }
     // 5.
-    let held_out = predict_held_out(&mesh, &matrix, &maps, &held, &flux, near_mm);
+    let held_out = predict_held_out(&mesh, &matrix, &maps, &held, &flux, near_mm, setup.eta);
     offsets.sort_by(f64::total_cmp);
     Ok(DiscoFit {
         observed,
@@ -446,6 +446,7 @@ fn predict_held_out(
     held: &[Done],
     flux: &[f64; 3],
     near_mm: f64,
+    eta: f64,
 ) -> HeldOut {
     let n = mesh.vertices.len();
     let per_frame: Vec<(f64, usize)> = held
@@ -498,7 +499,7 @@ fn predict_held_out(
                     (0..3).map(|k| f64::from(hit.bary[k]) * vertex_rd[t[k] as usize].ln()).sum::<f64>().exp();
                 let cos_o =
                     lightrig_pipelines::vec3::dot(nrm, lightrig_pipelines::vec3::normalize(sub(cam.eye, p)));
-                let ft_o = lightrig_pipelines::disco::dipole::fresnel_transmittance(1.3, cos_o);
+                let ft_o = lightrig_pipelines::disco::dipole::fresnel_transmittance(eta, cos_o);
                 let predicted = rd * ft_o * inc.fresnel * flux[d.channel] / std::f64::consts::PI;
                 se += (predicted - measured).powi(2);
                 sm += measured * measured;

@@ -861,78 +861,12 @@ mod tests {
     }
 
     fn egg() -> Surface {
-        let t = (1.0 + 5f64.sqrt()) / 2.0;
-        let mut pos: Vec<[f64; 3]> = [
-            [-1.0, t, 0.0],
-            [1.0, t, 0.0],
-            [-1.0, -t, 0.0],
-            [1.0, -t, 0.0],
-            [0.0, -1.0, t],
-            [0.0, 1.0, t],
-            [0.0, -1.0, -t],
-            [0.0, 1.0, -t],
-            [t, 0.0, -1.0],
-            [t, 0.0, 1.0],
-            [-t, 0.0, -1.0],
-            [-t, 0.0, 1.0],
-        ]
-        .to_vec();
-        let mut tris: Vec<[usize; 3]> = vec![
-            [0, 11, 5],
-            [0, 5, 1],
-            [0, 1, 7],
-            [0, 7, 10],
-            [0, 10, 11],
-            [1, 5, 9],
-            [5, 11, 4],
-            [11, 10, 2],
-            [10, 7, 6],
-            [7, 1, 8],
-            [3, 9, 4],
-            [3, 4, 2],
-            [3, 2, 6],
-            [3, 6, 8],
-            [3, 8, 9],
-            [4, 9, 5],
-            [2, 4, 11],
-            [6, 2, 10],
-            [8, 6, 7],
-            [9, 8, 1],
-        ];
-        for _ in 0..2 {
-            let mut mid = std::collections::HashMap::new();
-            let mut split = |a: usize, b: usize, pos: &mut Vec<[f64; 3]>| {
-                *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
-                    pos.push(std::array::from_fn(|c| (pos[a][c] + pos[b][c]) / 2.0));
-                    pos.len() - 1
-                })
-            };
-            tris = tris
-                .iter()
-                .flat_map(|&[a, b, c]| {
-                    let (ab, bc, ca) = (split(a, b, &mut pos), split(b, c, &mut pos), split(c, a, &mut pos));
-                    [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-                })
-                .collect();
+        let mut m = crate::disco::mesh::icosphere(2);
+        for p in &mut m.vertices {
+            *p = [6.0 * p[0], 5.0 * p[1], 7.0 * p[2]];
         }
-        for p in &mut pos {
-            let l = dist(*p, [0.0; 3]);
-            *p = [6.0 * p[0] / l, 5.0 * p[1] / l, 7.0 * p[2] / l];
-        }
-        let mut rings: Vec<Vec<(u32, f64)>> = vec![Vec::new(); pos.len()];
-        for t in &tris {
-            for i in 0..3 {
-                let (a, b) = (t[i], t[(i + 1) % 3]);
-                let e = dist(pos[a], pos[b]);
-                rings[a].push((b as u32, e));
-                rings[b].push((a as u32, e));
-            }
-        }
-        for r in &mut rings {
-            r.sort_by_key(|p| p.0);
-            r.dedup_by_key(|p| p.0);
-        }
-        Surface { pos, rings }
+        let s = crate::disco::mesh::SurfaceMesh::new(&m);
+        Surface { pos: s.vertices, rings: s.rings }
     }
 
     /// F_{r,k} = A·g(x_r)·g(x_k)·exp(−S·|x_r − x_k|) per channel, all measured (weight 1),

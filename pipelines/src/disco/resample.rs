@@ -75,7 +75,7 @@ impl ViewMap {
         let cos_max = limits.max_view_deg.to_radians().cos();
         let mut vertices = Vec::new();
         for (v, &p) in world.iter().enumerate() {
-            let Some((px, depth)) = camera.project(p) else { continue };
+            let Some((px, _)) = camera.project(p) else { continue };
             let (x0, y0) = ((px[0] - 0.5).floor(), (px[1] - 0.5).floor());
             if x0 < 0.0 || y0 < 0.0 || x0 + 1.0 >= w as f64 || y0 + 1.0 >= h as f64 {
                 continue;
@@ -97,7 +97,6 @@ impl ViewMap {
                 continue;
             }
             let ft = fresnel_transmittance(limits.eta, cos_o);
-            let _ = depth;
             vertices.push(VertexView {
                 vertex: v as u32,
                 px: [px[0] as f32, px[1] as f32],
@@ -472,30 +471,34 @@ pub struct WhiteTarget {
 /// pixel's value times the area it sees on the target (within `radius_mm` of `centre`) gives
 /// the camera's gain times the laser's flux, `Φ`, in pixel-value·mm² units.
 pub fn flux_scale(img: &[f32], cam: &Pinhole, target: &WhiteTarget, centre: V3, radius_mm: f64) -> f64 {
-    let (w, h) = (cam.width as usize, cam.height as usize);
-    let mut sum = 0.0;
-    for y in 0..h {
-        for x in 0..w {
-            let d = cam.ray(x as f64 + 0.5, y as f64 + 0.5);
-            let dn = dot(d, target.normal);
-            if dn.abs() < 1e-9 {
-                continue;
-            }
-            let t = dot(sub(target.point, cam.eye), target.normal) / dn;
-            if t <= 0.0 {
-                continue;
-            }
-            let p = crate::vec3::add(cam.eye, crate::vec3::scale(d, t));
-            if norm(sub(p, centre)) > radius_mm {
-                continue;
-            }
-            // Pixel solid angle cos³α / f², times t² / |cos| on the plane.
-            let cos_a = dot(d, cam.axes[2]);
-            let area = t * t * cos_a.powi(3) / (cam.focal_px * cam.focal_px * dn.abs());
-            sum += f64::from(img[y * w + x]) * area;
-        }
-    }
+    let sum: f64 =
+        target_pixels(cam, target, centre, radius_mm).map(|(i, _, area)| f64::from(img[i]) * area).sum();
     std::f64::consts::PI * sum / target.albedo
+}
+
+/// The pixels that see `target` within `radius_mm` of `centre`: index, the point seen, and the
+/// area the pixel covers there (its solid angle `cos³α / f²` times `t² / |cos|` on the plane).
+fn target_pixels<'a>(
+    cam: &'a Pinhole,
+    target: &'a WhiteTarget,
+    centre: V3,
+    radius_mm: f64,
+) -> impl Iterator<Item = (usize, V3, f64)> + 'a {
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    (0..w * h).filter_map(move |i| {
+        let d = cam.ray((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
+        let dn = dot(d, target.normal);
+        if dn.abs() < 1e-9 {
+            return None;
+        }
+        let t = dot(sub(target.point, cam.eye), target.normal) / dn;
+        let p = crate::vec3::add(cam.eye, crate::vec3::scale(d, t));
+        if t <= 0.0 || norm(sub(p, centre)) > radius_mm {
+            return None;
+        }
+        let cos_a = dot(d, cam.axes[2]);
+        Some((i, p, t * t * cos_a.powi(3) / (cam.focal_px * cam.focal_px * dn.abs())))
+    })
 }
 
 /// The beam's width from its spot on the white target: the σ of its cross-section (the second
@@ -509,25 +512,9 @@ pub fn beam_sigma(
     centre: V3,
     radius_mm: f64,
 ) -> Option<f64> {
-    let (w, h) = (cam.width as usize, cam.height as usize);
-    let mut pts: Vec<(V3, f64)> = Vec::new();
-    for y in 0..h {
-        for x in 0..w {
-            let d = cam.ray(x as f64 + 0.5, y as f64 + 0.5);
-            let dn = dot(d, target.normal);
-            if dn.abs() < 1e-9 {
-                continue;
-            }
-            let t = dot(sub(target.point, cam.eye), target.normal) / dn;
-            let p = crate::vec3::add(cam.eye, crate::vec3::scale(d, t));
-            if t <= 0.0 || norm(sub(p, centre)) > radius_mm {
-                continue;
-            }
-            let cos_a = dot(d, cam.axes[2]);
-            let area = t * t * cos_a.powi(3) / (cam.focal_px * cam.focal_px * dn.abs());
-            pts.push((p, f64::from(img[y * w + x]).max(0.0) * area));
-        }
-    }
+    let pts: Vec<(V3, f64)> = target_pixels(cam, target, centre, radius_mm)
+        .map(|(i, p, area)| (p, f64::from(img[i]).max(0.0) * area))
+        .collect();
     let sw: f64 = pts.iter().map(|p| p.1).sum();
     if sw.is_nan() || sw <= 0.0 {
         return None;
@@ -612,6 +599,29 @@ mod tests {
         }
         let got = flux_scale(&img, &cam, &target, [0.0, 0.0, 30.0], 30.0);
         assert!((got / phi - 1.0).abs() < 0.01, "{got}");
+    }
+
+    #[test]
+    fn the_beam_width_comes_back_from_a_slanted_spot() {
+        // A beam of σ 1.2 mm meets the target 40° off its normal: the footprint is stretched
+        // along one axis, the σ across the beam is what comes back.
+        let cam = Pinhole::looking(200, 200, 400.0, [0.0, -200.0, 30.0], [0.0, 0.0, 30.0]);
+        let target = WhiteTarget { point: [0.0, 0.0, 30.0], normal: [0.0, -1.0, 0.0], albedo: 0.9 };
+        let beam = normalize([40f64.to_radians().sin(), 40f64.to_radians().cos(), 0.0]);
+        let centre = [0.0, 0.0, 30.0];
+        let sigma = 1.2;
+        let img: Vec<f32> = (0..200 * 200)
+            .map(|i| {
+                let d = cam.ray((i % 200) as f64 + 0.5, (i / 200) as f64 + 0.5);
+                let p = crate::vec3::add(cam.eye, crate::vec3::scale(d, 200.0 / d[1]));
+                let q = sub(p, centre);
+                let across = sub(q, crate::vec3::scale(beam, dot(q, beam)));
+                (-dot(across, across) / (2.0 * sigma * sigma)).exp() as f32
+            })
+            .collect();
+        let got = beam_sigma(&img, &cam, &target, beam, centre, 10.0).unwrap();
+        assert!((got / sigma - 1.0).abs() < 0.02, "{got}");
+        assert_eq!(beam_sigma(&vec![0.0; 200 * 200], &cam, &target, beam, centre, 10.0), None);
     }
 
     #[test]

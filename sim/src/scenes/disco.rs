@@ -87,6 +87,23 @@ pub fn channel_of(nm: u16) -> usize {
     }
 }
 
+/// The barycentric `(u, v)` of the centroids of a triangle split `split × split` (equal
+/// areas): `(i + ⅓, j + ⅓)` upright and `(i + ⅔, j + ⅔)` inverted, in units of `1/split`.
+fn sub_centroids(split: u32) -> Vec<(f64, f64)> {
+    let s = f64::from(split);
+    let mut out = Vec::with_capacity((split * split) as usize);
+    for i in 0..split {
+        for j in 0..(split - i) {
+            let (fi, fj) = (f64::from(i), f64::from(j));
+            out.push(((fi + 1.0 / 3.0) / s, (fj + 1.0 / 3.0) / s));
+            if i + j + 1 < split {
+                out.push(((fi + 2.0 / 3.0) / s, (fj + 2.0 / 3.0) / s));
+            }
+        }
+    }
+    out
+}
+
 /// 3-point Gauss–Hermite nodes (in σ) and weights.
 const GH: [(f64, f64); 3] =
     [(-1.732_050_807_568_877_2, 1.0 / 6.0), (0.0, 2.0 / 3.0), (1.732_050_807_568_877_2, 1.0 / 6.0)];
@@ -163,23 +180,14 @@ impl DiscoScene {
             let rot = t.iter().position(|&i| i as usize == k).unwrap_or(0);
             let [a, b, c] = [0, 1, 2].map(|j| self.mesh.vertices[t[(rot + j) % 3] as usize]);
             let area = 0.5 * norm(cross(sub(b, a), sub(c, a)));
-            for i in 0..split {
-                for j in 0..(split - i) {
-                    let mut cents = vec![(f64::from(i) + 1.0 / 3.0, f64::from(j) + 1.0 / 3.0)];
-                    if i + j + 1 < split {
-                        cents.push((f64::from(i) + 2.0 / 3.0, f64::from(j) + 2.0 / 3.0));
-                    }
-                    for (u, v) in cents {
-                        let (u, v) = (u / f64::from(split), v / f64::from(split));
-                        let wa = 1.0 - u - v;
-                        let x = add(add(scale(a, wa), scale(b, u)), scale(c, v));
-                        let w = wa * area;
-                        for (ch, s) in sum.iter_mut().enumerate() {
-                            *s += w * self.rd(x, xr, ch);
-                        }
-                        wsum += w;
-                    }
+            for (u, v) in sub_centroids(split) {
+                let wa = 1.0 - u - v;
+                let x = add(add(scale(a, wa), scale(b, u)), scale(c, v));
+                let w = wa * area;
+                for (ch, s) in sum.iter_mut().enumerate() {
+                    *s += w * self.rd(x, xr, ch);
                 }
+                wsum += w;
             }
         }
         sum.map(|s| if wsum > 0.0 { s / wsum } else { 0.0 })
@@ -206,30 +214,19 @@ impl DiscoScene {
                     let near = [a, b, c].iter().any(|&v| norm(sub(v, xr)) < 8.0);
                     let split = if near { 24 } else { 3 };
                     let w = area / f64::from(split * split);
-                    // Sub-triangle centroids of the split×split subdivision: (i + 1/3, j + 1/3)
-                    // upright, (i + 2/3, j + 2/3) inverted, in units of 1/split.
-                    for i in 0..split {
-                        for j in 0..(split - i) {
-                            let mut cents = vec![(f64::from(i) + 1.0 / 3.0, f64::from(j) + 1.0 / 3.0)];
-                            if i + j + 1 < split {
-                                cents.push((f64::from(i) + 2.0 / 3.0, f64::from(j) + 2.0 / 3.0));
-                            }
-                            for (u, v) in cents {
-                                let (u, v) = (u / f64::from(split), v / f64::from(split));
-                                let wa = 1.0 - u - v;
-                                let n = normalize(add(add(scale(na, wa), scale(nb, u)), scale(nc, v)));
-                                let cos = dot(n, l);
-                                if cos <= 0.0 {
-                                    continue;
-                                }
-                                let x = add(add(scale(a, wa), scale(b, u)), scale(c, v));
-                                let e = light.irradiance * cos * fresnel_transmittance(eta, cos) * w;
-                                let mx = usize::from(self.material_at(x));
-                                let d = norm(sub(x, xr));
-                                for (ch, mc) in m.iter_mut().enumerate() {
-                                    *mc += e * rd_between(&self.dipoles[mr][ch], &self.dipoles[mx][ch], d);
-                                }
-                            }
+                    for (u, v) in sub_centroids(split) {
+                        let wa = 1.0 - u - v;
+                        let n = normalize(add(add(scale(na, wa), scale(nb, u)), scale(nc, v)));
+                        let cos = dot(n, l);
+                        if cos <= 0.0 {
+                            continue;
+                        }
+                        let x = add(add(scale(a, wa), scale(b, u)), scale(c, v));
+                        let e = light.irradiance * cos * fresnel_transmittance(eta, cos) * w;
+                        let mx = usize::from(self.material_at(x));
+                        let d = norm(sub(x, xr));
+                        for (ch, mc) in m.iter_mut().enumerate() {
+                            *mc += e * rd_between(&self.dipoles[mr][ch], &self.dipoles[mx][ch], d);
                         }
                     }
                 }
