@@ -163,9 +163,14 @@ fn frames_lost_on_the_wire_are_named_by_their_frame_id() {
     let (s, _) = Session::read(&session).unwrap();
     let reasons = missing_reasons(&session);
     assert!(!reasons.is_empty(), "some frames lost: {said}");
+    // A frame whose leader packet is dropped never reaches Aravis at all (about one run in
+    // ten has one): its trigger is missing for want of a frame; the others are named by the
+    // camera's frame id.
+    let named = |r: &String| r.contains("the camera delivered frame id") && r.contains("incomplete");
     for r in &reasons {
-        assert!(r.contains("the camera delivered frame id") && r.contains("incomplete"), "{r}");
+        assert!(named(r) || r.contains("no frame arrived within the wait"), "{r}");
     }
+    assert!(reasons.iter().any(named), "{reasons:?}");
     // Every trigger has its frame or a missing record naming why: none shifted, no extras.
     assert_eq!(s.frame_index().len() + reasons.len(), 30);
     assert!(!said.contains("extra-*"), "{said}");
