@@ -2,8 +2,10 @@
 //! virtual rig, `lightrig fit disco`'s pipeline) against the scene's true throughput factors,
 //! `F`'s file read back, and the fit's errors on bad input.
 
-use lightrig_cli::demo::disco::{run_disco, DiscoDemoOptions, INTERPOLATED_TOLERANCE, OBSERVED_TOLERANCE};
-use lightrig_host::fit::disco::{fit_session, read_matrix, F_FORMAT};
+use lightrig_cli::demo::disco::{
+    run_disco, DiscoDemoOptions, INTERPOLATED_TOLERANCE, KERNEL_TOLERANCE, OBSERVED_TOLERANCE,
+};
+use lightrig_host::fit::disco::{fit_session, read_matrix, ATLAS_FORMAT, F_FORMAT};
 
 #[test]
 fn the_quick_disco_demo_measures_f_against_the_truth() {
@@ -35,9 +37,29 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     assert!(f.spots_seen > 1000 && f.peak_offset_mm < 0.5, "{} {}", f.spots_seen, f.peak_offset_mm);
     // Held-out spots: predicted from F beyond the near field (15 % at this seed).
     assert!(f.held_out.frames > 300 && f.held_out.median_rel_rms < 0.2, "{:?}", f.held_out);
-    // Relit by a light no frame used, against the dipole integrated over the surface (22 %:
-    // the near field, which the local kernels will carry, is the global term's weak part).
-    assert!(r.relit_error < 0.3, "{}", r.relit_error);
+    // Relit by a light no frame used, against the dipole integrated over the surface: the local
+    // kernels carrying each vertex's one-ring do better than F's near entries (13 % against
+    // 19 % at this seed).
+    assert!(
+        r.relit_error < 0.2 && r.relit_error < 0.85 * r.relit_global_error,
+        "{} {}",
+        r.relit_error,
+        r.relit_global_error
+    );
+    // The local term: the kernels' rates and totals on homogeneous marble against the dipole's
+    // (also a target above), and a correction near 1 where the scene has no surface detail.
+    let k = r.kernels.expect("local kernels");
+    assert!(k.spots[0] > 50 && f.spots.len() > 80, "{:?} {}", k.spots, f.spots.len());
+    assert!(k.worst() <= KERNEL_TOLERANCE, "{k:?}");
+    assert!(k.total.iter().all(|&t| t < 0.05), "{k:?}");
+    let mut corr: Vec<f32> = f.local.correction.iter().flatten().flat_map(|c| *c).collect();
+    corr.sort_by(f32::total_cmp);
+    let (lo, hi) = (corr[corr.len() / 10], corr[corr.len() * 9 / 10]);
+    assert!(lo > 0.9 && hi < 1.1, "correction deciles {lo} {hi}");
+    assert!(
+        f.local.params.iter().zip(&f.atlas.texels).all(|(p, t)| p.is_some() == t.is_some()),
+        "every texel filled"
+    );
 
     // F's file: the upper triangle, read back as the fit's matrix, exactly symmetric.
     let n = f.mesh.vertices.len();
@@ -48,7 +70,23 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
         serde_json::from_str(&std::fs::read_to_string(fit_dir.join("F.json")).unwrap()).unwrap();
     assert_eq!(json["format"], F_FORMAT);
     assert_eq!(json["vertices"], n);
-    for file in ["object.ply", "relit.exr", "relit.png", "relit-truth.png", "fit.json"] {
+    let atlas: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(fit_dir.join("atlas.json")).unwrap()).unwrap();
+    assert_eq!(atlas["format"], ATLAS_FORMAT);
+    assert_eq!(atlas["triangle_chart"].as_array().unwrap().len(), f.mesh.triangles.len());
+    let rates = lightrig_imaging::io::read(fit_dir.join("kernel-rates.exr")).unwrap();
+    assert_eq!((rates.width, rates.height), (f.atlas.width, f.atlas.height));
+    for file in [
+        "object.ply",
+        "relit.exr",
+        "relit.png",
+        "relit-global.png",
+        "relit-truth.png",
+        "fit.json",
+        "kernel-c1.exr",
+        "kernel-c2.exr",
+        "kernel-correction.exr",
+    ] {
         assert!(fit_dir.join(file).is_file(), "{file}");
     }
     let bits = std::fs::read(fit_dir.join("F-observed.bits")).unwrap();

@@ -7,6 +7,7 @@ use std::path::PathBuf;
 
 use lightrig_host::fit::disco::{self as fit, DiscoFit};
 use lightrig_host::overrides::{apply, Override};
+use lightrig_pipelines::disco::kernel::{self, Profile};
 use lightrig_pipelines::disco::relight;
 use lightrig_pipelines::firs::mesh::write_ply;
 use lightrig_sim::scenes::disco::DiscoScene;
@@ -52,6 +53,86 @@ pub struct Accuracy {
     pub symmetric: bool,
 }
 
+/// Local kernels' rates on homogeneous regions against the dipole's.
+pub const KERNEL_TOLERANCE: f64 = 0.10;
+
+/// The local kernels (section 7) against the scene's media.
+#[derive(Debug, Clone, Copy)]
+pub struct KernelCheck {
+    /// The dipole's own `m(d)` per medium (body, vein): the same staged fit to its `Rd`
+    /// at a spot's sample distances, no beam.
+    pub reference: [Profile; 2],
+    /// Spots fitted wholly inside each medium (every data point farther than the data radius
+    /// plus 1 mm from the other).
+    pub spots: [usize; 2],
+    /// Median σ1, σ2 of those spots' fits, per medium.
+    pub sigma: [[f64; 2]; 2],
+    /// Of the body's spots: the fraction with both rates within the tolerance of the reference.
+    pub within: f64,
+    /// Median relative error of the kernels' total (`2π∫m`, the medium's diffuse
+    /// reflectance) against the reference's, body, per channel.
+    pub total: [f64; 3],
+}
+
+impl KernelCheck {
+    /// Worst relative error of the body's median rates.
+    pub fn worst(&self) -> f64 {
+        (0..2).map(|k| (self.sigma[0][k] / self.reference[0].sigma[k] - 1.0).abs()).fold(0.0, f64::max)
+    }
+}
+
+/// Fits the dipoles' own profiles and compares the homogeneous spots' fits with them.
+pub fn kernel_check(scene: &DiscoScene, f: &DiscoFit) -> Option<KernelCheck> {
+    let lp = &f.local_params;
+    let ds = local_distances(lp.texel_mm, lp.radius_mm);
+    let reference = [
+        kernel::dipole_profile(&scene.media[0].dipoles(), &ds, &lp.stages)?,
+        kernel::dipole_profile(&scene.media[1].dipoles(), &ds, &lp.stages)?,
+    ];
+    let v = scene.vein;
+    let medium = |p: [f64; 3]| -> Option<usize> {
+        let off = (lightrig_pipelines::vec3::dot(p, v.normal) - v.offset_mm).abs();
+        if off > v.half_width_mm + lp.radius_mm + 1.0 {
+            Some(0)
+        } else if off < v.half_width_mm - lp.radius_mm - 1.0 {
+            Some(1)
+        } else {
+            None
+        }
+    };
+    let mut sig: [Vec<[f64; 2]>; 2] = [Vec::new(), Vec::new()];
+    let mut totals: [Vec<f64>; 3] = [Vec::new(), Vec::new(), Vec::new()];
+    for s in &f.spots {
+        let Some(m) = medium(s.point) else { continue };
+        sig[m].push(s.profile.sigma);
+        if m == 0 {
+            for (c, t) in totals.iter_mut().enumerate() {
+                t.push((kernel::total(&s.profile, c) / kernel::total(&reference[0], c) - 1.0).abs());
+            }
+        }
+    }
+    let med = |v: &[[f64; 2]], k: usize| median(v.iter().map(|x| x[k]).collect());
+    let within = sig[0]
+        .iter()
+        .filter(|x| (0..2).all(|k| (x[k] / reference[0].sigma[k] - 1.0).abs() <= KERNEL_TOLERANCE))
+        .count() as f64
+        / sig[0].len().max(1) as f64;
+    Some(KernelCheck {
+        reference,
+        spots: [sig[0].len(), sig[1].len()],
+        sigma: [[med(&sig[0], 0), med(&sig[0], 1)], [med(&sig[1], 0), med(&sig[1], 1)]],
+        within,
+        total: [0, 1, 2].map(|c| median(totals[c].clone())),
+    })
+}
+
+/// The distances of a spot's data: texels of `texel` mm within `radius` mm of an entry point
+/// off the texel grid.
+fn local_distances(texel: f64, radius: f64) -> Vec<f64> {
+    let n = (2.0 * radius / texel).ceil() as usize + 1;
+    kernel::grid_distances(n, texel, [0.3, -0.2]).into_iter().filter(|&d| d <= radius).collect()
+}
+
 /// What the demo measured.
 #[derive(Debug)]
 pub struct DiscoDemoResult {
@@ -61,6 +142,10 @@ pub struct DiscoDemoResult {
     /// physics under that light (the dipole integrated over the surface): relative RMS over the
     /// object's pixels.
     pub relit_error: f64,
+    /// The same with the global term alone (`F`'s near entries in the near field).
+    pub relit_global_error: f64,
+    /// The local kernels against the media (none: no spot fitted).
+    pub kernels: Option<KernelCheck>,
     pub frames: u64,
     pub report: PathBuf,
 }
@@ -85,6 +170,15 @@ impl DiscoDemoResult {
                 i <= INTERPOLATED_TOLERANCE,
             ),
             ("F exactly symmetric (1 = yes)", f64::from(u8::from(a.symmetric)), 1.0, a.symmetric),
+            {
+                let k = self.kernels.map_or(f64::INFINITY, |k| if k.spots[0] > 0 { k.worst() } else { f64::INFINITY });
+                (
+                    "local kernels' σ1, σ2 on homogeneous marble against the dipole's, relative error of the median (worse rate)",
+                    k,
+                    KERNEL_TOLERANCE,
+                    k <= KERNEL_TOLERANCE,
+                )
+            },
         ]
     }
 
@@ -241,7 +335,8 @@ pub fn run_disco(opts: &DiscoDemoOptions) -> Result<DiscoDemoResult, CliError> {
     // The relit picture from the object's physics (the dipole integrated over the surface,
     // no F involved), at the fitted picture's exposure.
     let n = fitted.matrix.n;
-    let mine = fit::relit(&fitted, &|r, k| fitted.matrix.values[k * n + r].map(f64::from));
+    let global = fit::relit(&fitted, &|r, k| fitted.matrix.values[k * n + r].map(f64::from));
+    let mine = fit::relit_full(&fitted);
     let light = relight::side_light(&fitted.camera, 0.0);
     let truth = relight::render(&fitted.mesh, &scene.exitance(&light), &fitted.camera, 0.0, fitted.eta);
     let mut files = files;
@@ -254,8 +349,18 @@ pub fn run_disco(opts: &DiscoDemoOptions) -> Result<DiscoDemoResult, CliError> {
         .zip(&truth)
         .fold((0.0, 0.0), |(se, st), (&a, &b)| (se + f64::from(a - b).powi(2), st + f64::from(b).powi(2)));
     let relit_error = if st > 0.0 { (se / st).sqrt() } else { f64::NAN };
-    let result =
-        DiscoDemoResult { fit: fitted, accuracy, relit_error, frames, report: out.join("report.md") };
+    let sg: f64 = global.iter().zip(&truth).map(|(&a, &b)| f64::from(a - b).powi(2)).sum();
+    let relit_global_error = if st > 0.0 { (sg / st).sqrt() } else { f64::NAN };
+    let kernels = kernel_check(scene, &fitted);
+    let result = DiscoDemoResult {
+        fit: fitted,
+        accuracy,
+        relit_error,
+        relit_global_error,
+        kernels,
+        frames,
+        report: out.join("report.md"),
+    };
     write_report(&result, scene, &files, opts)?;
     Ok(result)
 }
@@ -352,19 +457,28 @@ fn write_report(
         rep.line(format!(
             "Held out: {} frames of spots left out of the fit, predicted from F (Gouraud over the mesh, as the global term \
              renders) against the frames themselves: relative RMS error {:.1} % (median over frames, {} pixels, beyond \
-             {:.1} mm of the spot: nearer is the local kernels' domain).",
+             {:.1} mm of the spot: nearer is the local kernels' domain). Their near field (within {:.1} mm) predicted by \
+             the local term — the kernel of the spot's texel, filled from its neighbours as the spot was left out, \
+             through the beam's blur, times the correction: {:.1} % ({} frames entering within {:.0}°, {} pixels).",
             f.held_out.frames,
             100.0 * f.held_out.median_rel_rms,
             f.held_out.pixels,
-            f.held_out.near_mm
+            f.held_out.near_mm,
+            f.local_params.radius_mm,
+            100.0 * f.held_out.near_rel_rms,
+            f.held_out.near_frames,
+            f.local_params.max_incidence_deg,
+            f.held_out.near_pixels
         ));
     }
     rep.line("");
     rep.line(format!(
         "Relit (`fit/relit.png`: a distant light from the side and above, which no frame used) against the \
          object's physics under that light (`fit/relit-truth.png`: the dipole integrated over the surface, no F \
-         involved), both rendered alike from the vertices: relative RMS error {:.1} % over the object's pixels.",
-        100.0 * r.relit_error
+         involved), both rendered alike from the vertices: relative RMS error {:.1} % over the object's pixels \
+         with the local kernels carrying each vertex's one-ring; {:.1} % from F alone (`fit/relit-global.png`).",
+        100.0 * r.relit_error,
+        100.0 * r.relit_global_error
     ));
     rep.line("");
     rep.line(format!(
@@ -380,6 +494,55 @@ fn write_report(
         ))
     ));
     rep.line("");
+    if let Some(k) = &r.kernels {
+        rep.line(format!(
+            "Local kernels (section 7; `m(d) = c1·e^(−σ1·d) + c2·e^(−σ2·d)` per spot in the paper's stages, through \
+             the beam's blur, from the texels within {:.1} mm of the entry point, {:.2} mm texels on a {} × {} atlas): \
+             {} spots kept, {} not seen by the camera, {} with too few data (at the silhouette), {} fitted but rejected (misfit over {:.0} %, or no fast term: near the vein's boundary, or noisy). On homogeneous {} ({} spots): median σ1 {:.3}, σ2 {:.3} mm⁻¹ \
+             against the dipole's {:.3}, {:.3} (the same fit to its `Rd`, misfit {:.1} %); {:.0} % of those spots \
+             within {:.0} % on both rates; the kernels' total (2π∫m) within {:.1} / {:.1} / {:.1} % (median, R / G / B). \
+             {}",
+            f.local_params.radius_mm,
+            f.atlas.texel_mm,
+            f.atlas.width,
+            f.atlas.height,
+            f.spots.len(),
+            f.local_hidden,
+            f.local_failed,
+            f.local_rejected,
+            100.0 * f.local_params.max_misfit,
+            scene.media[0].name,
+            k.spots[0],
+            k.sigma[0][0],
+            k.sigma[0][1],
+            k.reference[0].sigma[0],
+            k.reference[0].sigma[1],
+            100.0 * k.reference[0].misfit,
+            100.0 * k.within,
+            100.0 * KERNEL_TOLERANCE,
+            100.0 * k.total[0],
+            100.0 * k.total[1],
+            100.0 * k.total[2],
+            if k.spots[1] > 0 {
+                format!(
+                    "Inside the {} vein ({} spots): σ1 {:.3}, σ2 {:.3} against {:.3}, {:.3}.",
+                    scene.media[1].name,
+                    k.spots[1],
+                    k.sigma[1][0],
+                    k.sigma[1][1],
+                    k.reference[1].sigma[0],
+                    k.reference[1].sigma[1]
+                )
+            } else {
+                format!(
+                    "The {} vein ({:.0} mm wide) is narrower than a spot's data reach: no spot inside it is homogeneous.",
+                    scene.media[1].name,
+                    2.0 * scene.vein.half_width_mm
+                )
+            },
+        ));
+        rep.line("");
+    }
     rep.line(format!("Interpolation: {:?}.", f.fill));
     rep.outputs(files);
     std::fs::write(&r.report, &rep.0).map_err(io(&r.report))?;

@@ -23,8 +23,13 @@ use std::collections::HashMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use lightrig_pipelines::disco::atlas::Atlas;
 use lightrig_pipelines::disco::falloff;
 use lightrig_pipelines::disco::interpolate::{interpolate, FillParams, FillReport, Matrix};
+use lightrig_pipelines::disco::kernel::{self, Sample};
+use lightrig_pipelines::disco::local::{
+    spot_samples, spot_sigma, Blurs, LocalAccumulator, LocalParams, LocalTextures, SpotKernel,
+};
 use lightrig_pipelines::disco::mesh::SurfaceMesh;
 use lightrig_pipelines::disco::optics::{point_of, Pinhole};
 use lightrig_pipelines::disco::relight;
@@ -59,6 +64,14 @@ pub struct HeldOut {
     pub median_rel_rms: f64,
     /// The near field left out, mm from the entry point (the local term's domain).
     pub near_mm: f64,
+    /// The near field predicted by the local term instead (the kernel at the held-out spot's
+    /// texel — filled from its neighbours, since the spot was left out — through the beam's
+    /// blur, times the correction texture): frames (those entering within the local fit's
+    /// incidence limit), pixels (within its data radius of the spot, above 4× the noise
+    /// floor), median relative RMS.
+    pub near_frames: usize,
+    pub near_pixels: usize,
+    pub near_rel_rms: f64,
 }
 
 /// What the fit made.
@@ -94,6 +107,18 @@ pub struct DiscoFit {
     pub eta: f64,
     /// The fall-off taken out for the interpolation, per channel (none: too few entries).
     pub falloff: Option<[falloff::Falloff; 3]>,
+    /// The local term (section 7): the atlas, each spot's fitted `m(d)`, the filled textures,
+    /// the spots the camera did not see (no data within δ2 of the entry point: hidden, or lit in
+    /// one or two lasers only), and those whose fit failed (too few data farther out: at the
+    /// object's silhouette).
+    pub atlas: Atlas,
+    pub spots: Vec<SpotKernel>,
+    pub local: LocalTextures,
+    pub local_hidden: usize,
+    pub local_failed: usize,
+    /// Spots fitted but not kept ([`LocalParams::accepts`]: misfit, or no fast term).
+    pub local_rejected: usize,
+    pub local_params: LocalParams,
 }
 
 /// One laser frame to resample.
@@ -107,13 +132,30 @@ struct Job {
 
 /// A frame's result, computed in parallel.
 struct Done {
-    view: usize,
-    channel: usize,
     inc: Option<Incidence>,
     img: Vec<f32>,
     floor: f32,
     peak_offset: Option<f64>,
-    held_out: bool,
+    /// The frame's data near its spot, for the local term.
+    local: Vec<(u32, Sample)>,
+}
+
+/// A spot's local data while its three lasers' frames come in.
+struct Pending {
+    samples: Vec<(u32, Sample)>,
+    channels: u8,
+    point: V3,
+    angle_deg: f64,
+    sigma_mm: f64,
+}
+
+/// A held-out frame: what its prediction needs (the image is read again then).
+struct Held {
+    view: usize,
+    channel: usize,
+    inc: Incidence,
+    file: PathBuf,
+    floor: f32,
 }
 
 /// Colour channel of each of the plan's three lasers: by wavelength, longest red.
@@ -213,81 +255,48 @@ pub fn fit_session(
         })
     };
 
-    // 1. White balance.
+    // 1. White balance, from the `white` step wherever the plan has it.
     let mut flux = [f64::NAN; 3];
     let mut beam_sigma_mm = 0.0;
-    let mut lasers_of_plan: Vec<u8> = Vec::new();
-    let mut views: Vec<(usize, f64)> = Vec::new();
-    let mut jobs: Vec<Job> = Vec::new();
+    let lasers_of_plan: Vec<u8> = m
+        .plan
+        .steps
+        .iter()
+        .find_map(|p| {
+            let a = p.extra.get("meta")?.get("lasers")?.as_array()?;
+            Some(a.iter().filter_map(|x| x.as_u64().map(|v| v as u8)).collect())
+        })
+        .unwrap_or_default();
+    let channels = colour_channels(&rig, &lasers_of_plan)?;
+    let kind_of = |p: &crate::session::PlanStep| -> String {
+        p.extra.get("meta").and_then(|m| m.get("kind")).and_then(Value::as_str).unwrap_or("view").to_string()
+    };
+    let channel_of = |t: &TriggerEvent| {
+        channels.iter().find(|(l, _)| t.snapshot.lasers & (1 << **l) != 0).map(|(_, &c)| c)
+    };
     let mut white_seen = false;
-    for p in &m.plan.steps {
-        let meta = p.extra.get("meta").cloned().unwrap_or(Value::Null);
-        if lasers_of_plan.is_empty() {
-            lasers_of_plan = meta
-                .get("lasers")
-                .and_then(Value::as_array)
-                .map(|a| a.iter().filter_map(|x| x.as_u64().map(|v| v as u8)).collect())
-                .unwrap_or_default();
-        }
-        let kind = meta.get("kind").and_then(Value::as_str).unwrap_or("view");
-        let frames = s.camera_frames_of(p.id, camera);
-        if kind == "white" {
-            white_seen = true;
-            let channels = colour_channels(&rig, &lasers_of_plan)?;
-            let (_, cam) = setup.cameras[0];
-            let mut sums = [(0.0, 0usize); 3];
-            let mut widths = Vec::new();
-            for f in &frames {
-                let t = trig(f)?;
-                let Some((_, &c)) = channels.iter().find(|(l, _)| t.snapshot.lasers & (1 << **l) != 0) else {
-                    continue;
-                };
-                let img = read_plane(&dir.join(&f.file), w, h)?;
-                let code = t.snapshot.galvos.first().map_or([0.0; 2], |g| [f64::from(g.x), f64::from(g.y)]);
-                let centre = beam_on_plane(&setup, code);
-                sums[c].0 += flux_scale(&img, &cam, &setup.white, centre, 25.0);
-                sums[c].1 += 1;
-                widths.extend(beam_sigma(&img, &cam, &setup.white, setup.projector.ray(code), centre, 10.0));
-            }
-            for c in 0..3 {
-                if sums[c].1 > 0 {
-                    flux[c] = sums[c].0 / sums[c].1 as f64;
-                }
-            }
-            if !widths.is_empty() {
-                beam_sigma_mm = widths.iter().sum::<f64>() / widths.len() as f64;
-            }
-            continue;
-        }
-        let pos = meta.get("camera_position").and_then(Value::as_u64).unwrap_or(0) as usize;
-        if pos >= setup.cameras.len() {
-            return Err(fail(format!(
-                "step {} ({}): camera position {pos}, but [plan] camera_positions has {}",
-                p.id,
-                p.name,
-                setup.cameras.len()
-            )));
-        }
-        let channels = colour_channels(&rig, &lasers_of_plan)?;
-        for f in &frames {
+    for p in m.plan.steps.iter().filter(|p| kind_of(p) == "white") {
+        white_seen = true;
+        let (_, cam) = setup.cameras[0];
+        let mut sums = [(0.0, 0usize); 3];
+        let mut widths = Vec::new();
+        for f in &s.camera_frames_of(p.id, camera) {
             let t = trig(f)?;
-            let Some(&c) = channels.iter().find(|(l, _)| t.snapshot.lasers & (1 << **l) != 0).map(|(_, c)| c)
-            else {
-                continue; // the registration frame
-            };
-            let steps = t.snapshot.axes.get(usize::from(table.axis)).copied().unwrap_or(0);
-            let deg = table.units(i64::from(steps)).unwrap_or(0.0);
-            let view = match views.iter().position(|&(q, d)| q == pos && (d - deg).abs() < 1e-6) {
-                Some(v) => v,
-                None => {
-                    views.push((pos, deg));
-                    views.len() - 1
-                }
-            };
-            let code = t.snapshot.galvos.first().map_or([0, 0], |g| [g.x, g.y]);
-            let index = grid.iter().position(|&g| g == code).unwrap_or(0);
-            let held_out = setup.held_out > 1 && index % setup.held_out == setup.held_out / 2;
-            jobs.push(Job { view, channel: c, code, file: dir.join(&f.file), held_out });
+            let Some(c) = channel_of(t) else { continue };
+            let img = read_plane(&dir.join(&f.file), w, h)?;
+            let code = t.snapshot.galvos.first().map_or([0.0; 2], |g| [f64::from(g.x), f64::from(g.y)]);
+            let centre = beam_on_plane(&setup, code);
+            sums[c].0 += flux_scale(&img, &cam, &setup.white, centre, 25.0);
+            sums[c].1 += 1;
+            widths.extend(beam_sigma(&img, &cam, &setup.white, setup.projector.ray(code), centre, 10.0));
+        }
+        for c in 0..3 {
+            if sums[c].1 > 0 {
+                flux[c] = sums[c].0 / sums[c].1 as f64;
+            }
+        }
+        if !widths.is_empty() {
+            beam_sigma_mm = widths.iter().sum::<f64>() / widths.len() as f64;
         }
     }
     if !white_seen || flux.iter().any(|f| !f.is_finite() || *f <= 0.0) {
@@ -297,60 +306,173 @@ pub fn fit_session(
         )));
     }
 
-    // 2–3. Views once, frames streamed.
-    let maps: Vec<ViewMap> = views
-        .par_iter()
-        .map(|&(pos, deg)| ViewMap::new(&mesh, &setup.cameras[pos].1, deg, &limits))
-        .collect();
+    // 2–3. Step by step: each new view mapped once, the step's frames streamed a chunk at a
+    // time (memory: `F`'s sums, the views, one chunk of frames, the step's job list).
+    let grid_index: HashMap<[u16; 2], usize> = grid.iter().enumerate().map(|(i, &g)| (g, i)).collect();
+    let view_steps: Vec<&crate::session::PlanStep> =
+        m.plan.steps.iter().filter(|p| kind_of(p) != "white").collect();
+    let total: u64 = view_steps.iter().map(|p| s.camera_frames_of(p.id, camera).len() as u64).sum();
+    let mut views: Vec<(usize, f64)> = Vec::new();
+    let mut maps: Vec<ViewMap> = Vec::new();
     let n = mesh.vertices.len();
     let mut acc = Accumulator::new(&mesh);
-    let total = jobs.len() as u64;
-    let (mut used, mut missed, mut seen, mut offsets) = (0usize, 0usize, 0usize, Vec::new());
-    let mut held: Vec<Done> = Vec::new();
+    let (mut frames, mut used, mut missed, mut seen, mut offsets) =
+        (0usize, 0usize, 0usize, 0usize, Vec::new());
+    let mut held: Vec<Held> = Vec::new();
     let near_mm = 2.0 * mesh.mean_edge();
+    let local_params = LocalParams::default();
+    let atlas = Atlas::build(&mesh, local_params.texel_mm, 3);
+    let blurs = Blurs::new(local_params.radius_mm + 1.0);
+    let mut local = LocalAccumulator::new(&atlas);
+    let mut pending: HashMap<(usize, [u16; 2]), Pending> = HashMap::new();
+    let mut spots: Vec<SpotKernel> = Vec::new();
+    let (mut local_hidden, mut local_failed, mut local_rejected) = (0usize, 0usize, 0usize);
     let mut done_count = 0u64;
-    for chunk in jobs.chunks(64) {
-        let results: Vec<Result<Done, FitError>> = chunk
-            .par_iter()
-            .map(|j| {
-                let img = read_plane(&j.file, w, h)?;
-                let map = &maps[j.view];
-                let origin = setup.projector.eye;
-                let dir_ = setup.projector.ray([f64::from(j.code[0]), f64::from(j.code[1])]);
-                let inc = incidence(&mesh, &map.world, map.turntable_deg, origin, dir_, &limits);
-                let floor = FLOOR_SIGMAS * background_sigma(&img, &map.surface, 7);
-                let peak_offset = inc.as_ref().and_then(|inc| spot_offset(&mesh, map, inc, &img, floor));
-                Ok(Done {
-                    view: j.view,
-                    channel: j.channel,
-                    inc,
-                    img,
-                    floor,
-                    peak_offset,
-                    held_out: j.held_out,
-                })
-            })
-            .collect();
-        for r in results {
-            let d = r?;
-            done_count += 1;
-            if let Some(o) = d.peak_offset {
-                seen += 1;
-                offsets.push(o);
-            }
-            let Some(inc) = d.inc else {
-                missed += 1;
-                continue;
-            };
-            if d.held_out {
-                // Keep only what the prediction needs: the frame is compared after the fit.
-                held.push(Done { inc: Some(inc), ..d });
-                continue;
-            }
-            acc.add(&mesh, &maps[d.view], &inc, &d.img, d.channel, flux[d.channel], d.floor);
-            used += 1;
+    for p in view_steps {
+        let meta = p.extra.get("meta").cloned().unwrap_or(Value::Null);
+        let pos = meta.get("camera_position").and_then(Value::as_u64).unwrap_or(0) as usize;
+        if pos >= setup.cameras.len() {
+            return Err(fail(format!(
+                "step {} ({}): camera position {pos}, but [plan] camera_positions has {}",
+                p.id,
+                p.name,
+                setup.cameras.len()
+            )));
         }
-        progress(done_count, total);
+        let step_frames = s.camera_frames_of(p.id, camera);
+        let mut jobs: Vec<Job> = Vec::new();
+        for f in &step_frames {
+            let t = trig(f)?;
+            let Some(c) = channel_of(t) else {
+                done_count += 1;
+                continue; // the registration frame
+            };
+            let steps = t.snapshot.axes.get(usize::from(table.axis)).copied().unwrap_or(0);
+            let deg = table.units(i64::from(steps)).unwrap_or(0.0);
+            let view = match views.iter().position(|&(q, d)| q == pos && (d - deg).abs() < 1e-6) {
+                Some(v) => v,
+                None => {
+                    views.push((pos, deg));
+                    maps.push(ViewMap::new(&mesh, &setup.cameras[pos].1, deg, &limits));
+                    views.len() - 1
+                }
+            };
+            let code = t.snapshot.galvos.first().map_or([0, 0], |g| [g.x, g.y]);
+            let index = grid_index.get(&code).copied().unwrap_or(0);
+            let held_out = setup.held_out > 1 && index % setup.held_out == setup.held_out / 2;
+            jobs.push(Job { view, channel: c, code, file: dir.join(&f.file), held_out });
+        }
+        frames += jobs.len();
+        for chunk in jobs.chunks(64) {
+            let results: Vec<Result<Done, FitError>> = chunk
+                .par_iter()
+                .map(|j| {
+                    let img = read_plane(&j.file, w, h)?;
+                    let map = &maps[j.view];
+                    let origin = setup.projector.eye;
+                    let dir_ = setup.projector.ray([f64::from(j.code[0]), f64::from(j.code[1])]);
+                    let inc = incidence(&mesh, &map.world, map.turntable_deg, origin, dir_, &limits);
+                    let floor = FLOOR_SIGMAS * background_sigma(&img, &map.surface, 7);
+                    let peak_offset = inc.as_ref().and_then(|inc| spot_offset(&mesh, map, inc, &img, floor));
+                    let local = match &inc {
+                        Some(inc) if !j.held_out && inc.angle_deg <= local_params.max_incidence_deg => {
+                            spot_samples(
+                                &mesh,
+                                &atlas,
+                                map,
+                                inc,
+                                &img,
+                                j.channel as u8,
+                                flux[j.channel],
+                                floor,
+                                setup.eta,
+                                &local_params,
+                            )
+                        }
+                        _ => Vec::new(),
+                    };
+                    Ok(Done { inc, img, floor, peak_offset, local })
+                })
+                .collect();
+            for (j, r) in chunk.iter().zip(results) {
+                let d = r?;
+                done_count += 1;
+                if let Some(o) = d.peak_offset {
+                    seen += 1;
+                    offsets.push(o);
+                }
+                let Some(inc) = d.inc else {
+                    missed += 1;
+                    continue;
+                };
+                if j.held_out {
+                    // The frame is read again for the comparison after the fit.
+                    held.push(Held {
+                        view: j.view,
+                        channel: j.channel,
+                        inc,
+                        file: j.file.clone(),
+                        floor: d.floor,
+                    });
+                    continue;
+                }
+                acc.add(&mesh, &maps[j.view], &inc, &d.img, j.channel, flux[j.channel], d.floor);
+                used += 1;
+                if inc.angle_deg > local_params.max_incidence_deg {
+                    continue;
+                }
+                let e = pending.entry((j.view, j.code)).or_insert_with(|| Pending {
+                    samples: Vec::new(),
+                    channels: 0,
+                    point: inc.object,
+                    angle_deg: inc.angle_deg,
+                    sigma_mm: spot_sigma(beam_sigma_mm, &mesh, &maps[j.view], &inc),
+                });
+                e.samples.extend(d.local);
+                e.channels |= 1 << j.channel;
+            }
+            // Spots with all three lasers in: fitted in parallel, recorded, dropped.
+            let ready: Vec<((usize, [u16; 2]), Pending)> = {
+                let keys: Vec<(usize, [u16; 2])> =
+                    pending.iter().filter(|(_, p)| p.channels == 7).map(|(k, _)| *k).collect();
+                keys.into_iter().filter_map(|k| pending.remove(&k).map(|p| (k, p))).collect()
+            };
+            let fitted: Vec<Option<kernel::Profile>> = ready
+                .par_iter()
+                .map(|(_, p)| {
+                    let data: Vec<Sample> = p.samples.iter().map(|s| s.1).collect();
+                    kernel::fit(&data, &blurs.at(p.sigma_mm), &local_params.stages)
+                })
+                .collect();
+            for (((view, code), p), f) in ready.into_iter().zip(fitted) {
+                let profile = match f {
+                    Some(f) if local_params.accepts(&f) => f,
+                    Some(_) => {
+                        local_rejected += 1;
+                        continue;
+                    }
+                    None if p.samples.iter().any(|s| s.1.d < local_params.stages.delta2) => {
+                        local_failed += 1;
+                        continue;
+                    }
+                    None => {
+                        local_hidden += 1;
+                        continue;
+                    }
+                };
+                local.record(&atlas, &blurs.at(p.sigma_mm), &p.samples, p.point, &profile);
+                spots.push(SpotKernel {
+                    view,
+                    code,
+                    point: p.point,
+                    angle_deg: p.angle_deg,
+                    sigma_mm: p.sigma_mm,
+                    profile,
+                    samples: p.samples.len(),
+                });
+            }
+            progress(done_count, total);
+        }
     }
     // Twice: the gradients the neighbouring columns show give a first `F` and its fall-off;
     // the fall-off's own gradient then moves each mean to its vertex (far less noisy than a
@@ -362,6 +484,8 @@ pub fn fit_session(
     }
     drop(first);
     drop(acc);
+    local_hidden += pending.len();
+    let local_textures = local.finish(&atlas);
     let observed: Vec<bool> = weights.iter().map(|&w| w > 0.0).collect();
     let lit_columns = (0..n).filter(|&k| observed[k * n + k]).count();
     let mut matrix =
@@ -378,14 +502,28 @@ pub fn fit_session(
         falloff::apply(&mesh, &mut matrix, s, d_min, false);
     }
     // 5.
-    let held_out = predict_held_out(&mesh, &matrix, &maps, &held, &flux, near_mm, setup.eta);
+    let mut held_out = predict_held_out(&mesh, &matrix, &maps, &held, &flux, near_mm, setup.eta, (w, h))?;
+    let near = predict_held_out_near(
+        &mesh,
+        &atlas,
+        &local_textures,
+        &blurs,
+        &local_params,
+        &maps,
+        &held,
+        &flux,
+        beam_sigma_mm,
+        setup.eta,
+        (w, h),
+    )?;
+    (held_out.near_frames, held_out.near_pixels, held_out.near_rel_rms) = near;
     offsets.sort_by(f64::total_cmp);
     Ok(DiscoFit {
         observed,
         fill,
         flux,
         views: views.len(),
-        frames: jobs.len(),
+        frames,
         used,
         missed,
         held_out_frames: held.len(),
@@ -394,6 +532,13 @@ pub fn fit_session(
         lit_columns,
         held_out,
         falloff: rates,
+        atlas,
+        spots,
+        local: local_textures,
+        local_hidden,
+        local_failed,
+        local_rejected,
+        local_params,
         beam_sigma_mm,
         camera: setup.cameras[0].1,
         eta: setup.eta,
@@ -439,20 +584,23 @@ fn spot_offset(mesh: &SurfaceMesh, map: &ViewMap, inc: &Incidence, img: &[f32], 
 /// Each held-out frame predicted from `F`: at every object pixel, the vertices' predicted
 /// `Σk βk F(r, k)` interpolated by the pixel's barycentric weights in log, times
 /// `Ft_o·Ft_i·Φ/π`, against the frame.
+#[allow(clippy::too_many_arguments)]
 fn predict_held_out(
     mesh: &SurfaceMesh,
     f: &Matrix,
     maps: &[ViewMap],
-    held: &[Done],
+    held: &[Held],
     flux: &[f64; 3],
     near_mm: f64,
     eta: f64,
-) -> HeldOut {
+    (w, h): (u32, u32),
+) -> Result<HeldOut, FitError> {
     let n = mesh.vertices.len();
-    let per_frame: Vec<(f64, usize)> = held
+    let per_frame: Vec<Option<(f64, usize)>> = held
         .par_iter()
-        .filter_map(|d| {
-            let inc = d.inc.as_ref()?;
+        .map(|d| {
+            let inc = &d.inc;
+            let img = read_plane(&d.file, w, h)?;
             let map = &maps[d.view];
             let tri = mesh.triangles[inc.hit.triangle as usize];
             // Predicted exitant Rd per vertex (column mix), then radiance at each vertex.
@@ -486,7 +634,7 @@ fn predict_held_out(
                 if norm(sub(p, inc.point)) < near_mm {
                     continue;
                 }
-                let measured = f64::from(d.img[i]);
+                let measured = f64::from(img[i]);
                 if measured <= f64::from(d.floor) {
                     continue;
                 }
@@ -505,17 +653,94 @@ fn predict_held_out(
                 sm += measured * measured;
                 count += 1;
             }
-            (count > 0).then(|| ((se / sm).sqrt(), count))
+            Ok((count > 0).then(|| ((se / sm).sqrt(), count)))
         })
-        .collect();
+        .collect::<Result<_, FitError>>()?;
+    let (frames, pixels, median_rel_rms) = summarise(per_frame);
+    Ok(HeldOut { frames, pixels, median_rel_rms, near_mm, ..HeldOut::default() })
+}
+
+/// Per-frame `(relative RMS, pixels)` → (frames, pixels, median relative RMS).
+fn summarise(per_frame: Vec<Option<(f64, usize)>>) -> (usize, usize, f64) {
+    let per_frame: Vec<(f64, usize)> = per_frame.into_iter().flatten().collect();
     let mut errs: Vec<f64> = per_frame.iter().map(|p| p.0).collect();
     errs.sort_by(f64::total_cmp);
-    HeldOut {
-        frames: per_frame.len(),
-        pixels: per_frame.iter().map(|p| p.1).sum(),
-        median_rel_rms: errs.get(errs.len() / 2).copied().unwrap_or(f64::NAN),
-        near_mm,
-    }
+    (
+        per_frame.len(),
+        per_frame.iter().map(|p| p.1).sum(),
+        errs.get(errs.len() / 2).copied().unwrap_or(f64::NAN),
+    )
+}
+
+/// The held-out frames' near fields predicted by the local term (see [`HeldOut::near_rel_rms`]):
+/// (frames, pixels, median relative RMS).
+#[allow(clippy::too_many_arguments)]
+fn predict_held_out_near(
+    mesh: &SurfaceMesh,
+    atlas: &Atlas,
+    local: &LocalTextures,
+    blurs: &Blurs,
+    params: &LocalParams,
+    maps: &[ViewMap],
+    held: &[Held],
+    flux: &[f64; 3],
+    beam_sigma_mm: f64,
+    eta: f64,
+    (w, h): (u32, u32),
+) -> Result<(usize, usize, f64), FitError> {
+    let nearest = |p: V3| atlas.nearest(p);
+    let per_frame: Vec<Option<(f64, usize)>> = held
+        .par_iter()
+        .filter(|d| d.inc.angle_deg <= params.max_incidence_deg)
+        .map(|d| {
+            let inc = &d.inc;
+            let map = &maps[d.view];
+            let Some(profile) = nearest(inc.object).and_then(|t| local.profile(t)) else { return Ok(None) };
+            let blur = blurs.at(spot_sigma(beam_sigma_mm, mesh, map, inc));
+            let img = read_plane(&d.file, w, h)?;
+            let cam = &map.camera;
+            let (mut se, mut sm, mut count) = (0.0, 0.0, 0usize);
+            for (i, hit) in map.surface.iter().enumerate() {
+                let Some(hit) = hit else { continue };
+                let (p, nrm) = point_of(mesh, &map.world, map.turntable_deg, hit);
+                let dist = norm(sub(p, inc.point));
+                if dist > params.radius_mm {
+                    continue;
+                }
+                let measured = f64::from(img[i]);
+                if measured <= f64::from(lightrig_pipelines::disco::resample::MIN_FLOOR_RATIO * d.floor) {
+                    continue;
+                }
+                let cos_o =
+                    lightrig_pipelines::vec3::dot(nrm, lightrig_pipelines::vec3::normalize(sub(cam.eye, p)));
+                if cos_o < params.max_view_deg.to_radians().cos() {
+                    continue;
+                }
+                let t = mesh.triangles[hit.triangle as usize];
+                let object = (0..3).fold([0.0; 3], |acc, j| {
+                    lightrig_pipelines::vec3::add(
+                        acc,
+                        lightrig_pipelines::vec3::scale(mesh.vertices[t[j] as usize], f64::from(hit.bary[j])),
+                    )
+                });
+                let corr = nearest(object)
+                    .and_then(|t| local.correction[t as usize])
+                    .map_or(1.0, |c| f64::from(c[d.channel]));
+                let ft_o = lightrig_pipelines::disco::dipole::fresnel_transmittance(eta, cos_o);
+                let predicted = profile.eval_blurred(&blur, d.channel, dist)
+                    * corr
+                    * ft_o
+                    * inc.fresnel
+                    * flux[d.channel]
+                    / std::f64::consts::PI;
+                se += (predicted - measured).powi(2);
+                sm += measured * measured;
+                count += 1;
+            }
+            Ok((count > 0).then(|| ((se / sm).sqrt(), count)))
+        })
+        .collect::<Result<_, FitError>>()?;
+    Ok(summarise(per_frame))
 }
 
 /// The object lit by [`relight::side_light`] (a light no frame used) as the first camera
@@ -525,6 +750,26 @@ pub fn relit(fit: &DiscoFit, f: &(dyn Fn(usize, usize) -> [f64; 3] + Sync)) -> V
     let light = relight::side_light(&fit.camera, 0.0);
     let m = relight::exitance(&fit.mesh, f, &light, fit.eta);
     relight::render(&fit.mesh, &m, &fit.camera, 0.0, fit.eta)
+}
+
+/// The model — `F` beyond each vertex's one-ring, the local kernels within it
+/// ([`relight::exitance_local`]) — under [`relight::side_light`], rendered as [`relit`] is.
+pub fn relit_full(fit: &DiscoFit) -> Vec<f32> {
+    let n = fit.matrix.n;
+    let light = relight::side_light(&fit.camera, 0.0);
+    let f = |r: usize, k: usize| fit.matrix.values[k * n + r].map(f64::from);
+    let local = |r: usize| {
+        let t = vertex_texel(fit, r)?;
+        let corr = fit.local.correction[t as usize].map_or([1.0; 3], |c| c.map(f64::from));
+        Some((fit.local.profile(t)?, corr))
+    };
+    let m = relight::exitance_local(&fit.mesh, &f, &local, &light, fit.eta);
+    relight::render(&fit.mesh, &m, &fit.camera, 0.0, fit.eta)
+}
+
+/// The atlas texel nearest vertex `r`.
+pub fn vertex_texel(fit: &DiscoFit, r: usize) -> Option<u32> {
+    fit.atlas.nearest(fit.mesh.vertices[r])
 }
 
 /// The exposure that puts `img`'s 99.5th percentile at 0.9.
@@ -559,12 +804,65 @@ pub fn write_relit(
     Ok(vec![exr, png])
 }
 
+/// The atlas file's format tag.
+pub const ATLAS_FORMAT: &str = "lightrig-disco-atlas 1";
+
+/// Writes the local term (section 7): `atlas.json` (how a surface point finds its texel) and
+/// four atlas textures, linear float EXR, one texel per pixel, zero off the charts:
+/// `kernel-rates.exr` (R σ1, G σ2 in mm⁻¹, B 1 where a spot gave the parameters, 0 where they
+/// were filled), `kernel-c1.exr`, `kernel-c2.exr` (the two terms' weights per colour, mm⁻²),
+/// `kernel-correction.exr` (the multiplicative correction `C` per colour).
+pub fn write_local(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitError> {
+    use lightrig_imaging::io::{write_exr, Encoding, ExrPrecision, Image};
+    let a = &fit.atlas;
+    let io = |p: &Path, e: std::io::Error| fail(format!("{}: {e}", p.display()));
+    let mut files = Vec::new();
+    type Texel<'a> = &'a dyn Fn(usize) -> Option<[f32; 3]>;
+    let textures: [(&str, Texel); 4] = [
+        ("kernel-rates", &|i| {
+            fit.local.params[i]
+                .map(|p| [p[0].exp(), p[1].exp(), if fit.local.observed[i] { 1.0 } else { 0.0 }])
+        }),
+        ("kernel-c1", &|i| fit.local.profile(i as u32).map(|p| p.c1.map(|x| x as f32))),
+        ("kernel-c2", &|i| fit.local.profile(i as u32).map(|p| p.c2.map(|x| x as f32))),
+        ("kernel-correction", &|i| fit.local.correction[i]),
+    ];
+    for (name, value) in textures {
+        let mut im = Image::new(a.width.max(1), a.height.max(1), 3);
+        for i in 0..a.texels.len() {
+            if let Some(v) = value(i) {
+                im.data[3 * i..3 * i + 3].copy_from_slice(&v);
+            }
+        }
+        let path = out.join(format!("{name}.exr"));
+        write_exr(&path, &im.with_encoding(Encoding::Linear), ExrPrecision::Float)
+            .map_err(|e| fail(format!("{}: {e}", path.display())))?;
+        files.push(path);
+    }
+    let charts: Vec<Value> =
+        a.charts.iter().map(|c| json!({ "axis": c.axis, "rect": c.rect, "shift": c.shift })).collect();
+    let j = json!({
+        "format": ATLAS_FORMAT,
+        "width": a.width, "height": a.height, "texel_mm": a.texel_mm, "border": a.border,
+        "mapping": "triangle t of object.ply lies in chart triangle_chart[t] (4294967295: none); a point p (mm, object frame) of it is at atlas pixel (x, y) = (u / texel_mm + shift[0], v / texel_mm + shift[1]), texel centres at +0.5, where for axis a (0 +x, 1 -x, 2 +y, 3 -y, 4 +z, 5 -z) and k = a / 2: u = p[(k+1) % 3] (negated for odd a), v = p[(k+2) % 3]",
+        "kernel": "m(d) = c1 e^(-sigma1 d) + c2 e^(-sigma2 d) per colour, d the 3D distance (mm) from the texel's point; a texel's 7x7 kernel is m at each neighbour's distance times that neighbour's correction times texel_mm^2",
+        "charts": charts,
+        "triangle_chart": a.triangle_chart,
+    });
+    let path = out.join("atlas.json");
+    std::fs::write(&path, serde_json::to_string(&j).unwrap_or_default() + "\n").map_err(|e| io(&path, e))?;
+    files.push(path);
+    Ok(files)
+}
+
 /// `F`'s file format tag.
 pub const F_FORMAT: &str = "lightrig-disco-F 1";
 
 /// Writes the fit's outputs into `out`: `object.ply` (the mesh the columns index), `F.f32` and
 /// `F.json` (the matrix: see [`write_matrix`]), `F-observed.bits`, `relit.exr` and `relit.png`
-/// (the model under a light no frame used, [`relit`]), `fit.json` (the numbers).
+/// (the model under a light no frame used, [`relit_full`]; `relit-global.*` the global term
+/// alone, [`relit`]), the local term ([`write_local`]),
+/// `fit.json` (the numbers).
 pub fn write_outputs(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitError> {
     std::fs::create_dir_all(out).map_err(|e| fail(format!("{}: {e}", out.display())))?;
     let io = |p: &Path, e: std::io::Error| fail(format!("{}: {e}", p.display()));
@@ -574,8 +872,11 @@ pub fn write_outputs(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitErro
     let mut files = vec![ply];
     files.extend(write_matrix(&fit.matrix, &fit.observed, out)?);
     let n = fit.matrix.n;
-    let img = relit(fit, &|r, k| fit.matrix.values[k * n + r].map(f64::from));
+    let global = relit(fit, &|r, k| fit.matrix.values[k * n + r].map(f64::from));
+    let img = relit_full(fit);
     files.extend(write_relit(&img, &fit.camera, exposure_of(&img), out, "relit")?);
+    files.extend(write_relit(&global, &fit.camera, exposure_of(&img), out, "relit-global")?);
+    files.extend(write_local(fit, out)?);
     let summary = out.join("fit.json");
     let j = json!({
         "vertices": fit.mesh.vertices.len(),
@@ -587,8 +888,13 @@ pub fn write_outputs(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitErro
         "observed_entries": fit.observed.iter().filter(|&&o| o).count(),
         "white_balance_gain_flux_rgb": fit.flux,
         "fill": format!("{:?}", fit.fill),
+        "local": { "spots_fitted": fit.spots.len(), "spots_unseen": fit.local_hidden, "spots_failed": fit.local_failed, "spots_rejected": fit.local_rejected,
+                   "texel_mm": fit.atlas.texel_mm, "atlas": [fit.atlas.width, fit.atlas.height],
+                   "observed_texels": fit.local.observed.iter().filter(|&&o| o).count() },
         "held_out": { "frames": fit.held_out.frames, "pixels": fit.held_out.pixels,
-                      "median_relative_rms": fit.held_out.median_rel_rms, "near_field_excluded_mm": fit.held_out.near_mm },
+                      "median_relative_rms": fit.held_out.median_rel_rms, "near_field_excluded_mm": fit.held_out.near_mm,
+                      "near_field_by_local_term": { "frames": fit.held_out.near_frames, "pixels": fit.held_out.near_pixels,
+                                                    "median_relative_rms": fit.held_out.near_rel_rms } },
     });
     std::fs::write(&summary, serde_json::to_string_pretty(&j).unwrap_or_default() + "\n")
         .map_err(|e| io(&summary, e))?;

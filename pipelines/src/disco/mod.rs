@@ -9,11 +9,20 @@
 //! - [`resample`]: per view once, per frame into columns of `F` (sections 5 and 6.1).
 //! - [`interpolate`]: filling `F` on the mesh (section 6.2), and [`falloff`]: the fall-off with
 //!   distance taken out while it does.
+//! - [`atlas`]: the texture atlas the local term's 7×7 kernels live on (section 7): axis-projected
+//!   charts with stretch ≤ √3, a gutter, and boundary texels linked across charts.
+//! - [`kernel`]: the local term's `m(d)` fitted per spot in section 7.1's stages, through the
+//!   beam's blur.
+//! - [`local`]: section 7 on the atlas: per-spot data and fits, the parameter and correction
+//!   textures filled where no spot fell, a texel's 7 × 7 kernel.
 //! - [`relight`]: the model under a light no frame used (the global term rendered).
 
+pub mod atlas;
 pub mod dipole;
 pub mod falloff;
 pub mod interpolate;
+pub mod kernel;
+pub mod local;
 pub mod mesh;
 pub mod optics;
 pub mod relight;

@@ -26,7 +26,7 @@ use lightrig_pipelines::disco::dipole::{fresnel_transmittance, rd_between, Dipol
 
 use lightrig_pipelines::disco::mesh::{pebble, SurfaceMesh};
 use lightrig_pipelines::disco::optics::{cast, point_of, surface_map, turned, Hit};
-use lightrig_pipelines::disco::relight::DistantLight;
+use lightrig_pipelines::disco::relight::{sub_centroids, DistantLight};
 use lightrig_pipelines::vec3::{add, cross, dot, norm, normalize, scale, sub, V3};
 use lightrig_protocol::config::AxisKind;
 
@@ -58,6 +58,21 @@ struct Entry {
     weight: f64,
 }
 
+/// The beam at one spot: its rays by two quadratures. Within [`FINE_MM`] of the centre's entry
+/// point `Rd` changes over a fraction of the beam's width (its scale there is the dipole's
+/// source depth, 0.45 mm in marble), which 3 × 3 Gauss–Hermite rays 1.5 mm apart cannot
+/// resolve: pixels there sum the fine grid.
+struct Beam {
+    centre: Option<V3>,
+    coarse: Vec<Entry>,
+    fine: Vec<Entry>,
+}
+
+/// Pixels within this distance of the beam's centre (mm) use the fine quadrature.
+pub const FINE_MM: f64 = 4.5;
+/// The fine quadrature: a square grid of this pitch (in σ) over the disc of radius 3σ.
+const FINE_PITCH: f64 = 1.0 / 3.0;
+
 type ViewKey = (usize, i64);
 /// A view's beam at a galvo code.
 type BeamKey = (ViewKey, [u16; 2]);
@@ -75,7 +90,7 @@ pub struct DiscoScene {
     turntable: Option<u8>,
     dipoles: [[Dipole; 3]; 2],
     views: RwLock<HashMap<ViewKey, Arc<Vec<Option<Seen>>>>>,
-    beams: RwLock<HashMap<BeamKey, Arc<Vec<Entry>>>>,
+    beams: RwLock<HashMap<BeamKey, Arc<Beam>>>,
 }
 
 /// The dipole channel a laser wavelength drives.
@@ -85,23 +100,6 @@ pub fn channel_of(nm: u16) -> usize {
         500..=599 => 1,
         _ => 2,
     }
-}
-
-/// The barycentric `(u, v)` of the centroids of a triangle split `split × split` (equal
-/// areas): `(i + ⅓, j + ⅓)` upright and `(i + ⅔, j + ⅔)` inverted, in units of `1/split`.
-fn sub_centroids(split: u32) -> Vec<(f64, f64)> {
-    let s = f64::from(split);
-    let mut out = Vec::with_capacity((split * split) as usize);
-    for i in 0..split {
-        for j in 0..(split - i) {
-            let (fi, fj) = (f64::from(i), f64::from(j));
-            out.push(((fi + 1.0 / 3.0) / s, (fj + 1.0 / 3.0) / s));
-            if i + j + 1 < split {
-                out.push(((fi + 2.0 / 3.0) / s, (fj + 2.0 / 3.0) / s));
-            }
-        }
-    }
-    out
 }
 
 /// 3-point Gauss–Hermite nodes (in σ) and weights.
@@ -273,7 +271,7 @@ impl DiscoScene {
 
     /// The beam's rays for galvo code `code` with the turntable at `deg`: where each enters
     /// (object frame) and with what weight.
-    fn beam(&self, key: ViewKey, code: [u16; 2], deg: f64) -> Arc<Vec<Entry>> {
+    fn beam(&self, key: ViewKey, code: [u16; 2], deg: f64) -> Arc<Beam> {
         if let Some(b) = self.beams.read().ok().and_then(|m| m.get(&(key, code)).cloned()) {
             return b;
         }
@@ -282,26 +280,71 @@ impl DiscoScene {
         let u = normalize(cross(d, [0.0, 0.0, 1.0]));
         let v = cross(u, d);
         let world = turned(&self.mesh, deg);
-        let mut entries = Vec::new();
+        let sigma = self.beam_sigma_mm;
+        let entry = |hit: &Hit, weight: f64| -> Option<Entry> {
+            let (_, n) = point_of(&self.mesh, &world, deg, hit);
+            let cos_i = -dot(n, d);
+            if cos_i <= 0.0 {
+                return None;
+            }
+            let obj = self.object_point(hit);
+            Some(Entry {
+                point: obj,
+                material: self.material_at(obj),
+                weight: weight * fresnel_transmittance(self.setup.eta, cos_i),
+            })
+        };
+        let origin = |a: f64, b: f64| add(proj.eye, add(scale(u, a * sigma), scale(v, b * sigma)));
+        let mut coarse = Vec::new();
         for &(a, wa) in &GH {
             for &(b, wb) in &GH {
-                let o =
-                    add(proj.eye, add(scale(u, a * self.beam_sigma_mm), scale(v, b * self.beam_sigma_mm)));
-                let Some(hit) = cast(&self.mesh, &world, o, d) else { continue };
-                let (_, n) = point_of(&self.mesh, &world, deg, &hit);
-                let cos_i = -dot(n, d);
-                if cos_i <= 0.0 {
-                    continue;
-                }
-                let obj = self.object_point(&hit);
-                entries.push(Entry {
-                    point: obj,
-                    material: self.material_at(obj),
-                    weight: wa * wb * fresnel_transmittance(self.setup.eta, cos_i),
-                });
+                let Some(hit) = cast(&self.mesh, &world, origin(a, b), d) else { continue };
+                coarse.extend(entry(&hit, wa * wb));
             }
         }
-        let b = Arc::new(entries);
+        // The fine grid: only the triangles near the centre's hit can be hit.
+        let centre_hit = cast(&self.mesh, &world, proj.eye, d);
+        let mut fine = Vec::new();
+        if let Some(c) = &centre_hit {
+            let (cw, _) = point_of(&self.mesh, &world, deg, c);
+            let reach = 4.0 * sigma + 2.0 * self.mesh.mean_edge();
+            let near: Vec<usize> = (0..self.mesh.triangles.len())
+                .filter(|&t| self.mesh.triangles[t].iter().any(|&i| norm(sub(world[i as usize], cw)) < reach))
+                .collect();
+            let steps = (3.0 / FINE_PITCH).round() as i32;
+            let mut grid = Vec::new();
+            for i in -steps..=steps {
+                for j in -steps..=steps {
+                    let (a, b) = (f64::from(i) * FINE_PITCH, f64::from(j) * FINE_PITCH);
+                    if a * a + b * b <= 9.0 {
+                        grid.push((a, b, (-(a * a + b * b) / 2.0).exp()));
+                    }
+                }
+            }
+            let total: f64 = grid.iter().map(|g| g.2).sum();
+            for (a, b, w) in grid {
+                let o = origin(a, b);
+                let mut best: Option<Hit> = None;
+                for &k in &near {
+                    let [p, q, r] = self.mesh.triangles[k].map(|i| world[i as usize]);
+                    if let Some((dist, bu, bv)) =
+                        lightrig_pipelines::disco::optics::ray_triangle(o, d, p, q, r)
+                    {
+                        if best.is_none_or(|h| dist < f64::from(h.t)) {
+                            best = Some(Hit {
+                                triangle: k as u32,
+                                bary: [(1.0 - bu - bv) as f32, bu as f32, bv as f32],
+                                t: dist as f32,
+                            });
+                        }
+                    }
+                }
+                if let Some(hit) = best {
+                    fine.extend(entry(&hit, w / total));
+                }
+            }
+        }
+        let b = Arc::new(Beam { centre: centre_hit.map(|h| self.object_point(&h)), coarse, fine });
         if let Ok(mut m) = self.beams.write() {
             // Frames come spot by spot: keep the cache small.
             if m.len() > 64 {
@@ -359,11 +402,15 @@ impl Scene for DiscoScene {
         let w = self.size().0;
         let Some(seen) = view[(y * w + x) as usize] else { return [0.0; 3] };
         let beam = self.beam(key, code, deg);
+        let rays = match beam.centre {
+            Some(c) if norm(sub(c, seen.point)) < FINE_MM => &beam.fine,
+            _ => &beam.coarse,
+        };
         let mut l = 0.0;
         for &(c, flux) in &on {
             let mo = &self.dipoles[usize::from(seen.material)][c];
             let mut s = 0.0;
-            for e in beam.iter() {
+            for e in rays.iter() {
                 s += e.weight
                     * rd_between(
                         mo,
@@ -454,5 +501,30 @@ mod tests {
             .unwrap();
         let d = norm(sub(scene.mesh.vertices[i], scene.mesh.vertices[j]));
         assert_eq!(scene.truth(i, j)[1], MARBLE.dipoles()[1].rd(d));
+    }
+
+    #[test]
+    fn the_fine_beam_agrees_with_the_coarse_one_where_pixels_switch_between_them() {
+        // At FINE_MM from the centre the two quadratures of the beam agree (no seam in the
+        // frames); at 0.5 mm the 3 × 3 rays, 1.5 mm apart, are off by far more.
+        let scene = DiscoScene::new(&rig(), 3).unwrap();
+        let code = scene.setup.projector.code_of([22.0, -4.0, 30.0]).map(|c| c.round() as u16);
+        let beam = scene.beam((0, 0), code, 0.0);
+        let c = beam.centre.unwrap();
+        assert!(beam.fine.len() > 200 && beam.coarse.len() == 9);
+        let d = MARBLE.dipoles()[0];
+        let sum =
+            |rays: &[Entry], p: V3| rays.iter().map(|e| e.weight * d.rd(norm(sub(e.point, p)))).sum::<f64>();
+        let t = normalize(cross(
+            scene.setup.projector.ray([f64::from(code[0]), f64::from(code[1])]),
+            [0.0, 0.0, 1.0],
+        ));
+        let rel = |r: f64| {
+            let p = add(c, scale(t, r));
+            sum(&beam.coarse, p) / sum(&beam.fine, p) - 1.0
+        };
+        eprintln!("coarse/fine − 1: {:?}", [0.5, 1.0, 2.0, 3.0, 4.0, 4.5, 5.0].map(rel));
+        assert!(rel(FINE_MM).abs() < 0.01, "{}", rel(FINE_MM));
+        assert!(rel(0.5).abs() > 0.05, "{}", rel(0.5));
     }
 }
