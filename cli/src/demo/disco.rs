@@ -10,6 +10,7 @@ use lightrig_host::overrides::{apply, Override};
 use lightrig_pipelines::disco::kernel::{self, Profile};
 use lightrig_pipelines::disco::relight;
 use lightrig_pipelines::firs::mesh::write_ply;
+use lightrig_sim::camera::VirtualCamera;
 use lightrig_sim::scenes::disco::DiscoScene;
 use lightrig_sim::sensor::{Depth, Sensor};
 use rayon::prelude::*;
@@ -266,11 +267,9 @@ pub fn accuracy(scene: &DiscoScene, f: &DiscoFit, stride: usize) -> Accuracy {
     acc
 }
 
-/// Runs the demo.
-pub fn run_disco(opts: &DiscoDemoOptions) -> Result<DiscoDemoResult, CliError> {
-    let out = &opts.out;
-    std::fs::create_dir_all(out).map_err(io(out))?;
-    let (level, sets): (u32, Vec<String>) = if opts.quick {
+/// The demo's overrides of the shipped rig file and the pebble's subdivision level.
+fn demo_sets(quick: bool) -> (u32, Vec<String>) {
+    if quick {
         (
             3,
             vec![
@@ -292,7 +291,20 @@ pub fn run_disco(opts: &DiscoDemoOptions) -> Result<DiscoDemoResult, CliError> {
                 "plan.fit.held_out=11".into(),
             ],
         )
-    };
+    }
+}
+
+/// Acquires the demo's session on the virtual rig into `opts.out` (`object.ply`, `rig.toml`,
+/// `session/`, `camera/`), the rig file with the demo's overrides and then `extra` applied
+/// (e.g. `plan.spot_grid=[8, 8]`). Returns the camera (holding the scene) and the frames.
+pub fn acquire_disco(
+    opts: &DiscoDemoOptions,
+    extra: &[String],
+) -> Result<(VirtualCamera<DiscoScene>, u64), CliError> {
+    let out = &opts.out;
+    std::fs::create_dir_all(out).map_err(io(out))?;
+    let (level, mut sets) = demo_sets(opts.quick);
+    sets.extend(extra.iter().cloned());
     let text = rig_text(&sets)?;
     let rig = DemoRig::write(out, text)?;
     let scene = DiscoScene::new(&rig.rig, level).map_err(|e| err(INPUT, e))?;
@@ -321,6 +333,13 @@ pub fn run_disco(opts: &DiscoDemoOptions) -> Result<DiscoDemoResult, CliError> {
     let b = bar(opts.progress, frames, "acquire");
     let camera = rig.acquire(out, scene, sensor, opts.real_time, &b)?;
     b.finish_and_clear();
+    Ok((camera, frames))
+}
+
+/// Runs the demo.
+pub fn run_disco(opts: &DiscoDemoOptions) -> Result<DiscoDemoResult, CliError> {
+    let out = &opts.out;
+    let (camera, frames) = acquire_disco(opts, &[])?;
     let b = bar(opts.progress, 0, "fit");
     let bb = b.clone();
     let fitted = fit::fit_session(&out.join("session"), None, &move |d, t| {

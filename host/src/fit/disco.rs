@@ -119,6 +119,8 @@ pub struct DiscoFit {
     /// Spots fitted but not kept ([`LocalParams::accepts`]: misfit, or no fast term).
     pub local_rejected: usize,
     pub local_params: LocalParams,
+    /// Wall time of each phase, s: (name, seconds), in order.
+    pub phases: Vec<(&'static str, f64)>,
 }
 
 /// One laser frame to resample.
@@ -306,6 +308,13 @@ pub fn fit_session(
         )));
     }
 
+    let clock = std::time::Instant::now();
+    let mut phases: Vec<(&'static str, f64)> = Vec::new();
+    let mut lap = |name: &'static str| {
+        let t = clock.elapsed().as_secs_f64();
+        let before: f64 = phases.iter().map(|p| p.1).sum();
+        phases.push((name, t - before));
+    };
     // 2–3. Step by step: each new view mapped once, the step's frames streamed a chunk at a
     // time (memory: `F`'s sums, the views, one chunk of frames, the step's job list).
     let grid_index: HashMap<[u16; 2], usize> = grid.iter().enumerate().map(|(i, &g)| (g, i)).collect();
@@ -474,6 +483,7 @@ pub fn fit_session(
             progress(done_count, total);
         }
     }
+    lap("frames: read, resampled, local data fitted");
     // Twice: the gradients the neighbouring columns show give a first `F` and its fall-off;
     // the fall-off's own gradient then moves each mean to its vertex (far less noisy than a
     // plane through a few neighbours' means).
@@ -490,6 +500,7 @@ pub fn fit_session(
     let lit_columns = (0..n).filter(|&k| observed[k * n + k]).count();
     let mut matrix =
         Matrix { n, values, weight: observed.iter().map(|&o| if o { 1.0 } else { 0.0 }).collect() };
+    lap("F at the vertices, the local textures filled");
     // 4. On `F` without its overall fall-off (see `falloff`'s docs), so that what the camera's
     // dynamic range cannot reach continues the measured decay.
     let d_min = 0.5 * mesh.mean_edge();
@@ -501,6 +512,7 @@ pub fn fit_session(
     if let Some(s) = rates {
         falloff::apply(&mesh, &mut matrix, s, d_min, false);
     }
+    lap("F interpolated on the mesh");
     // 5.
     let mut held_out = predict_held_out(&mesh, &matrix, &maps, &held, &flux, near_mm, setup.eta, (w, h))?;
     let near = predict_held_out_near(
@@ -517,6 +529,7 @@ pub fn fit_session(
         (w, h),
     )?;
     (held_out.near_frames, held_out.near_pixels, held_out.near_rel_rms) = near;
+    lap("held-out frames predicted");
     offsets.sort_by(f64::total_cmp);
     Ok(DiscoFit {
         observed,
@@ -539,6 +552,7 @@ pub fn fit_session(
         local_failed,
         local_rejected,
         local_params,
+        phases,
         beam_sigma_mm,
         camera: setup.cameras[0].1,
         eta: setup.eta,
