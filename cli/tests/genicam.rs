@@ -178,6 +178,31 @@ fn frames_lost_on_the_wire_are_named_by_their_frame_id() {
 }
 
 #[test]
+fn software_triggers_faster_than_the_camera_are_fired_one_frame_at_a_time() {
+    let _turn = ONE_CAMERA.lock().unwrap_or_else(|e| e.into_inner());
+    let _camera = FakeCamera::start(0);
+    let dir = scratch("fast");
+    let session = dir.join("session");
+    // The controller triggers at 33 Hz; the fake camera reads its trigger register once per
+    // 40 ms. Fired as the controller reports them, two triggers in one period made one frame
+    // (25 to 45 of 120 missing, the frames after each pairing with the trigger before theirs).
+    let mut args = vec!["acquire".into(), rig(), "--session".into(), session.display().to_string()];
+    args.extend(sets(10));
+    args.extend(["--set".into(), "camera[0].min_interval_us=30000".into()]);
+    let out = lightrig(&args);
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{said}");
+    let (s, _) = Session::read(&session).unwrap();
+    let reasons = missing_reasons(&session);
+    assert!(reasons.len() <= 1, "{reasons:?}");
+    for r in &reasons {
+        assert!(r.contains("the camera delivered frame id"), "only a frame lost on the wire: {r}");
+    }
+    assert_eq!(s.frame_index().len() + reasons.len(), 30, "{said}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
 fn a_camera_stopped_mid_run_and_restarted_is_resumed_to_a_complete_session() {
     let _turn = ONE_CAMERA.lock().unwrap_or_else(|e| e.into_inner());
     let camera = FakeCamera::start(0);

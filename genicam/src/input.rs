@@ -223,7 +223,26 @@ impl GenicamInput {
     }
 }
 
-/// Fires the software triggers asked for, paced `gap` apart, and hands over every buffer.
+/// How long a software trigger's frame may take before the next trigger is fired all the same
+/// (its leader packet was lost: the frame never comes, the camera's counter moved on).
+const FRAME_DUE: Duration = Duration::from_secs(1);
+
+/// Whether the next software trigger may be fired now: one is pending, the last was fired at
+/// least `gap` ago, and its frame has come back (or is overdue). A camera ignores a trigger
+/// that comes while it is still busy with the last one (Aravis's fake camera reads its trigger
+/// register once per 40 ms frame period, so two triggers in one period make one frame): its
+/// counter would not move, and every later frame would pair with the trigger before its own.
+pub(crate) fn may_fire(
+    pending: u64,
+    since_fire: Option<Duration>,
+    unanswered: Option<Duration>,
+    gap: Duration,
+) -> bool {
+    pending > 0 && since_fire.is_none_or(|t| t >= gap) && unanswered.is_none_or(|t| t >= FRAME_DUE)
+}
+
+/// Fires the software triggers asked for, one at a time ([`may_fire`]), and hands over every
+/// buffer.
 fn stream_loop(
     cam: Camera,
     stream: Stream,
@@ -234,6 +253,8 @@ fn stream_loop(
 ) {
     let mut pending = 0u64;
     let mut last_fire: Option<Instant> = None;
+    // When the trigger whose frame has not come back yet was fired.
+    let mut unanswered: Option<Instant> = None;
     loop {
         loop {
             match fired.try_recv() {
@@ -245,15 +266,17 @@ fn stream_loop(
                 }
             }
         }
-        if pending > 0 && last_fire.is_none_or(|t| t.elapsed() >= gap) {
+        if may_fire(pending, last_fire.map(|t| t.elapsed()), unanswered.map(|t| t.elapsed()), gap) {
             if let Err(e) = cam.software_trigger() {
                 let _ = tx.send(Out::Error(err(&address, "software trigger", e)));
                 return;
             }
             pending -= 1;
             last_fire = Some(Instant::now());
+            unanswered = last_fire;
         }
         if let Some(b) = stream.timeout_pop_buffer(2_000) {
+            unanswered = None;
             let (id, time_ns) = (b.frame_id(), b.timestamp());
             let out = match b.status() {
                 BufferStatus::Success => {
@@ -335,5 +358,26 @@ impl Drop for GenicamInput {
         if let Some(w) = self.worker.take() {
             let _ = w.join();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_software_trigger_waits_for_the_last_ones_frame_or_its_deadline() {
+        let ms = Duration::from_millis;
+        let gap = ms(40);
+        // Nothing asked, or asked within the gap: not yet.
+        assert!(!may_fire(0, None, None, gap));
+        assert!(!may_fire(1, Some(ms(39)), None, gap));
+        // The first trigger, and one a gap after a trigger whose frame is back.
+        assert!(may_fire(1, None, None, gap));
+        assert!(may_fire(3, Some(ms(40)), None, gap));
+        // The last frame not back: wait for it, however long ago it was fired, up to FRAME_DUE.
+        assert!(!may_fire(3, Some(ms(500)), Some(ms(500)), gap));
+        assert!(!may_fire(3, Some(FRAME_DUE - ms(1)), Some(FRAME_DUE - ms(1)), gap));
+        assert!(may_fire(3, Some(FRAME_DUE), Some(FRAME_DUE), gap));
     }
 }
