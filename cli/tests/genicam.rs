@@ -173,6 +173,22 @@ fn frames_lost_on_the_wire_are_named_by_their_frame_id() {
     assert!(reasons.iter().any(named), "{reasons:?}");
     // Every trigger has its frame or a missing record naming why: none shifted, no extras.
     assert_eq!(s.frame_index().len() + reasons.len(), 30);
+    // Before that the step was acquired twice more (a third of its frames lost each time), and
+    // the run said so.
+    let retried: Vec<String> = journal_records(&session)
+        .unwrap()
+        .into_iter()
+        .filter_map(|r| match r {
+            Record::StepAbandoned { reason, .. } => Some(reason),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(retried.len(), 2, "{retried:?}");
+    for r in &retried {
+        assert!(r.starts_with("lost ") && r.contains("of 30 frames (camera 0 frame "), "{r}");
+        assert!(r.ends_with("the step is acquired again"), "{r}");
+    }
+    assert!(said.contains("2 step attempt(s) lost frames and were acquired again"), "{said}");
     assert!(!said.contains("extra-*"), "{said}");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -4,7 +4,9 @@
 //! A step is atomic. For each pending step the engine opens a new attempt in the journal,
 //! streams the step's sequence, journals each device event as it arrives, waits for the
 //! step's frames, pairs them with the triggers (missing, duplicate and late frames are
-//! recorded as such), stores them, and closes the attempt. Anything that stops a step midway
+//! recorded as such), stores them, and closes the attempt. An attempt whose camera lost some of
+//! its frames is abandoned and the step run again at once, up to [`Plan::lost_retries`] times,
+//! before its lost frames are recorded missing. Anything that stops a step midway
 //! (a device fault, an unplug, the host dying) leaves the attempt open or abandoned; `resume`
 //! runs the step again as the next attempt, so the finished session holds exactly one frame
 //! (or one `FrameMissing`) per planned trigger.
@@ -526,7 +528,17 @@ fn run_steps<T: Transport>(
             triggered = step_start + n;
             progress(Progress { steps_done, steps: total, frames, triggered, to_trigger });
         };
-        frames += run_step(client, session, step, input, prepared_by.map(|by| (by, requests)), &mut within)?;
+        let mut prepared = prepared_by.map(|by| (by, requests));
+        let mut tries = 0;
+        frames += loop {
+            let retry = tries < plan.lost_retries;
+            match run_step(client, session, step, input, prepared.take(), retry, &mut within)? {
+                Stepped::Stored(n) => break n,
+                // Its lost frames are acquired again with the whole step: the triggers count
+                // from the step's start.
+                Stepped::Lost => tries += 1,
+            }
+        };
         // A step's shots all fired (an abandoned attempt's are not counted twice).
         triggered = step_start + step.triggers.iter().map(|t| u64::from(t.1)).sum::<u64>();
         progress(Progress {
@@ -655,15 +667,26 @@ fn lasers_used(plan: &Plan) -> u8 {
     plan.steps.iter().fold(0, |mask, s| mask | s.lasers)
 }
 
-/// One attempt of one step; returns the frames stored.
+/// How an attempt at a step ended.
+enum Stepped {
+    /// Done: its frames stored, the frames it lost recorded missing.
+    Stored(u64),
+    /// Abandoned because it lost frames: to be acquired again.
+    Lost,
+}
+
+/// One attempt of one step. With `retry`, an attempt that lost some of its frames (not all: a
+/// camera that delivers none is miswired, not unlucky) is abandoned instead of stored.
+#[allow(clippy::too_many_arguments)]
 fn run_step<T: Transport>(
     client: &mut Client<T>,
     session: &mut Session,
     step: &Step,
     input: &mut dyn FrameInput,
     prepared: Option<(String, Vec<String>)>,
+    retry: bool,
     triggered: &mut dyn FnMut(u64),
-) -> Result<u64, AcquireError> {
+) -> Result<Stepped, AcquireError> {
     let attempt = session.next_attempt(step.id);
     let seq = sequence_id(step.id, attempt);
     // Frames still on their way from an attempt that was cut short belong to nobody now: drain
@@ -741,10 +764,45 @@ fn run_step<T: Transport>(
         pairing.extra.push(Extra { arrival: i, camera: c.camera, frame, arrived_us: c.host_us, reason });
     }
     let lost = input.lost();
+    if retry && !pairing.missing.is_empty() && !pairing.pairs.is_empty() {
+        let why = lost_reason(&pairing, &lost, expected);
+        client.busy(|| session.abandon_step(&why))?;
+        return Ok(Stepped::Lost);
+    }
     // Each frame is written and fsynced with its record (hundreds in a pass): the link stays
     // alive meanwhile.
-    client.busy(|| store(session, &pairing, &arrivals, &lost))
+    client.busy(|| store(session, &pairing, &arrivals, &lost)).map(Stepped::Stored)
 }
+
+/// Why an attempt that lost frames is acquired again, for its `StepAbandoned` record: how
+/// many, and the first few by camera and frame with the reason the source gave.
+fn lost_reason(pairing: &Pairing, lost: &[(u8, u32, String)], expected: usize) -> String {
+    let named: Vec<String> = pairing
+        .missing
+        .iter()
+        .take(3)
+        .map(|m| {
+            let why =
+                lost.iter().find(|(c, f, _)| (*c, *f) == (m.camera, m.frame)).map(|(_, _, w)| w.as_str());
+            format!(
+                "camera {} frame {}: {}",
+                m.camera,
+                m.frame,
+                why.unwrap_or("no frame arrived within the wait")
+            )
+        })
+        .collect();
+    let more = pairing.missing.len().saturating_sub(named.len());
+    let more = if more > 0 { format!("; {more} more") } else { String::new() };
+    format!(
+        "{LOST_PREFIX} {} of {expected} frames ({}{more}): the step is acquired again",
+        pairing.missing.len(),
+        named.join("; ")
+    )
+}
+
+/// How the reason of an attempt abandoned for its lost frames begins.
+pub const LOST_PREFIX: &str = "lost";
 
 /// Stores a step attempt's paired frames, records the missing ones and the extra ones, and
 /// closes the attempt; returns the frames stored.

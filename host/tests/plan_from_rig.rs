@@ -89,6 +89,23 @@ fn plan_mistakes_point_at_the_rig_file() {
 }
 
 #[test]
+fn lost_frame_retries_default_to_two_and_are_read_from_the_plan_table() {
+    let path = example("lls-gantry.toml");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let with = |line: &str| text.replace("step_mm = 0.5", &format!("step_mm = 0.5\n{line}"));
+    let plan = |t: &str| from_rig::plan(&RigFile::parse(t, &path).unwrap(), &virtual_device_info());
+    assert_eq!(plan(&text).unwrap().lost_retries, 2);
+    assert_eq!(plan(&with("lost_frame_retries = 0")).unwrap().lost_retries, 0);
+    assert_eq!(plan(&with("lost_frame_retries = 5")).unwrap().lost_retries, 5);
+    let Err(e) = plan(&with("lost_frame_retries = 1.5")) else { panic!("planned") };
+    let e = e.to_string();
+    assert!(
+        e.contains("lls-gantry.toml:") && e.contains("plan.lost_frame_retries: 1.5 is not a whole number"),
+        "{e}"
+    );
+}
+
+#[test]
 fn the_immersion_and_display_examples_plan() {
     let rig = RigFile::load(&example("fluorescent-immersion.toml")).unwrap();
     let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();

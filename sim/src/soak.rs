@@ -132,7 +132,9 @@ fn plan(first_step: u32, steps: u32, per_step: u32) -> Plan {
             })
         })
         .collect();
-    Plan { method: "soak".into(), tick_hz: 1_000_000, steps, frame_bytes: 48, meta: serde_json::Value::Null }
+    // No step acquired again: the soak counts every frame lost.
+    let meta = serde_json::Value::Null;
+    Plan { method: "soak".into(), tick_hz: 1_000_000, steps, frame_bytes: 48, meta, lost_retries: 0 }
 }
 
 /// Runs the soak; `progress` hears the triggers done so far after each session.

@@ -146,7 +146,8 @@ fn check_complete(dir: &Path, plan: &Plan) {
 #[test]
 fn a_run_stores_one_frame_per_trigger_and_records_missing_and_duplicate_frames() {
     let dir = temp_dir("basic");
-    let plan = lls_plan();
+    // No step acquired again for its lost frame: the frame is recorded missing.
+    let plan = Plan { lost_retries: 0, ..lls_plan() };
     let mut session = new_session(&dir, &plan);
     let mut client = connect(SimBoard::default());
     let mut cam = TestCamera { drop: vec![5], duplicate: vec![30], ..Default::default() };
@@ -174,6 +175,73 @@ fn a_run_stores_one_frame_per_trigger_and_records_missing_and_duplicate_frames()
     assert_eq!(attempts.iter().map(|a| a.missing.len()).sum::<usize>(), 1);
     assert_eq!(attempts.iter().map(|a| a.extra.len()).sum::<usize>(), 1);
     assert_eq!(session.verify(), vec![]);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The reasons of the abandoned attempts of `step`, in order.
+fn abandoned(session: &Session, step: u32) -> Vec<String> {
+    let st = session.state();
+    st.steps[&step]
+        .values()
+        .filter_map(|a| match &a.outcome {
+            lightrig_host::session::Outcome::Abandoned { reason } => Some(reason.clone()),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn a_step_that_lost_a_frame_is_acquired_again_at_once() {
+    let dir = temp_dir("lost-once");
+    let plan = lls_plan();
+    assert_eq!(plan.lost_retries, 2);
+    let mut session = new_session(&dir, &plan);
+    let mut client = connect(SimBoard::default());
+    // The camera misses the 6th trigger of the run (step 0's frame 5), once.
+    let mut cam = TestCamera { drop: vec![5], ..Default::default() };
+    let mut updates = Vec::new();
+    acquire::run(&mut client, &mut session, &plan, &mut cam, |p| updates.push((p.steps_done, p.triggered)))
+        .unwrap();
+    assert_eq!(cam.triggers, 63 + 21, "step 0 fired twice");
+    assert_eq!(
+        abandoned(&session, 0),
+        ["lost 1 of 21 frames (camera 0 frame 5: no frame arrived within the wait): the step is acquired again"]
+    );
+    assert!(abandoned(&session, 1).is_empty() && abandoned(&session, 2).is_empty());
+    // The second attempt counts its triggers from the step's start again.
+    assert_eq!(updates[21], (0, 1), "{updates:?}");
+    assert_eq!(updates.last(), Some(&(3, 63)));
+    drop(session);
+    check_complete(&dir, &plan);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn a_frame_lost_at_every_try_is_recorded_missing_and_a_silent_camera_is_not_retried() {
+    let dir = temp_dir("lost-always");
+    let plan = lls_plan();
+    let mut session = new_session(&dir, &plan);
+    let mut client = connect(SimBoard::default());
+    // Step 0's frame 5 lost in each of its three attempts (triggers 5, 26, 47 of the run).
+    let mut cam = TestCamera { drop: vec![5, 26, 47], ..Default::default() };
+    acquire::run(&mut client, &mut session, &plan, &mut cam, |_| {}).unwrap();
+    assert_eq!(cam.triggers, 63 + 2 * 21);
+    assert_eq!(abandoned(&session, 0).len(), 2);
+    assert_eq!(session.frames_of(0).len(), 20);
+    let missing = session.state().missing_of(0);
+    assert_eq!(missing.len(), 1);
+    assert_eq!((missing[0].frame, missing[0].reason.as_str()), (5, "no frame arrived within the wait"));
+    assert_eq!(session.frames_of(1).len() + session.frames_of(2).len(), 42);
+    std::fs::remove_dir_all(&dir).unwrap();
+
+    // A camera that delivers nothing is not unlucky: every trigger missing, no second try.
+    let dir = temp_dir("silent");
+    let mut session = new_session(&dir, &plan);
+    let mut client = connect(SimBoard::default());
+    let mut cam = TestCamera { drop: (0..63).collect(), ..Default::default() };
+    acquire::run(&mut client, &mut session, &plan, &mut cam, |_| {}).unwrap();
+    assert_eq!(cam.triggers, 63);
+    assert!((0..3).all(|s| abandoned(&session, s).is_empty() && session.state().missing_of(s).len() == 21));
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -419,7 +419,7 @@ fn run(
 /// What the session holds, in words: frames, missing frames, and frames without a trigger by
 /// why (a shift in a camera's numbering shows as those).
 fn tally(session: &Session) -> String {
-    use lightrig_host::session::ExtraReason;
+    use lightrig_host::session::{ExtraReason, Outcome};
     let st = session.state();
     let (mut frames, mut missing, mut duplicate, mut no_trigger, mut before) = (0, 0, 0, 0, 0);
     for step in st.steps_done() {
@@ -435,6 +435,28 @@ fn tally(session: &Session) -> String {
         }
     }
     let mut out = format!("  {frames} frames paired with their triggers, {missing} missing");
+    // Attempts given up because their camera lost frames (the steps acquired again).
+    let retried: Vec<String> = st
+        .steps
+        .iter()
+        .flat_map(|(step, attempts)| {
+            attempts.values().filter_map(move |a| match &a.outcome {
+                Outcome::Abandoned { reason } if reason.starts_with(acquire::LOST_PREFIX) => {
+                    Some(format!("step {step}: {reason}"))
+                }
+                _ => None,
+            })
+        })
+        .collect();
+    if !retried.is_empty() {
+        out += &format!("\n  {} step attempt(s) lost frames and were acquired again:", retried.len());
+        for r in retried.iter().take(5) {
+            out += &format!("\n    {r}");
+        }
+        if retried.len() > 5 {
+            out += &format!("\n    … and {} more (the journal's StepAbandoned records)", retried.len() - 5);
+        }
+    }
     if duplicate > 0 {
         out += &format!("\n  {duplicate} duplicate frames (a trigger's second frame), kept as extra-* files");
     }

@@ -184,5 +184,12 @@ pub fn plan_steered(p: &BispectralParams, steer: Option<Steer>) -> Result<Plan, 
             "optical_exposure_s": series_s * steps.len() as f64,
         "dense_optical_exposure_s": series_s * dense_steps as f64,
     });
-    Ok(Plan { method: "bispectral".into(), tick_hz: p.tick_hz, steps, frame_bytes: p.frame_bytes, meta })
+    Ok(Plan {
+        method: "bispectral".into(),
+        tick_hz: p.tick_hz,
+        steps,
+        frame_bytes: p.frame_bytes,
+        meta,
+        lost_retries: super::LOST_RETRIES,
+    })
 }

@@ -146,5 +146,6 @@ pub fn plan(p: &DiscoParams) -> Result<Plan, PlanError> {
         steps,
         frame_bytes: p.frame_bytes,
         meta: plan_meta,
+        lost_retries: super::LOST_RETRIES,
     })
 }

@@ -196,5 +196,6 @@ pub fn plan(p: &DisplayParams) -> Result<Plan, PlanError> {
         steps,
         frame_bytes: p.frame_bytes,
         meta: p.meta.clone(),
+        lost_retries: super::LOST_RETRIES,
     })
 }

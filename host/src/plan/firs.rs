@@ -116,6 +116,7 @@ pub fn plan_with_targets(p: &ImmersionParams, targets: &[serde_json::Value]) -> 
         steps,
         frame_bytes: p.frame_bytes,
         meta: serde_json::Value::Null,
+        lost_retries: super::LOST_RETRIES,
     })
 }
 

@@ -2,6 +2,9 @@
 //! peripherals, converts to device units for the connected device's tick rate, and calls the
 //! method's planner. Mistakes are reported with the rig file's line.
 //!
+//! `[plan]` keys of every method: `lost_frame_retries` (2: how often a step that lost frames is
+//! acquired again at once, [`Plan::lost_retries`]).
+//!
 //! `[plan]` keys per method (see `docs/rigs/README.md` for the full reference):
 //! - linear-light-source: `pass_mm = [from, to]`, `step_mm` (1.0), `exposures_us` (the
 //!   camera's pulse), `settle_ms` (20), `readout_us` (1000), `passes` (every pass the rig has
@@ -35,7 +38,7 @@
 use lightrig_protocol::config::{AxisKind, Xy};
 use lightrig_protocol::session::DeviceInfo;
 
-use super::{disco, display, firs, lls, Plan};
+use super::{disco, display, firs, lls, Plan, LOST_RETRIES};
 use crate::rigfile::{ticks_from_ms, ticks_from_us, Camera, Method, RigError, RigFile};
 
 /// Default bytes per frame for the data-volume estimate: a 5 MP 16-bit frame.
@@ -43,13 +46,27 @@ const DEFAULT_FRAME_BYTES: u64 = 2448 * 2048 * 2;
 
 /// The plan for `rig` on the device described by `info`.
 pub fn plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
-    match rig.method {
+    let mut plan = match rig.method {
         Method::LinearLightSource => lls_plan(rig, info),
         Method::Disco => disco_plan(rig, info),
         Method::FluorescentImmersion => immersion_plan(rig, info),
         Method::BrdfDisplay => display_plan(rig, info),
         Method::Bispectral => bispectral_plan(rig, info),
+    }?;
+    plan.lost_retries = lost_retries(rig)?;
+    Ok(plan)
+}
+
+/// `[plan] lost_frame_retries`: a whole number of retries, [`LOST_RETRIES`] without it.
+fn lost_retries(rig: &RigFile) -> Result<u32, RigError> {
+    let n = num(rig, "lost_frame_retries", Some(f64::from(LOST_RETRIES)))?;
+    if n.fract() != 0.0 || !(0.0..=100.0).contains(&n) {
+        return Err(rig.error(
+            "plan.lost_frame_retries",
+            format!("{n} is not a whole number from 0 to 100 (how often a step that lost frames is acquired again)"),
+        ));
     }
+    Ok(n as u32)
 }
 
 fn num(rig: &RigFile, key: &str, default: Option<f64>) -> Result<f64, RigError> {

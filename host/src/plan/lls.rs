@@ -201,5 +201,6 @@ pub fn plan(p: &LlsParams) -> Result<Plan, PlanError> {
         steps,
         frame_bytes: p.frame_bytes,
         meta: serde_json::Value::Null,
+        lost_retries: super::LOST_RETRIES,
     })
 }

@@ -187,7 +187,16 @@ pub struct Plan {
     /// Method-specific description shared by every step (DISCO's spot grid), for the
     /// pipeline; `Null` if none.
     pub meta: serde_json::Value,
+    /// How often a step whose camera lost some of its frames is acquired again at once, before
+    /// its lost frames are recorded missing ([`LOST_RETRIES`] unless the rig file's `[plan]
+    /// lost_frame_retries` says otherwise).
+    pub lost_retries: u32,
 }
+
+/// A step that lost frames (a GigE Vision frame short of packets, a trigger the camera missed)
+/// is acquired again up to twice: a loss that repeats three times in a row is no accident of
+/// the wire, and is recorded for a person to look at.
+pub const LOST_RETRIES: u32 = 2;
 
 /// What a plan will cost, reported before it runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
