@@ -44,6 +44,8 @@ impl Cameras for NullBoard {
         None
     }
 }
+impl lightrig_firmware::hal::FirmwareSlots for NullBoard {}
+
 impl VoiceCoils for NullBoard {
     fn write_samples(&mut self, _: u8, _: u64, _: &[i16], _: u64) {}
 }

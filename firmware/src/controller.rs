@@ -16,12 +16,14 @@ use lightrig_protocol::event::DeviceState;
 use lightrig_protocol::link::{Delivery, Link, LinkConfig, Role};
 use lightrig_protocol::message::Status;
 use lightrig_protocol::session::DeviceInfo;
+use lightrig_protocol::update::{UpdateCommand, UpdateError};
 use lightrig_protocol::{
     Command, DeviceMsg, Error, HostMsg, Reply, MAX_FRAME, PROTOCOL_VERSION, SCHEMA_HASH,
 };
 
 use crate::hal::Board;
 use crate::rig::Rig;
+use crate::update::Updater;
 
 /// Frames in flight per direction.
 pub const LINK_WINDOW: usize = 8;
@@ -60,6 +62,8 @@ pub struct Controller<C: Clock, B: Board> {
     last_heartbeat: u64,
     /// Datagrams dropped for carrying anything but `EmergencyStop`.
     ignored_datagrams: u32,
+    /// Firmware update in progress.
+    update: Updater,
 }
 
 /// Where the host session stands.
@@ -98,6 +102,7 @@ impl<C: Clock, B: Board> Controller<C, B> {
             event_index: 0,
             last_heartbeat,
             ignored_datagrams: 0,
+            update: Updater::default(),
         }
     }
 
@@ -264,13 +269,27 @@ impl<C: Clock, B: Board> Controller<C, B> {
             }
             _ => {}
         }
-        match self.session {
-            Session::AwaitingHello => return Err(Error::HandshakeRequired),
-            Session::Refused(e) => return Err(e),
-            Session::Open => {}
+        match (self.session, command) {
+            (Session::AwaitingHello, _) => return Err(Error::HandshakeRequired),
+            // A host of another version may still update the firmware (the update path's
+            // encoding is frozen).
+            (Session::Refused(_), Command::Update(cmd)) => return self.update(cmd, now),
+            (Session::Refused(e), _) => return Err(e),
+            (Session::Open, _) => {}
         }
         self.last_heartbeat = now;
         self.rig.host_seen(now, true);
+        let moves_or_lights = matches!(
+            command,
+            Command::Arm { .. }
+                | Command::Home(_)
+                | Command::Immediate(_)
+                | Command::SequenceLoad(_)
+                | Command::SequenceStart { .. }
+        );
+        if moves_or_lights && self.update.in_progress() {
+            return Err(Error::Update(UpdateError::InProgress));
+        }
         let rig = &mut self.rig;
         match command {
             Command::GetClock => Ok(Reply::Clock { tick: now }),
@@ -295,9 +314,23 @@ impl<C: Clock, B: Board> Controller<C, B> {
             Command::SequenceLoad(chunk) => rig.load(chunk).map(Reply::Buffer),
             Command::SequenceStart { sequence, at } => rig.start(*sequence, *at, now).map(|()| Reply::Done),
             Command::SequenceAbort { sequence } => rig.abort(*sequence, now).map(|()| Reply::Done),
+            Command::Update(cmd) => self.update(cmd, now),
             // Answered above, before the session check.
             Command::Hello { .. } | Command::EmergencyStop | Command::Disarm => Ok(Reply::Done),
         }
+    }
+
+    /// A firmware update command. An update begins only with the rig at rest, and with the
+    /// lasers disarmed: nothing moves or lights until it ends (a reset, or `Cancel`).
+    fn update(&mut self, cmd: &UpdateCommand, now: u64) -> Result<Reply, Error> {
+        if let UpdateCommand::Begin(_) = cmd {
+            if let state @ DeviceState::Running { .. } = self.rig.state() {
+                return Err(Error::InvalidState(state));
+            }
+            self.rig.disarm(now);
+        }
+        let board = self.info.board;
+        self.update.handle(cmd, self.rig.board_mut(), board).map(Reply::Update).map_err(Error::Update)
     }
 
     /// The device's self-description.

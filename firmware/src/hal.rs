@@ -70,10 +70,66 @@ pub trait VoiceCoils {
     fn write_samples(&mut self, channel: u8, first_sample: u64, samples: &[i16], at: u64);
 }
 
-/// Everything a board provides.
-pub trait Board: Galvos + Lasers + Motors + Cameras + VoiceCoils {}
+/// The flash slots of a board with a bootloader (embassy-boot's active, update and state
+/// partitions: [`crate::boot::BootSlots`]). A board without one keeps the defaults and is not
+/// updated over the link (`UpdateError::Unsupported`).
+pub trait FirmwareSlots {
+    /// Bytes of the active slot: the largest image (0: no update over the link).
+    fn active_len(&self) -> u32 {
+        0
+    }
+    /// Where an older image starts in the update slot after a swap (the bootloader's page).
+    fn fallback_offset(&self) -> u32 {
+        0
+    }
+    /// Reads the active slot (the running image).
+    fn read_active(&mut self, _offset: u32, _buf: &mut [u8]) -> Result<(), SlotError> {
+        Err(SlotError::Unsupported)
+    }
+    /// Reads the update slot.
+    fn read_update(&mut self, _offset: u32, _buf: &mut [u8]) -> Result<(), SlotError> {
+        Err(SlotError::Unsupported)
+    }
+    /// Erases the update slot for a new image; refused while the running image is unconfirmed.
+    fn erase_update(&mut self) -> Result<(), SlotError> {
+        Err(SlotError::Unsupported)
+    }
+    /// Writes into the erased update slot (`offset` and length multiples of 64).
+    fn write_update(&mut self, _offset: u32, _data: &[u8]) -> Result<(), SlotError> {
+        Err(SlotError::Unsupported)
+    }
+    /// Verifies `signature` (ed25519 over the SHA-512 of the update slot's first `len` bytes)
+    /// with the board's public key and marks the image to be swapped in at the next reset.
+    fn verify_and_mark(&mut self, _len: u32, _signature: &[u8; 64]) -> Result<(), SlotError> {
+        Err(SlotError::Unsupported)
+    }
+    /// Whether the running image was swapped in and not yet confirmed.
+    fn unconfirmed(&mut self) -> Result<bool, SlotError> {
+        Ok(false)
+    }
+    /// Keeps the running image (and forgets an image marked for the next reset).
+    fn confirm(&mut self) -> Result<(), SlotError> {
+        Err(SlotError::Unsupported)
+    }
+}
 
-impl<T: Galvos + Lasers + Motors + Cameras + VoiceCoils> Board for T {}
+/// Why a flash-slot operation failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SlotError {
+    /// The board has no slots.
+    Unsupported,
+    /// The running image is not confirmed: no new update before it is.
+    Unconfirmed,
+    /// The signature does not verify.
+    BadSignature,
+    /// The flash refused the operation.
+    Flash,
+}
+
+/// Everything a board provides.
+pub trait Board: Galvos + Lasers + Motors + Cameras + VoiceCoils + FirmwareSlots {}
+
+impl<T: Galvos + Lasers + Motors + Cameras + VoiceCoils + FirmwareSlots> Board for T {}
 
 /// A peripheral reported a failure (SPI error, driver fault).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -13,6 +13,8 @@
 //! - [`timer_schedule`]: compare values, capture extension and the look-ahead schedule for
 //!   hardware-timed edges on a free-running timer counter.
 //! - [`record`]: a no_std board that records its outputs in a ring, read over a debug port.
+//! - [`update`]: firmware update over the link, over the board's flash slots; [`boot`]
+//!   (feature `boot`): the slots through embassy-boot; [`memflash`]: a NOR flash in memory.
 //! - [`sim`] (feature `std`): simulated peripherals that record every change with its tick.
 //!
 //! Logging goes through the macros of `fmt.rs` (defmt on the MCU, `log` on the host).
@@ -22,9 +24,13 @@
 #[macro_use]
 mod fmt;
 
+#[cfg(feature = "boot")]
+pub mod boot;
 pub mod controller;
 pub mod galvo;
 pub mod hal;
+#[cfg(all(feature = "boot", feature = "std"))]
+pub mod memflash;
 pub mod motion;
 pub mod record;
 pub mod rig;
@@ -32,6 +38,7 @@ pub mod rig;
 pub mod sim;
 pub mod synth;
 pub mod timer_schedule;
+pub mod update;
 
 pub use controller::{Clock, Controller};
 pub use lightrig_protocol::Error;

@@ -382,6 +382,9 @@ impl<const N: usize> Cameras for RecordingBoard<N> {
     }
 }
 
+/// Not updated over the link: it records outputs only.
+impl<const N: usize> crate::hal::FirmwareSlots for RecordingBoard<N> {}
+
 impl<const N: usize> VoiceCoils for RecordingBoard<N> {
     fn write_samples(&mut self, channel: u8, first_sample: u64, samples: &[i16], at: u64) {
         let len = samples.len().min(usize::from(u8::MAX)) as u8;

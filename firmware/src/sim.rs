@@ -22,7 +22,7 @@ use lightrig_protocol::{
 };
 
 use crate::controller::Clock;
-use crate::hal::{Cameras, Capture, Galvos, HwError, Lasers, Motors, VoiceCoils};
+use crate::hal::{Cameras, Capture, FirmwareSlots, Galvos, HwError, Lasers, Motors, SlotError, VoiceCoils};
 
 /// What the virtual rig's controller says of itself: a [`SimBoard`] behind a
 /// [`crate::Controller`] at 1 MHz (host µs = device ticks). Its `boot_id` is 0: whoever starts
@@ -169,6 +169,47 @@ pub struct SimBoard {
     pub samples: [Vec<i16>; MAX_VOICE_COILS],
     /// Make galvo writes fail (a broken converter).
     pub galvo_fails: bool,
+    /// Flash slots with a bootloader (`None`: not updated over the link).
+    pub slots: Option<SimSlots>,
+}
+
+/// The simulated board's flash slots.
+pub struct SimSlots(pub Box<dyn FirmwareSlots + Send>);
+
+impl std::fmt::Debug for SimSlots {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("SimSlots")
+    }
+}
+
+impl FirmwareSlots for SimBoard {
+    fn active_len(&self) -> u32 {
+        self.slots.as_ref().map_or(0, |s| s.0.active_len())
+    }
+    fn fallback_offset(&self) -> u32 {
+        self.slots.as_ref().map_or(0, |s| s.0.fallback_offset())
+    }
+    fn read_active(&mut self, offset: u32, buf: &mut [u8]) -> Result<(), SlotError> {
+        self.slots.as_mut().ok_or(SlotError::Unsupported)?.0.read_active(offset, buf)
+    }
+    fn read_update(&mut self, offset: u32, buf: &mut [u8]) -> Result<(), SlotError> {
+        self.slots.as_mut().ok_or(SlotError::Unsupported)?.0.read_update(offset, buf)
+    }
+    fn erase_update(&mut self) -> Result<(), SlotError> {
+        self.slots.as_mut().ok_or(SlotError::Unsupported)?.0.erase_update()
+    }
+    fn write_update(&mut self, offset: u32, data: &[u8]) -> Result<(), SlotError> {
+        self.slots.as_mut().ok_or(SlotError::Unsupported)?.0.write_update(offset, data)
+    }
+    fn verify_and_mark(&mut self, len: u32, signature: &[u8; 64]) -> Result<(), SlotError> {
+        self.slots.as_mut().ok_or(SlotError::Unsupported)?.0.verify_and_mark(len, signature)
+    }
+    fn unconfirmed(&mut self) -> Result<bool, SlotError> {
+        self.slots.as_mut().map_or(Ok(false), |s| s.0.unconfirmed())
+    }
+    fn confirm(&mut self) -> Result<(), SlotError> {
+        self.slots.as_mut().ok_or(SlotError::Unsupported)?.0.confirm()
+    }
 }
 
 impl Default for SimBoard {
@@ -186,6 +227,7 @@ impl Default for SimBoard {
             captures: VecDeque::new(),
             samples: Default::default(),
             galvo_fails: false,
+            slots: None,
         }
     }
 }

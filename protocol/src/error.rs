@@ -6,6 +6,7 @@ use serde::{Deserialize, Serialize};
 use crate::config::ConfigError;
 use crate::event::{DeviceState, FaultCause};
 use crate::sequence::AxisRef;
+use crate::update::UpdateError;
 
 /// A kind of peripheral, for errors that name one.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Schema)]
@@ -114,4 +115,7 @@ pub enum Error {
         /// The device tick when the command was processed.
         now: u64,
     },
+    /// A firmware update command was refused, or a command was refused because an update is
+    /// under way.
+    Update(UpdateError),
 }

@@ -33,6 +33,7 @@ pub mod message;
 pub mod schema;
 pub mod sequence;
 pub mod session;
+pub mod update;
 
 pub use config::{ConfigError, ConfigField, ConfigItem, InvalidReason};
 pub use error::Error;

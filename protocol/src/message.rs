@@ -21,6 +21,7 @@ use crate::frame::FrameError;
 use crate::link::LinkStats;
 use crate::sequence::{Action, AxisRef, BufferStatus, Chunk, StartAt};
 use crate::session::DeviceInfo;
+use crate::update::{UpdateCommand, UpdateStatus};
 
 /// A request from the host.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, Schema)]
@@ -85,6 +86,10 @@ pub enum Command {
         /// Sequence id.
         sequence: u32,
     },
+    /// Firmware update (`Reply::Update`). Its encoding is frozen, like `Hello`'s, and the
+    /// device accepts it after a `Hello` it refused for another version or schema, so a host of
+    /// any version can update a device of any other (see [`crate::update`]).
+    Update(UpdateCommand),
 }
 
 /// A successful answer.
@@ -104,6 +109,8 @@ pub enum Reply {
     Done,
     /// Answer to `SequenceLoad`: the buffer after the chunk was accepted.
     Buffer(BufferStatus),
+    /// Answer to `Update`: where the update stands.
+    Update(UpdateStatus),
 }
 
 /// The device's state and counters.

@@ -34,7 +34,7 @@ const fn fold_u32(state: u64, value: u32) -> u64 {
 
 /// Sizes and validation limits that change what a peer accepts even when the type structure
 /// does not.
-const LIMITS: [usize; 22] = [
+const LIMITS: [usize; 24] = [
     crate::MAX_PACKET,
     crate::MAX_GALVOS,
     crate::MAX_LASERS,
@@ -57,6 +57,8 @@ const LIMITS: [usize; 22] = [
     crate::config::HEARTBEAT_RANGE_MS.1 as usize,
     crate::config::DacKind::McuDac.max_code() as usize,
     crate::config::DacKind::Dac8563.max_code() as usize,
+    crate::update::UPDATE_CHUNK,
+    crate::update::TRAILER_LEN,
 ];
 
 const fn compute() -> u64 {

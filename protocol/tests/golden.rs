@@ -14,6 +14,8 @@ use lightrig_protocol::frame::{FrameDecoder, FrameError};
 use lightrig_protocol::link::{self, FrameKind, Header, LinkStats};
 use lightrig_protocol::message::Status;
 use lightrig_protocol::sequence::*;
+use lightrig_protocol::session::{BoardId, Version};
+use lightrig_protocol::update::{self, ImageInfo, UpdateCommand, UpdateError, UpdatePhase, UpdateStatus};
 use lightrig_protocol::*;
 
 mod common;
@@ -56,6 +58,15 @@ fn ok(id: u16, reply: Reply) -> DeviceMsg {
 
 fn event(index: u32, event: Event) -> DeviceMsg {
     DeviceMsg::Event { index, event }
+}
+
+fn image() -> ImageInfo {
+    ImageInfo {
+        board: BoardId::NucleoG474re,
+        version: Version { major: 1, minor: 2, patch: 3 },
+        schema_hash: 0x0123_4567_89ab_cdef,
+        code_len: 100_000,
+    }
 }
 
 fn vectors() -> Vec<Vector> {
@@ -234,6 +245,24 @@ fn vectors() -> Vec<Vector> {
             Command::SequenceStart { sequence: 7, at: StartAt::Tick(123_456_789) },
         ),
         host("host.sequence_abort", 17, 18, Command::SequenceAbort { sequence: 7 }),
+        host("host.update.status", 20, 21, Command::Update(UpdateCommand::Status)),
+        host("host.update.begin", 21, 22, Command::Update(UpdateCommand::Begin(image()))),
+        host(
+            "host.update.write",
+            22,
+            23,
+            Command::Update(UpdateCommand::Write {
+                offset: 256,
+                data: HVec::from_slice(&[0xde, 0xad, 0xbe, 0xef]).unwrap(),
+            }),
+        ),
+        host(
+            "host.update.finish",
+            23,
+            24,
+            Command::Update(UpdateCommand::Finish(update::Signature { r: [0x11; 32], s: [0x22; 32] })),
+        ),
+        host("host.update.confirm", 24, 25, Command::Update(UpdateCommand::Confirm)),
         Vector {
             name: "host.emergency_stop.datagram",
             header: Header { kind: FrameKind::Datagram, epoch: 1, seq: 0, ack: 0 },
@@ -303,6 +332,30 @@ fn vectors() -> Vec<Vector> {
             DeviceMsg::Response {
                 id: 9,
                 result: Err(Error::NoSuchPeripheral { kind: Peripheral::Camera, index: 2, count: 1 }),
+            },
+        ),
+        device(
+            "device.update.receiving",
+            17,
+            ok(
+                25,
+                Reply::Update(UpdateStatus {
+                    phase: UpdatePhase::Receiving { image: image(), received: 4096 },
+                    running: Some(ImageInfo { version: Version { major: 0, minor: 9, patch: 0 }, ..image() }),
+                    fallback: None,
+                    slot: 0x3_0000,
+                }),
+            ),
+        ),
+        device(
+            "device.err.update.wrong_board",
+            18,
+            DeviceMsg::Response {
+                id: 26,
+                result: Err(Error::Update(UpdateError::WrongBoard {
+                    image: BoardId::QemuMps2An386,
+                    device: BoardId::NucleoG474re,
+                })),
             },
         ),
         device("device.rejected", 8, DeviceMsg::Rejected { seq: 20, reason: FrameError::BadPayload }),

@@ -316,3 +316,19 @@ fn largest_messages_fit_a_packet() {
     let item = Item { delta: u32::MAX, action: Action::VoiceCoil { channel: 255, ramp: u32::MAX, partials } };
     assert!(postcard::experimental::serialized_size(&item).unwrap() * 4 < MAX_MESSAGE);
 }
+
+/// The update path is frozen across protocol versions (a host of any version updates a device
+/// of any other): `Command::Update` is variant 14, `Reply::Update` 5, `Error::Update` 17, and
+/// the update types keep their layout. A change here needs a new path, not an edit.
+#[test]
+fn the_update_path_keeps_its_variant_numbers() {
+    use lightrig_protocol::update::{UpdateCommand, UpdateError, UpdatePhase, UpdateStatus};
+    let host =
+        postcard::to_allocvec(&HostMsg { id: 1, command: Command::Update(UpdateCommand::Status) }).unwrap();
+    assert_eq!(host, [1, 14, 0]);
+    let status = UpdateStatus { phase: UpdatePhase::Idle, running: None, fallback: None, slot: 0 };
+    let ok = DeviceMsg::Response { id: 2, result: Ok(Reply::Update(status)) };
+    assert_eq!(postcard::to_allocvec(&ok).unwrap(), [0, 2, 0, 5, 0, 0, 0, 0]);
+    let err = DeviceMsg::Response { id: 3, result: Err(Error::Update(UpdateError::Unsupported)) };
+    assert_eq!(postcard::to_allocvec(&err).unwrap(), [0, 3, 1, 17, 0]);
+}

@@ -212,6 +212,9 @@ impl Cameras for Nucleo {
     }
 }
 
+/// No bootloader on the reference board yet: flashed through its ST-LINK.
+impl lightrig_firmware::hal::FirmwareSlots for Nucleo {}
+
 impl VoiceCoils for Nucleo {
     fn write_samples(&mut self, channel: u8, first_sample: u64, samples: &[i16], at: u64) {
         if channel == 0 {

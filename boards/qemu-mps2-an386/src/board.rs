@@ -69,6 +69,9 @@ impl Cameras for QemuBoard {
     }
 }
 
+/// No bootloader on the emulated board yet: not updated over the link.
+impl lightrig_firmware::hal::FirmwareSlots for QemuBoard {}
+
 impl VoiceCoils for QemuBoard {
     fn write_samples(&mut self, channel: u8, first_sample: u64, samples: &[i16], at: u64) {
         with_pins(|p| p.write_samples(channel, first_sample, samples, at));
