@@ -4,7 +4,7 @@
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
-use lightrig_cli::cmd::{self, acquire, calibrate, device, display, fit, hdr, selfcheck, sim, soak};
+use lightrig_cli::cmd::{self, acquire, calibrate, device, display, fit, flash, hdr, selfcheck, sim, soak};
 use lightrig_cli::demo;
 
 #[derive(Parser)]
@@ -52,6 +52,9 @@ enum Cmd {
     Display(display::Args),
     /// Emergency stop: lasers off, motors stopped at once, galvos parked, the fault latched.
     Stop(device::StopArgs),
+    /// Update a controller's firmware over its link (`lightrig flash IMAGE --connect SPEC`), or
+    /// make the keys (`keygen`) and signed images (`sign`) it takes.
+    Flash(flash::Args),
 }
 
 fn main() -> ExitCode {
@@ -72,5 +75,6 @@ fn main() -> ExitCode {
         Cmd::Info(args) => device::info(&args),
         Cmd::Stop(args) => device::stop(&args),
         Cmd::Display(args) => cmd::exit(display::run(&args)),
+        Cmd::Flash(args) => flash::run(&args),
     }
 }

@@ -16,7 +16,7 @@ use lightrig_protocol::event::DeviceState;
 use lightrig_protocol::link::{Delivery, Link, LinkConfig, Role};
 use lightrig_protocol::message::Status;
 use lightrig_protocol::session::DeviceInfo;
-use lightrig_protocol::update::{UpdateCommand, UpdateError};
+use lightrig_protocol::update::{UpdateCommand, UpdateError, UpdatePhase};
 use lightrig_protocol::{
     Command, DeviceMsg, Error, HostMsg, Reply, MAX_FRAME, PROTOCOL_VERSION, SCHEMA_HASH,
 };
@@ -27,6 +27,10 @@ use crate::update::Updater;
 
 /// Frames in flight per direction.
 pub const LINK_WINDOW: usize = 8;
+
+/// Seconds a swapped-in firmware has to be confirmed by a host (`Update(Confirm)`) before the
+/// device resets itself, and the bootloader swaps the old image back.
+pub const CONFIRM_WINDOW_S: u64 = 60;
 
 /// The device's free-running 64-bit tick counter.
 pub trait Clock {
@@ -64,6 +68,10 @@ pub struct Controller<C: Clock, B: Board> {
     ignored_datagrams: u32,
     /// Firmware update in progress.
     update: Updater,
+    /// Tick by which a swapped-in firmware must be confirmed.
+    confirm_by: Option<u64>,
+    /// The board should reset (an image is ready to swap in, or was never confirmed).
+    reset_requested: bool,
 }
 
 /// Where the host session stands.
@@ -91,7 +99,10 @@ impl<C: Clock, B: Board> Controller<C, B> {
         // boot id doubles as the link's boot nonce: it must differ at every start.
         let link = Link::new(Role::Responder, LinkConfig { rto, rx_reserve: 1, nonce: info.boot_id });
         let last_heartbeat = clock.now();
-        let rig = Rig::new(board, info.capabilities, info.tick_hz);
+        let mut rig = Rig::new(board, info.capabilities, info.tick_hz);
+        let unconfirmed = rig.board_mut().unconfirmed().unwrap_or(false);
+        let window = CONFIRM_WINDOW_S.saturating_mul(u64::from(info.tick_hz));
+        let confirm_by = unconfirmed.then(|| last_heartbeat.saturating_add(window));
         Self {
             clock,
             info,
@@ -103,6 +114,8 @@ impl<C: Clock, B: Board> Controller<C, B> {
             last_heartbeat,
             ignored_datagrams: 0,
             update: Updater::default(),
+            confirm_by,
+            reset_requested: false,
         }
     }
 
@@ -127,8 +140,23 @@ impl<C: Clock, B: Board> Controller<C, B> {
 
     /// Does the rig's work due by now and moves its events into the link.
     pub fn poll(&mut self) {
-        self.rig.poll(self.clock.now());
+        let now = self.clock.now();
+        self.rig.poll(now);
+        if self.confirm_by.is_some_and(|t| now >= t) {
+            self.confirm_by = None;
+            // Nobody confirmed the new firmware: back to the old one.
+            if self.rig.board_mut().unconfirmed().unwrap_or(false) {
+                self.reset_requested = true;
+            }
+        }
         self.pump_events();
+    }
+
+    /// Whether the board should reset now: an update is ready to be swapped in (and the host
+    /// has the answer that says so), or a swapped-in firmware was not confirmed in time. The
+    /// board's run loop resets the MCU; the bootloader does the rest.
+    pub fn wants_reset(&self) -> bool {
+        self.reset_requested && self.link.unacked() == 0
     }
 
     /// Tick of the last command from the host.
@@ -193,10 +221,7 @@ impl<C: Clock, B: Board> Controller<C, B> {
 
     /// When `poll` / `poll_transmit` next have work even if nothing arrives.
     pub fn next_deadline(&self) -> Option<u64> {
-        match (self.link.next_deadline(), self.rig.next_due()) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        }
+        [self.link.next_deadline(), self.rig.next_due(), self.confirm_by].into_iter().flatten().min()
     }
 
     /// Moves rig events into the link while it has room, keeping the slot that answers the
@@ -330,7 +355,14 @@ impl<C: Clock, B: Board> Controller<C, B> {
             self.rig.disarm(now);
         }
         let board = self.info.board;
-        self.update.handle(cmd, self.rig.board_mut(), board).map(Reply::Update).map_err(Error::Update)
+        let status = self.update.handle(cmd, self.rig.board_mut(), board).map_err(Error::Update)?;
+        match (cmd, status.phase) {
+            // Swapped in at the reset that follows the answer.
+            (UpdateCommand::Finish(_), UpdatePhase::Ready { .. }) => self.reset_requested = true,
+            (UpdateCommand::Confirm, _) => self.confirm_by = None,
+            _ => {}
+        }
+        Ok(Reply::Update(status))
     }
 
     /// The device's self-description.

@@ -29,7 +29,7 @@ pub mod boot;
 pub mod controller;
 pub mod galvo;
 pub mod hal;
-#[cfg(all(feature = "boot", feature = "std"))]
+#[cfg(feature = "std")]
 pub mod memflash;
 pub mod motion;
 pub mod record;

@@ -173,8 +173,12 @@ pub struct SimBoard {
     pub slots: Option<SimSlots>,
 }
 
-/// The simulated board's flash slots.
-pub struct SimSlots(pub Box<dyn FirmwareSlots + Send>);
+/// The simulated board's flash: 2 KiB pages and 8-byte writes, as on the STM32G4.
+pub type SimFlash = crate::memflash::MemFlash<2048, 8>;
+
+/// The simulated board's flash slots: embassy-boot over [`SimFlash`] partitions, which survive
+/// the board's resets.
+pub struct SimSlots(pub crate::boot::BootSlots<SimFlash, SimFlash, SimFlash>);
 
 impl std::fmt::Debug for SimSlots {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {

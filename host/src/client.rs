@@ -260,6 +260,37 @@ impl<T: Transport> Client<T> {
 
     /// [`Self::connect`] claiming another version and schema (for tests of the mismatch path).
     pub fn connect_as(transport: T, nonce: u32, version: u16, schema: u64) -> Result<Self, ClientError> {
+        let (client, compatible) = Self::connect_inner(transport, nonce, version, schema)?;
+        if !compatible {
+            return Err(client.incompatible());
+        }
+        Ok(client)
+    }
+
+    /// Connects for a firmware update: a device of another protocol version or schema is kept
+    /// (it takes update commands all the same, their encoding being frozen); the flag says
+    /// whether it speaks this host's protocol.
+    pub fn connect_for_update(transport: T, nonce: u32) -> Result<(Self, bool), ClientError> {
+        Self::connect_inner(transport, nonce, PROTOCOL_VERSION, SCHEMA_HASH)
+    }
+
+    /// [`Self::connect_for_update`] claiming another version and schema (for tests of the
+    /// cross-version path).
+    pub fn connect_for_update_as(
+        transport: T,
+        nonce: u32,
+        version: u16,
+        schema: u64,
+    ) -> Result<(Self, bool), ClientError> {
+        Self::connect_inner(transport, nonce, version, schema)
+    }
+
+    fn connect_inner(
+        transport: T,
+        nonce: u32,
+        version: u16,
+        schema: u64,
+    ) -> Result<(Self, bool), ClientError> {
         let now = transport.now_us();
         let mut link = Link::new(Role::Initiator, LinkConfig { rto: RTO_US, rx_reserve: 0, nonce });
         link.connect(now);
@@ -299,12 +330,12 @@ impl<T: Transport> Client<T> {
             e.boot_id = info.boot_id;
         }
         if info.protocol_version != version || info.schema_hash != schema {
-            return Err(client.incompatible());
+            return Ok((client, false));
         }
         client.open = true;
         // Heartbeats well inside the device's default timeout (1 s).
         client.sync_clock(8)?;
-        Ok(client)
+        Ok((client, true))
     }
 
     fn incompatible(&self) -> ClientError {

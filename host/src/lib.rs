@@ -21,6 +21,7 @@ pub mod clock;
 pub mod disco;
 pub mod filter;
 pub mod fit;
+pub mod flash;
 pub mod frames;
 pub mod overrides;
 pub mod plan;

@@ -4,6 +4,7 @@
 //! real rig, through `lightrig-host`'s transport and frame-input traits.
 //!
 //! - [`board`]: the simulated board for a rig file ([`board::board_for`]).
+//! - [`flash`]: the virtual board's flash slots (embassy-boot in memory) and its update key.
 //! - [`transport`]: the in-process virtual device behind the host's `Transport` trait, with
 //!   byte damage and unplug; [`transport::open`] opens any `Connect` spec, the virtual one
 //!   included.
@@ -25,6 +26,7 @@
 pub mod board;
 pub mod camera;
 pub mod filter;
+pub mod flash;
 pub mod pacing;
 #[cfg(unix)]
 pub mod pty;

@@ -112,9 +112,14 @@ pub fn fresh_boot_id() -> u32 {
 impl VirtualTransport {
     /// A virtual device described by `info` (its `tick_hz` must be 1 MHz: host µs = ticks). A
     /// `boot_id` of 0 is replaced by a fresh one, as a real device's differs at every start.
-    pub fn new(mut info: DeviceInfo, board: SimBoard) -> Self {
+    pub fn new(mut info: DeviceInfo, mut board: SimBoard) -> Self {
         if info.boot_id == 0 {
             info.boot_id = fresh_boot_id();
+        }
+        // The board as it left the factory: its firmware in the active slot.
+        let slots = board.slots.get_or_insert_with(|| crate::flash::factory(info.firmware));
+        if let Some(running) = crate::flash::running(slots) {
+            info.firmware = running.version;
         }
         let clock = SimClock::default();
         let device = Controller::new(clock.clone(), board, info, 2_000);
@@ -176,17 +181,31 @@ impl VirtualTransport {
     }
 
     fn check_reset(&mut self) {
-        if self.reset_at.is_none_or(|t| self.clock.now() < t) {
+        use lightrig_protocol::session::ResetCause;
+        let cause = if self.device.wants_reset() {
+            // The firmware asked (an update to swap in, or one never confirmed).
+            ResetCause::Software
+        } else if self.reset_at.is_some_and(|t| self.clock.now() >= t) {
+            self.reset_at = None;
+            ResetCause::Watchdog
+        } else {
             return;
-        }
-        self.reset_at = None;
+        };
         let mut info = *self.device.info();
         info.boot_id = fresh_boot_id().max(info.boot_id.wrapping_add(1)).max(1);
-        info.reset_cause = lightrig_protocol::session::ResetCause::Watchdog;
+        info.reset_cause = cause;
         // The axes stay where they physically are; the laser pins go low, as an MCU's outputs
         // do at reset.
         let mut board = std::mem::take(self.device.rig_mut().board_mut());
         board.lasers = Default::default();
+        // The bootloader runs first: it swaps a marked image in, or an unconfirmed one back.
+        if let Some(slots) = board.slots.as_mut() {
+            if slots.0.boot().is_ok() {
+                if let Some(running) = crate::flash::running(slots) {
+                    info.firmware = running.version;
+                }
+            }
+        }
         self.device = Controller::new(self.clock.clone(), board, info, 2_000);
         if let Some(t) = &self.timeline {
             t.attach(self.device.rig_mut().board_mut());

@@ -42,9 +42,32 @@ fn connect(spec: &Connect) -> Result<Client<Box<dyn Transport>>, (u8, String)> {
     Client::connect(transport, fresh_nonce()).map_err(|e| (DEVICE, e.to_string()))
 }
 
-fn info_json(c: &Client<Box<dyn Transport>>) -> serde_json::Value {
+/// The firmware images the device holds (running, fallback) and where an update stands;
+/// `null` where the board has no bootloader to update it over the link.
+fn update_json(c: &mut Client<Box<dyn Transport>>) -> serde_json::Value {
+    use lightrig_protocol::update::UpdateCommand;
+    let Ok(st) = lightrig_host::flash::update(c, UpdateCommand::Status) else {
+        return serde_json::Value::Null;
+    };
+    if st.slot == 0 {
+        return serde_json::Value::Null;
+    }
+    let image = |i: Option<lightrig_protocol::update::ImageInfo>| {
+        i.map(|i| format!("{}.{}.{}", i.version.major, i.version.minor, i.version.patch))
+    };
+    serde_json::json!({
+        "running": image(st.running),
+        "fallback": image(st.fallback),
+        "phase": format!("{:?}", st.phase),
+        "slot_bytes": st.slot,
+    })
+}
+
+fn info_json(c: &mut Client<Box<dyn Transport>>) -> serde_json::Value {
+    let update = update_json(c);
     let i = c.info();
     serde_json::json!({
+        "update": update,
         "device": c.transport().describe(),
         "board": format!("{:?}", i.board),
         "firmware": format!("{}.{}.{}", i.firmware.major, i.firmware.minor, i.firmware.patch),
@@ -81,7 +104,7 @@ pub fn devices(args: &DevicesArgs) -> ExitCode {
     for c in candidates() {
         let answer = if args.probe {
             match c.connect.parse::<Connect>().map_err(|e| (USAGE, e)).and_then(|s| connect(&s)) {
-                Ok(client) => Some(info_json(&client)),
+                Ok(mut client) => Some(info_json(&mut client)),
                 Err((_, e)) => Some(serde_json::json!({ "error": e })),
             }
         } else {
@@ -133,8 +156,8 @@ pub fn devices(args: &DevicesArgs) -> ExitCode {
 /// `lightrig info [--connect SPEC] [--json]`.
 pub fn info(args: &InfoArgs) -> ExitCode {
     match connect(&args.connect) {
-        Ok(client) => {
-            let v = info_json(&client);
+        Ok(mut client) => {
+            let v = info_json(&mut client);
             if args.json {
                 println!("{v}");
             } else if let Some(map) = v.as_object() {
@@ -143,6 +166,18 @@ pub fn info(args: &InfoArgs) -> ExitCode {
                         "capabilities" => {
                             println!("{k:<16} {}", capabilities_in_words(&client.info().capabilities))
                         }
+                        "update" if val.is_null() => {
+                            println!(
+                                "{k:<16} not over the link (no bootloader: flash through the debug probe)"
+                            )
+                        }
+                        "update" => println!(
+                            "{k:<16} running {}, fallback {}, {}, slot {} bytes",
+                            val["running"].as_str().unwrap_or("unknown"),
+                            val["fallback"].as_str().unwrap_or("none"),
+                            val["phase"].as_str().unwrap_or(""),
+                            val["slot_bytes"]
+                        ),
                         _ => println!("{k:<16} {val}"),
                     }
                 }

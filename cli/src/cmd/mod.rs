@@ -5,6 +5,7 @@ pub mod calibrate;
 pub mod device;
 pub mod display;
 pub mod fit;
+pub mod flash;
 pub mod hdr;
 pub mod selfcheck;
 pub mod sim;

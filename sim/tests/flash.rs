@@ -1,0 +1,121 @@
+//! Firmware update of the virtual device over its link: the image sent, the device reset into
+//! embassy-boot's swap, the new firmware confirmed, or rolled back when nobody confirms it;
+//! nothing lights or moves during an update; a host of another schema can still update.
+
+mod common;
+
+use lightrig_firmware::sim::{virtual_device_info, SimBoard};
+use lightrig_host::client::{Client, ClientError};
+use lightrig_host::flash::{self, FlashError};
+use lightrig_protocol::session::{ResetCause, Version};
+use lightrig_protocol::update::{UpdateCommand, UpdateError, UpdatePhase};
+use lightrig_protocol::{Command, Error};
+use lightrig_sim::flash::virtual_image;
+use lightrig_sim::transport::VirtualTransport;
+
+fn v(minor: u16) -> Version {
+    Version { major: 0, minor, patch: 0 }
+}
+
+fn device() -> Client<VirtualTransport> {
+    Client::connect(VirtualTransport::new(virtual_device_info(), SimBoard::default()), 1).unwrap()
+}
+
+fn refused_for_update(e: ClientError) -> UpdateError {
+    match e {
+        ClientError::Refused { error: Error::Update(u), .. } => u,
+        other => panic!("{other}"),
+    }
+}
+
+/// Sends v0.2.0 and waits for the reset: the client of the new firmware.
+fn update_to_v2(mut c: Client<VirtualTransport>) -> Client<VirtualTransport> {
+    let mut seen = Vec::new();
+    let st = flash::send(&mut c, &virtual_image(v(2)), |sent, total| seen.push((sent, total))).unwrap();
+    assert_eq!(st.phase, UpdatePhase::Ready { image: virtual_image(v(2)).info });
+    let total = virtual_image(v(2)).signed.len() as u32;
+    assert_eq!(seen.first(), Some(&(0, total)));
+    assert_eq!(seen.last(), Some(&(total, total)));
+    let t = flash::await_reset(c, 5_000_000).unwrap();
+    Client::connect(t, 2).unwrap()
+}
+
+#[test]
+fn an_update_is_swapped_in_at_the_reset_and_kept_once_confirmed() {
+    let mut c = device();
+    assert_eq!(c.info().firmware, v(1));
+    let st = flash::update(&mut c, UpdateCommand::Status).unwrap();
+    assert_eq!((st.phase, st.running.map(|i| i.version), st.fallback), (UpdatePhase::Idle, Some(v(1)), None));
+    let old_boot = c.info().boot_id;
+    let mut c = update_to_v2(c);
+    assert_ne!(c.info().boot_id, old_boot);
+    assert_eq!((c.info().firmware, c.info().reset_cause), (v(2), ResetCause::Software));
+    let st = flash::update(&mut c, UpdateCommand::Status).unwrap();
+    assert_eq!(st.phase, UpdatePhase::Unconfirmed);
+    assert_eq!((st.running.map(|i| i.version), st.fallback.map(|i| i.version)), (Some(v(2)), Some(v(1))));
+    assert_eq!(flash::confirm(&mut c).unwrap().phase, UpdatePhase::Idle);
+    // Confirmed: it stays past the confirmation window, through a reset.
+    c.idle(61_000_000).unwrap();
+    assert_eq!(flash::update(&mut c, UpdateCommand::Status).unwrap().running.map(|i| i.version), Some(v(2)));
+    c.transport_mut().reset_at(0);
+    let t = flash::await_reset(c, 5_000_000).unwrap_or_else(|e| panic!("{e}"));
+    let c = Client::connect(t, 3).unwrap();
+    assert_eq!(c.info().firmware, v(2));
+}
+
+#[test]
+fn a_firmware_nobody_confirms_is_rolled_back_after_the_confirmation_window() {
+    let mut c = update_to_v2(device());
+    assert_eq!(c.info().firmware, v(2));
+    // The host says nothing about the update for 60 s: the device resets, the bootloader
+    // swaps the old firmware back.
+    let gone = c.idle(61_000_000).err();
+    assert!(gone.is_some(), "the device reset under the host");
+    let t = c.into_transport();
+    let mut c = Client::connect(t, 3).unwrap();
+    assert_eq!((c.info().firmware, c.info().reset_cause), (v(1), ResetCause::Software));
+    let st = flash::update(&mut c, UpdateCommand::Status).unwrap();
+    assert_eq!((st.phase, st.running.map(|i| i.version)), (UpdatePhase::Idle, Some(v(1))));
+}
+
+#[test]
+fn nothing_lights_or_moves_while_an_update_is_under_way() {
+    // Lasers configured and armed.
+    let mut c = common::setup(device());
+    assert_ne!(c.transport().device().rig().armed(), 0);
+    let img = virtual_image(v(2));
+    flash::update(&mut c, UpdateCommand::Begin(img.info)).unwrap();
+    assert_eq!(c.transport().device().rig().armed(), 0, "lasers disarmed by Begin");
+    let e = c.request(Command::Arm { lasers: 0b1 }).unwrap_err();
+    assert_eq!(refused_for_update(e), UpdateError::InProgress);
+    flash::update(&mut c, UpdateCommand::Cancel).unwrap();
+    c.request(Command::Arm { lasers: 0b1 }).unwrap();
+    // An image for another board: refused, nothing begun.
+    let other = lightrig_host::flash::Image::sign(
+        &[0; 100],
+        lightrig_protocol::session::BoardId::NucleoG474re,
+        v(2),
+        0,
+        &lightrig_sim::flash::virtual_key(),
+    );
+    let e = flash::send(&mut c, &other, |_, _| {}).unwrap_err();
+    let FlashError::Client(e) = e else { panic!("{e}") };
+    assert!(matches!(refused_for_update(e), UpdateError::WrongBoard { .. }));
+    c.request(Command::Arm { lasers: 0b1 }).unwrap();
+}
+
+#[test]
+fn a_host_of_another_schema_updates_the_device_all_the_same() {
+    let t = VirtualTransport::new(virtual_device_info(), SimBoard::default());
+    let (mut c, compatible) =
+        Client::connect_for_update_as(t, 1, lightrig_protocol::PROTOCOL_VERSION, 0xdead_beef).unwrap();
+    assert!(!compatible);
+    // Its ordinary commands are refused; the update path is not.
+    assert!(c.request(Command::GetStatus).is_err());
+    let st = flash::send(&mut c, &virtual_image(v(3)), |_, _| {}).unwrap();
+    assert!(matches!(st.phase, UpdatePhase::Ready { .. }));
+    let t = flash::await_reset(c, 5_000_000).unwrap();
+    let (mut c, _) = Client::connect_for_update(t, 2).unwrap();
+    assert_eq!(c.info().firmware, v(3));
+    flash::confirm(&mut c).unwrap();
+}
