@@ -169,3 +169,44 @@ fn lightrig_stop_stops_a_device_from_another_process() {
         "{text}"
     );
 }
+
+#[test]
+fn lightrig_flash_updates_the_controller_through_its_serial_port() {
+    let sim = sim();
+    let dir = std::env::temp_dir().join(format!("lightrig-pty-flash-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let code: Vec<u8> = (0..40_000u32).map(|k| (k % 253) as u8).collect();
+    std::fs::write(dir.join("fw.bin"), code).unwrap();
+    let run = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_lightrig")).current_dir(&dir).args(args).output().unwrap()
+    };
+    let o = run(&[
+        "flash",
+        "sign",
+        "fw.bin",
+        "--virtual-key",
+        "--board",
+        "virtual",
+        "--version",
+        "0.3.0",
+        "-o",
+        "fw.lrfw",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let spec = format!("serial:{}", sim.path);
+    // The transfer, the controller's reset into the bootloader's swap, the reconnection through
+    // the same port, the confirmation.
+    let o = run(&["flash", "fw.lrfw", "--connect", &spec]);
+    let said = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{said}");
+    assert!(said.contains("running 0.3.0 (confirmed); fallback 0.1.0 for Virtual"), "{said}");
+    let o = run(&["info", "--json", "--connect", &spec]);
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!((v["firmware"].as_str(), v["reset_cause"].as_str()), (Some("0.3.0"), Some("Software")));
+    assert_eq!(
+        (v["update"]["running"].as_str(), v["update"]["fallback"].as_str()),
+        (Some("0.3.0"), Some("0.1.0"))
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

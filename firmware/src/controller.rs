@@ -298,7 +298,12 @@ impl<C: Clock, B: Board> Controller<C, B> {
             (Session::AwaitingHello, _) => return Err(Error::HandshakeRequired),
             // A host of another version may still update the firmware (the update path's
             // encoding is frozen).
-            (Session::Refused(_), Command::Update(cmd)) => return self.update(cmd, now),
+            (Session::Refused(_), Command::Update(cmd)) => {
+                // Heard from, but not watched: this host runs no acquisition.
+                self.last_heartbeat = now;
+                self.rig.host_seen(now, false);
+                return self.update(cmd, now);
+            }
             (Session::Refused(e), _) => return Err(e),
             (Session::Open, _) => {}
         }

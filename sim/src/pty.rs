@@ -45,10 +45,11 @@ impl PtyRig {
     /// Opens a new pseudo-terminal and puts a controller described by `info` on `board`
     /// behind it.
     /// A `boot_id` of 0 is replaced by a fresh one, as a real device's differs at every start.
-    pub fn open(mut info: DeviceInfo, board: SimBoard) -> io::Result<Self> {
+    pub fn open(mut info: DeviceInfo, mut board: SimBoard) -> io::Result<Self> {
         if info.boot_id == 0 {
             info.boot_id = crate::transport::fresh_boot_id();
         }
+        crate::transport::from_factory(&mut info, &mut board);
         let (master, slave) = TTYPort::pair().map_err(io::Error::other)?;
         let path = slave
             .name()
@@ -125,7 +126,14 @@ impl PtyRig {
         }
         self.clock.set(wall);
         self.device.poll();
-        self.flush()
+        self.flush()?;
+        if self.device.wants_reset() {
+            // The firmware asked (an update to swap in, or one never confirmed): the port
+            // stays, as a USB-serial bridge's does while its MCU resets.
+            let cause = lightrig_protocol::session::ResetCause::Software;
+            self.device = crate::transport::reset(&mut self.device, self.clock.clone(), cause);
+        }
+        Ok(())
     }
 
     /// Sends the device's frames. With no client reading, the terminal's buffer fills and

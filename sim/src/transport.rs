@@ -8,7 +8,7 @@ use lightrig_firmware::sim::{virtual_device_info, SimBoard, SimClock};
 use lightrig_firmware::{Clock, Controller};
 use lightrig_host::rigfile::RigFile;
 use lightrig_host::transport::{Connect, Transport};
-use lightrig_protocol::session::DeviceInfo;
+use lightrig_protocol::session::{DeviceInfo, ResetCause};
 use lightrig_protocol::MAX_FRAME;
 
 use crate::board::board_for;
@@ -101,6 +101,39 @@ fn impair(bytes: &[u8], imp: &Impairment, rng: &mut u64, damage: &mut Damage) ->
     out
 }
 
+/// A board without flash slots gets them as it left the factory (its firmware in the active
+/// slot); `info` says the version the active slot holds.
+pub fn from_factory(info: &mut DeviceInfo, board: &mut SimBoard) {
+    let slots = board.slots.get_or_insert_with(|| crate::flash::factory(info.firmware));
+    if let Some(running) = crate::flash::running(slots) {
+        info.firmware = running.version;
+    }
+}
+
+/// The device after a reset of the MCU for `cause`: a new boot with a new boot id and nothing
+/// configured, on the same physical board (the axes stay where they are, the laser pins go
+/// low as an MCU's outputs do); the bootloader runs first, swapping a marked image in or an
+/// unconfirmed one back, and the version is the one the active slot then holds.
+pub fn reset(
+    device: &mut Controller<SimClock, SimBoard>,
+    clock: SimClock,
+    cause: ResetCause,
+) -> Controller<SimClock, SimBoard> {
+    let mut info = *device.info();
+    info.boot_id = fresh_boot_id().max(info.boot_id.wrapping_add(1)).max(1);
+    info.reset_cause = cause;
+    let mut board = std::mem::take(device.rig_mut().board_mut());
+    board.lasers = Default::default();
+    if let Some(slots) = board.slots.as_mut() {
+        if slots.0.boot().is_ok() {
+            if let Some(running) = crate::flash::running(slots) {
+                info.firmware = running.version;
+            }
+        }
+    }
+    Controller::new(clock, board, info, 2_000)
+}
+
 /// A boot id for a virtual device: different at every start, as on a real one.
 pub fn fresh_boot_id() -> u32 {
     use std::hash::{BuildHasher, Hasher};
@@ -116,11 +149,7 @@ impl VirtualTransport {
         if info.boot_id == 0 {
             info.boot_id = fresh_boot_id();
         }
-        // The board as it left the factory: its firmware in the active slot.
-        let slots = board.slots.get_or_insert_with(|| crate::flash::factory(info.firmware));
-        if let Some(running) = crate::flash::running(slots) {
-            info.firmware = running.version;
-        }
+        from_factory(&mut info, &mut board);
         let clock = SimClock::default();
         let device = Controller::new(clock.clone(), board, info, 2_000);
         Self {
@@ -181,7 +210,6 @@ impl VirtualTransport {
     }
 
     fn check_reset(&mut self) {
-        use lightrig_protocol::session::ResetCause;
         let cause = if self.device.wants_reset() {
             // The firmware asked (an update to swap in, or one never confirmed).
             ResetCause::Software
@@ -191,22 +219,7 @@ impl VirtualTransport {
         } else {
             return;
         };
-        let mut info = *self.device.info();
-        info.boot_id = fresh_boot_id().max(info.boot_id.wrapping_add(1)).max(1);
-        info.reset_cause = cause;
-        // The axes stay where they physically are; the laser pins go low, as an MCU's outputs
-        // do at reset.
-        let mut board = std::mem::take(self.device.rig_mut().board_mut());
-        board.lasers = Default::default();
-        // The bootloader runs first: it swaps a marked image in, or an unconfirmed one back.
-        if let Some(slots) = board.slots.as_mut() {
-            if slots.0.boot().is_ok() {
-                if let Some(running) = crate::flash::running(slots) {
-                    info.firmware = running.version;
-                }
-            }
-        }
-        self.device = Controller::new(self.clock.clone(), board, info, 2_000);
+        self.device = reset(&mut self.device, self.clock.clone(), cause);
         if let Some(t) = &self.timeline {
             t.attach(self.device.rig_mut().board_mut());
         }
