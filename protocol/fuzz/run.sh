@@ -27,7 +27,7 @@ cd "$fuzz_dir/.." # protocol/: cargo fuzz finds fuzz/ from here
 
 targets=("$@")
 if [[ ${#targets[@]} -eq 0 ]]; then
-    targets=(decode_raw roundtrip link controller)
+    targets=(decode_raw roundtrip link controller update)
 fi
 
 # Build first (same flags as the runs below, so they do not rebuild), showing errors.
