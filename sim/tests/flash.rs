@@ -119,3 +119,50 @@ fn a_host_of_another_schema_updates_the_device_all_the_same() {
     assert_eq!(c.info().firmware, v(3));
     flash::confirm(&mut c).unwrap();
 }
+
+#[test]
+fn an_update_is_refused_while_a_sequence_runs() {
+    use lightrig_protocol::sequence::{Action, Chunk, Item, StartAt};
+    let mut c = common::setup(device());
+    // One trigger a second from now: the sequence runs meanwhile.
+    let mut items = heapless::Vec::new();
+    items.push(Item { delta: 1_000_000, action: Action::Trigger { camera: 0, exposure: 0 } }).unwrap();
+    c.request(Command::SequenceLoad(Chunk { sequence: 9, chunk: 0, last: true, items })).unwrap();
+    c.request(Command::SequenceStart { sequence: 9, at: StartAt::Now }).unwrap();
+    let e = flash::update(&mut c, UpdateCommand::Begin(virtual_image(v(2)).info)).unwrap_err();
+    let FlashError::Client(ClientError::Refused { error: Error::InvalidState(s), .. }) = e else {
+        panic!("{e}")
+    };
+    assert!(matches!(s, lightrig_protocol::event::DeviceState::Running { sequence: 9 }), "{s:?}");
+    // Nothing was begun: the sequence goes on and may still be aborted as usual.
+    assert_eq!(flash::update(&mut c, UpdateCommand::Status).unwrap().phase, UpdatePhase::Idle);
+    c.request(Command::SequenceAbort { sequence: 9 }).unwrap();
+    flash::update(&mut c, UpdateCommand::Begin(virtual_image(v(2)).info)).unwrap();
+}
+
+#[test]
+fn a_transfer_cut_half_way_goes_on_where_the_device_stands() {
+    use lightrig_protocol::update::UPDATE_CHUNK;
+    let mut c = device();
+    let img = virtual_image(v(2));
+    // Begin and ten chunks, then the host is gone (a crash, the cable pulled).
+    flash::update(&mut c, UpdateCommand::Begin(img.info)).unwrap();
+    for k in 0..10 {
+        let data = heapless::Vec::from_slice(&img.signed[k * UPDATE_CHUNK..(k + 1) * UPDATE_CHUNK]).unwrap();
+        flash::update(&mut c, UpdateCommand::Write { offset: (k * UPDATE_CHUNK) as u32, data }).unwrap();
+    }
+    let t = c.into_transport();
+    // A new host, the same image: the device says where it stands and the rest follows.
+    let mut c = Client::connect(t, 5).unwrap();
+    let mut first = None;
+    let st = flash::send(&mut c, &img, |s, _| {
+        first.get_or_insert(s);
+    })
+    .unwrap();
+    assert_eq!(first, Some(10 * UPDATE_CHUNK as u32), "resumed after the ten chunks it had");
+    assert_eq!(st.phase, UpdatePhase::Ready { image: img.info });
+    let t = flash::await_reset(c, 5_000_000).unwrap();
+    let mut c = Client::connect(t, 6).unwrap();
+    assert_eq!(c.info().firmware, v(2));
+    flash::confirm(&mut c).unwrap();
+}
