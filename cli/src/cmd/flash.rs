@@ -211,6 +211,26 @@ fn refusal(e: &flash::FlashError) -> String {
     }
 }
 
+/// The device after its reset: on the same port if it stayed (a UART, a USB-serial bridge),
+/// else on the port opened again as it comes back (a USB device re-enumerates): up to 30 s.
+fn reconnect(transport: Box<dyn Transport>, spec: &Connect) -> Result<Client<Box<dyn Transport>>, CliError> {
+    let mut last = match Client::connect_for_update(transport, fresh_nonce()) {
+        Ok((c, _)) => return Ok(c),
+        Err(e) => e.to_string(),
+    };
+    for _ in 0..30 {
+        std::thread::sleep(std::time::Duration::from_secs(1));
+        match lightrig_sim::transport::open(spec) {
+            Ok(t) => match Client::connect_for_update(t, fresh_nonce()) {
+                Ok((c, _)) => return Ok(c),
+                Err(e) => last = e.to_string(),
+            },
+            Err(e) => last = e.to_string(),
+        }
+    }
+    Err(err(DEVICE, format!("the device did not come back within 30 s of its reset: {last}")))
+}
+
 fn send(path: &Path, spec: &Connect, confirm: bool) -> Result<(), CliError> {
     let file = std::fs::read(path).map_err(|e| err(INPUT, format!("{}: {e}", path.display())))?;
     let image = Image::from_file(&file).map_err(|e| err(INPUT, format!("{}: {e}", path.display())))?;
@@ -277,8 +297,7 @@ fn send(path: &Path, spec: &Connect, confirm: bool) -> Result<(), CliError> {
     );
     let old_boot = info.boot_id;
     let transport = flash::await_reset(client, 10_000_000).map_err(device_err)?;
-    let (mut client, _) = Client::connect_for_update(transport, fresh_nonce())
-        .map_err(|e| err(DEVICE, format!("the device did not come back after its reset: {e}")))?;
+    let mut client = reconnect(transport, spec)?;
     let now = *client.info();
     if now.boot_id == old_boot || now.firmware != image.info.version {
         return Err(err(
