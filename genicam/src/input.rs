@@ -350,6 +350,12 @@ impl FrameInput for GenicamInput {
     fn lost(&mut self) -> Vec<(u8, u32, String)> {
         std::mem::take(&mut self.lost)
     }
+
+    fn stamps_follow_triggers(&self) -> bool {
+        // A line-triggered camera stamps each frame at its trigger; software triggers carry
+        // the host's latency (and the fake camera stamps on its own 40 ms frame clock).
+        !self.software
+    }
 }
 
 impl Drop for GenicamInput {

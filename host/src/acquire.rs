@@ -57,6 +57,13 @@ pub trait FrameInput: Send {
     }
     /// Frames that arrived since the last call.
     fn poll(&mut self, now_us: f64) -> io::Result<Vec<Captured>>;
+    /// Whether its frames' timestamps follow the trigger ticks (a camera triggered by the
+    /// controller's line, stamping each frame by its own clock): the engine then checks each
+    /// step's frames against their triggers' ticks, and acquires a step again when the stamps
+    /// say some were paired with the wrong trigger ([`crate::session::off_their_triggers`]).
+    fn stamps_follow_triggers(&self) -> bool {
+        false
+    }
     /// Frames of the current step the source knows it lost, `(camera, frame, why)` (a camera
     /// that delivered a frame incomplete): their missing records say why. Taken once.
     fn lost(&mut self) -> Vec<(u8, u32, String)> {
@@ -764,10 +771,16 @@ fn run_step<T: Transport>(
         pairing.extra.push(Extra { arrival: i, camera: c.camera, frame, arrived_us: c.host_us, reason });
     }
     let lost = input.lost();
-    if retry && !pairing.missing.is_empty() && !pairing.pairs.is_empty() {
-        let why = lost_reason(&pairing, &lost, expected);
-        client.busy(|| session.abandon_step(&why))?;
-        return Ok(Stepped::Lost);
+    if retry && !pairing.pairs.is_empty() {
+        // Stamps first: a trigger the camera missed also leaves the last trigger without a
+        // frame, but the stamps name where the frames shifted.
+        let shifted = if input.stamps_follow_triggers() { shifted_reason(&pairing, &arrivals) } else { None };
+        let why =
+            shifted.or_else(|| (!pairing.missing.is_empty()).then(|| lost_reason(&pairing, &lost, expected)));
+        if let Some(why) = why {
+            client.busy(|| session.abandon_step(&why))?;
+            return Ok(Stepped::Lost);
+        }
     }
     // Each frame is written and fsynced with its record (hundreds in a pass): the link stays
     // alive meanwhile.
@@ -799,6 +812,41 @@ fn lost_reason(pairing: &Pairing, lost: &[(u8, u32, String)], expected: usize) -
         pairing.missing.len(),
         named.join("; ")
     )
+}
+
+/// Per camera, the paired frames whose timestamps put them off their triggers' ticks (a
+/// trigger the camera missed shifts the frames after it onto the trigger before their own):
+/// the reason to acquire the step again, or `None` if every stamp agrees.
+fn shifted_reason(pairing: &Pairing, arrivals: &[Captured]) -> Option<String> {
+    let mut cameras: Vec<u8> = pairing.pairs.iter().map(|p| p.trigger.camera).collect();
+    cameras.sort_unstable();
+    cameras.dedup();
+    let mut named = Vec::new();
+    for cam in cameras {
+        let mut stamped: Vec<(u32, u64, u64)> = pairing
+            .pairs
+            .iter()
+            .filter(|p| p.trigger.camera == cam)
+            .filter_map(|p| arrivals[p.arrival].stamp.map(|s| (p.trigger.frame, p.trigger.tick, s.time_ns)))
+            .collect();
+        stamped.sort_unstable();
+        let pts: Vec<(u64, u64)> = stamped.iter().map(|s| (s.1, s.2)).collect();
+        let off = crate::session::off_their_triggers(&pts);
+        if let Some(&(k, r)) = off.first() {
+            named.push(format!(
+                "camera {cam}: {} frames off their triggers' ticks by the camera's clock, from frame {} ({:+.1} ms)",
+                off.len(),
+                stamped[k].0,
+                r / 1e6
+            ));
+        }
+    }
+    (!named.is_empty()).then(|| {
+        format!(
+            "{LOST_PREFIX} the pairing of {} (a trigger the camera missed shifts the frames after it): the step is acquired again",
+            named.join("; ")
+        )
+    })
 }
 
 /// How the reason of an attempt abandoned for its lost frames begins.

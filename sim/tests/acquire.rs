@@ -245,6 +245,78 @@ fn a_frame_lost_at_every_try_is_recorded_missing_and_a_silent_camera_is_not_retr
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// A line-triggered camera that stamps each frame by its own clock (1 µs per tick, 5 s
+/// ahead) and numbers frames by its own counter from each step's start; it misses the
+/// triggers at the run's indices in `miss` (busy: no frame, its counter stays).
+#[derive(Default)]
+struct StampingCamera {
+    triggers: u64,
+    counter: u32,
+    miss: Vec<u64>,
+    ready: Vec<Captured>,
+}
+
+impl FrameInput for StampingCamera {
+    fn begin_step(&mut self, _step: &lightrig_host::plan::Step) -> std::io::Result<()> {
+        self.counter = 0;
+        Ok(())
+    }
+
+    fn on_trigger(&mut self, t: &TriggerEvent, host_us: Option<f64>) -> std::io::Result<()> {
+        let n = self.triggers;
+        self.triggers += 1;
+        if self.miss.contains(&n) {
+            return Ok(());
+        }
+        let data = format!(
+            "seq {} item {} frame {} tick {} x {}\n",
+            t.sequence, t.item, t.frame, t.tick, t.snapshot.axes[0]
+        );
+        let id = u64::from(self.counter);
+        self.ready.push(Captured {
+            camera: t.camera,
+            frame: Some(self.counter),
+            ext: "txt".into(),
+            data: data.into_bytes(),
+            host_us: host_us.unwrap_or(0.0) + 500.0,
+            before_step: false,
+            stamp: Some(lightrig_host::session::CameraStamp { id, time_ns: 5_000_000_000 + t.tick * 1000 }),
+        });
+        self.counter += 1;
+        Ok(())
+    }
+
+    fn poll(&mut self, _now: f64) -> std::io::Result<Vec<Captured>> {
+        Ok(std::mem::take(&mut self.ready))
+    }
+
+    fn stamps_follow_triggers(&self) -> bool {
+        true
+    }
+}
+
+#[test]
+fn a_trigger_the_camera_missed_is_found_by_its_stamps_and_the_step_acquired_again() {
+    let dir = temp_dir("missed");
+    let plan = lls_plan();
+    let mut session = new_session(&dir, &plan);
+    let mut client = connect(SimBoard::default());
+    // The camera misses step 0's trigger 12: frames 12-19 come numbered one early.
+    let mut cam = StampingCamera { miss: vec![12], ..Default::default() };
+    acquire::run(&mut client, &mut session, &plan, &mut cam, |_| {}).unwrap();
+    let reasons = abandoned(&session, 0);
+    assert_eq!(reasons.len(), 1, "{reasons:?}");
+    assert!(
+        reasons[0].starts_with("lost the pairing of camera 0: 8 frames off their triggers' ticks by the camera's clock, from frame 12 (+"),
+        "{}",
+        reasons[0]
+    );
+    drop(session);
+    // Acquired again: every stored frame is its own trigger's.
+    check_complete(&dir, &plan);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 #[test]
 fn link_damage_costs_retransmissions_not_frames() {
     let dir = temp_dir("damage");

@@ -500,17 +500,10 @@ fn camera_clock_check(session: &Session) -> Vec<String> {
             let frames: Vec<_> = a.frames.range((cam, 0)..=(cam, u32::MAX)).map(|(_, f)| f).collect();
             let pts: Vec<(u64, u64)> =
                 frames.iter().filter_map(|f| f.camera_stamp.map(|c| (f.tick, c.time_ns))).collect();
-            let Some(clock) = lightrig_host::session::camera_clock(&pts) else { continue };
-            let mut gaps: Vec<f64> =
-                pts.windows(2).map(|w| (w[1].0 - w[0].0) as f64 * clock.ns_per_tick).collect();
-            gaps.sort_by(f64::total_cmp);
-            let limit = (0.25 * gaps.get(gaps.len() / 2).copied().unwrap_or(0.0)).max(1e6);
-            let off: Vec<String> = frames
-                .iter()
-                .filter(|f| f.camera_stamp.is_some())
-                .zip(&clock.residuals_ns)
-                .filter(|(_, r)| r.abs() > limit)
-                .map(|(f, r)| format!("frame {} ({:+.1} ms)", f.frame, r / 1e6))
+            let stamped: Vec<_> = frames.iter().filter(|f| f.camera_stamp.is_some()).collect();
+            let off: Vec<String> = lightrig_host::session::off_their_triggers(&pts)
+                .into_iter()
+                .map(|(k, r)| format!("frame {} ({:+.1} ms)", stamped[k].frame, r / 1e6))
                 .collect();
             if !off.is_empty() {
                 out.push(format!(

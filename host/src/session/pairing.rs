@@ -205,6 +205,35 @@ pub fn camera_clock(points: &[(u64, u64)]) -> Option<CameraClock> {
     Some(CameraClock { offset_ns: c0 + icept - slope * t0, ns_per_tick: slope, residuals_ns })
 }
 
+/// The points of `points` (`(trigger tick, camera time ns)`, in trigger order) that the
+/// camera's clock puts off their triggers: more than a quarter of the median trigger spacing
+/// (and 1 ms) off the camera's clock. The clock is fitted robustly (the median of neighbouring
+/// slopes, then the median offset), so it follows the majority: a camera that missed a
+/// trigger numbers every later frame one early, and exactly those frames land a spacing off.
+/// Returns `(index, residual ns)`; nothing with fewer than 3 points.
+pub fn off_their_triggers(points: &[(u64, u64)]) -> Vec<(usize, f64)> {
+    if points.len() < 3 {
+        return Vec::new();
+    }
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v.get(v.len() / 2).copied()
+    };
+    let (t0, c0) = (points[0].0 as f64, points[0].1 as f64);
+    let xy: Vec<(f64, f64)> = points.iter().map(|p| (p.0 as f64 - t0, p.1 as f64 - c0)).collect();
+    let slopes: Vec<f64> =
+        xy.windows(2).filter(|w| w[1].0 > w[0].0).map(|w| (w[1].1 - w[0].1) / (w[1].0 - w[0].0)).collect();
+    let Some(slope) = median(slopes) else { return Vec::new() };
+    let Some(offset) = median(xy.iter().map(|(x, y)| y - slope * x).collect()) else { return Vec::new() };
+    let gaps: Vec<f64> = xy.windows(2).map(|w| (w[1].0 - w[0].0) * slope).collect();
+    let limit = (0.25 * median(gaps).unwrap_or(0.0)).max(1e6);
+    xy.iter()
+        .enumerate()
+        .map(|(k, (x, y))| (k, y - (offset + slope * x)))
+        .filter(|(_, r)| r.abs() > limit)
+        .collect()
+}
+
 #[cfg(test)]
 mod camera_clock_tests {
     use super::*;
@@ -226,6 +255,15 @@ mod camera_clock_tests {
             (0..20).max_by(|&a, &b| c.residuals_ns[a].abs().total_cmp(&c.residuals_ns[b].abs())).unwrap();
         assert_eq!(worst, 7);
         assert!(c.residuals_ns[7] > 40e6, "{}", c.residuals_ns[7]);
+        assert_eq!(off_their_triggers(&pts), []);
+        assert_eq!(off_their_triggers(&shifted).iter().map(|p| p.0).collect::<Vec<_>>(), [7]);
+        // A trigger the camera missed at frame 12: every later frame is numbered one early
+        // (paired with the trigger before its own).
+        let missed: Vec<(u64, u64)> =
+            ticks.iter().enumerate().map(|(k, &t)| (t, cam(if k >= 12 { t + 50_000 } else { t }))).collect();
+        let off = off_their_triggers(&missed);
+        assert_eq!(off.iter().map(|p| p.0).collect::<Vec<_>>(), (12..20).collect::<Vec<_>>());
+        assert!(off.iter().all(|p| (p.1 - 50e6).abs() < 1e5), "a spacing (50 ms) off: {off:?}");
         assert!(camera_clock(&pts[..2]).is_none());
         assert!(camera_clock(&[(5, 1), (5, 2), (5, 3)]).is_none());
     }
