@@ -782,6 +782,15 @@ fn run_step<T: Transport>(
             return Ok(Stepped::Lost);
         }
     }
+    let mut lost = lost;
+    if input.stamps_follow_triggers() {
+        // The last try: the camera's clock pairs what its numbering shifted.
+        let stamps: Vec<Option<u64>> = arrivals.iter().map(|c| c.stamp.map(|s| s.time_ns)).collect();
+        for (camera, frame) in crate::session::repair_by_stamps(&mut pairing, &stamps) {
+            let why = "the camera missed this trigger: by its timestamps it made no frame for it".to_string();
+            lost.push((camera, frame, why));
+        }
+    }
     // Each frame is written and fsynced with its record (hundreds in a pass): the link stays
     // alive meanwhile.
     client.busy(|| store(session, &pairing, &arrivals, &lost)).map(Stepped::Stored)

@@ -318,6 +318,36 @@ fn a_trigger_the_camera_missed_is_found_by_its_stamps_and_the_step_acquired_agai
 }
 
 #[test]
+fn a_trigger_missed_at_every_try_is_recorded_missing_and_the_frames_paired_by_their_stamps() {
+    let dir = temp_dir("missed-always");
+    let plan = lls_plan();
+    let mut session = new_session(&dir, &plan);
+    let mut client = connect(SimBoard::default());
+    // Step 0's trigger 12 missed in each of its three attempts.
+    let mut cam = StampingCamera { miss: vec![12, 12 + 21, 12 + 42], ..Default::default() };
+    acquire::run(&mut client, &mut session, &plan, &mut cam, |_| {}).unwrap();
+    assert_eq!(abandoned(&session, 0).len(), 2);
+    let missing = session.state().missing_of(0);
+    assert_eq!(missing.len(), 1);
+    assert_eq!(missing[0].frame, 12);
+    assert!(missing[0].reason.contains("the camera missed this trigger"), "{}", missing[0].reason);
+    assert!(session.state().extra_of(0).is_empty());
+    // Every stored frame is its own trigger's (the gantry position it names).
+    let frames = session.frames_of(0);
+    assert_eq!(frames.len(), 20);
+    for f in &frames {
+        let text = std::fs::read_to_string(dir.join(&f.file)).unwrap();
+        assert!(text.contains(&format!(" frame {} ", f.frame)), "frame {}: {text}", f.frame);
+        assert!(
+            text.ends_with(&format!("x {}\n", -800 + 80 * i64::from(f.frame))),
+            "frame {}: {text}",
+            f.frame
+        );
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
 fn link_damage_costs_retransmissions_not_frames() {
     let dir = temp_dir("damage");
     let plan = lls_plan();

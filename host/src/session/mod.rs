@@ -43,9 +43,8 @@ use crate::client::EventRecord;
 
 pub use fsutil::{now_rfc3339, rfc3339};
 pub use journal::{crc32, decode_line, encode_line, Crc32, Damage};
-pub use pairing::{
-    camera_clock, off_their_triggers, pair, Arrival, CameraClock, Extra, ExtraReason, Pair, Pairing, Trigger,
-};
+pub use pairing::{camera_clock, off_their_triggers, pair, repair_by_stamps, Arrival, CameraClock, Extra};
+pub use pairing::{ExtraReason, Pair, Pairing, RobustClock, Trigger};
 pub use records::{
     new_session_id, CameraStamp, CameraTriggers, DeviceSummary, ExtraRecord, FrameRecord, Manifest,
     MissingRecord, PlanStep, PlanSummary, Record, StepId,

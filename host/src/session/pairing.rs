@@ -205,33 +205,137 @@ pub fn camera_clock(points: &[(u64, u64)]) -> Option<CameraClock> {
     Some(CameraClock { offset_ns: c0 + icept - slope * t0, ns_per_tick: slope, residuals_ns })
 }
 
-/// The points of `points` (`(trigger tick, camera time ns)`, in trigger order) that the
-/// camera's clock puts off their triggers: more than a quarter of the median trigger spacing
-/// (and 1 ms) off the camera's clock. The clock is fitted robustly (the median of neighbouring
-/// slopes, then the median offset), so it follows the majority: a camera that missed a
-/// trigger numbers every later frame one early, and exactly those frames land a spacing off.
-/// Returns `(index, residual ns)`; nothing with fewer than 3 points.
-pub fn off_their_triggers(points: &[(u64, u64)]) -> Vec<(usize, f64)> {
-    if points.len() < 3 {
-        return Vec::new();
+/// A camera's clock against the controller's, fitted robustly to `(trigger tick, camera time
+/// ns)` points: the median of neighbouring slopes, then the median offset, so it follows the
+/// majority of the frames however many sit a trigger spacing off.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RobustClock {
+    t0: f64,
+    c0: f64,
+    /// ns per tick.
+    pub slope: f64,
+    offset: f64,
+    /// A frame further off than this (ns) was paired with the wrong trigger: a quarter of the
+    /// median trigger spacing, at least 1 ms.
+    pub limit_ns: f64,
+}
+
+impl RobustClock {
+    /// From points in trigger order; `None` with fewer than 3 or no two at different ticks.
+    pub fn fit(points: &[(u64, u64)]) -> Option<RobustClock> {
+        if points.len() < 3 {
+            return None;
+        }
+        let median = |mut v: Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v.get(v.len() / 2).copied()
+        };
+        let (t0, c0) = (points[0].0 as f64, points[0].1 as f64);
+        let xy: Vec<(f64, f64)> = points.iter().map(|p| (p.0 as f64 - t0, p.1 as f64 - c0)).collect();
+        let slopes: Vec<f64> = xy
+            .windows(2)
+            .filter(|w| w[1].0 > w[0].0)
+            .map(|w| (w[1].1 - w[0].1) / (w[1].0 - w[0].0))
+            .collect();
+        let slope = median(slopes)?;
+        if slope <= 0.0 {
+            return None;
+        }
+        let offset = median(xy.iter().map(|(x, y)| y - slope * x).collect())?;
+        let gaps: Vec<f64> = xy.windows(2).map(|w| (w[1].0 - w[0].0) * slope).collect();
+        let limit_ns = (0.25 * median(gaps).unwrap_or(0.0)).max(1e6);
+        Some(RobustClock { t0, c0, slope, offset, limit_ns })
     }
-    let median = |mut v: Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v.get(v.len() / 2).copied()
-    };
-    let (t0, c0) = (points[0].0 as f64, points[0].1 as f64);
-    let xy: Vec<(f64, f64)> = points.iter().map(|p| (p.0 as f64 - t0, p.1 as f64 - c0)).collect();
-    let slopes: Vec<f64> =
-        xy.windows(2).filter(|w| w[1].0 > w[0].0).map(|w| (w[1].1 - w[0].1) / (w[1].0 - w[0].0)).collect();
-    let Some(slope) = median(slopes) else { return Vec::new() };
-    let Some(offset) = median(xy.iter().map(|(x, y)| y - slope * x).collect()) else { return Vec::new() };
-    let gaps: Vec<f64> = xy.windows(2).map(|w| (w[1].0 - w[0].0) * slope).collect();
-    let limit = (0.25 * median(gaps).unwrap_or(0.0)).max(1e6);
-    xy.iter()
+
+    /// Camera time minus the clock's time for `tick`, ns.
+    pub fn residual_ns(&self, tick: u64, time_ns: u64) -> f64 {
+        (time_ns as f64 - self.c0) - (self.offset + self.slope * (tick as f64 - self.t0))
+    }
+
+    /// The controller's tick at camera time `time_ns`.
+    pub fn tick_at(&self, time_ns: u64) -> f64 {
+        self.t0 + ((time_ns as f64 - self.c0) - self.offset) / self.slope
+    }
+}
+
+/// The points of `points` (`(trigger tick, camera time ns)`, in trigger order) that the
+/// camera's clock ([`RobustClock`]) puts off their triggers. A camera that missed a trigger
+/// numbers every later frame one early, and exactly those frames land a spacing off. Returns
+/// `(index, residual ns)`; nothing with fewer than 3 points.
+pub fn off_their_triggers(points: &[(u64, u64)]) -> Vec<(usize, f64)> {
+    let Some(clock) = RobustClock::fit(points) else { return Vec::new() };
+    points
+        .iter()
         .enumerate()
-        .map(|(k, (x, y))| (k, y - (offset + slope * x)))
-        .filter(|(_, r)| r.abs() > limit)
+        .map(|(k, &(t, c))| (k, clock.residual_ns(t, c)))
+        .filter(|(_, r)| r.abs() > clock.limit_ns)
         .collect()
+}
+
+/// Pairs again, by the camera's clock, the frames a line-triggered camera's timestamps put off
+/// their triggers (`stamps[arrival]`: each arrival's camera time, ns): each goes to the
+/// trigger of its camera at the tick its stamp names (within [`RobustClock::limit_ns`]) if no
+/// frame in agreement with the clock holds it, else it is extra; triggers left without a frame
+/// are missing. Returns the triggers that had a frame by number and have none by the clock:
+/// the ones the camera missed, `(camera, frame)`.
+pub fn repair_by_stamps(pairing: &mut Pairing, stamps: &[Option<u64>]) -> Vec<(u8, u32)> {
+    let mut cameras: Vec<u8> = pairing.pairs.iter().map(|p| p.trigger.camera).collect();
+    cameras.sort_unstable();
+    cameras.dedup();
+    let mut missed = Vec::new();
+    for cam in cameras {
+        let mut mine: Vec<Pair> = pairing.pairs.iter().filter(|p| p.trigger.camera == cam).copied().collect();
+        mine.sort_by_key(|p| p.trigger.frame);
+        let stamp = |p: &Pair| stamps.get(p.arrival).copied().flatten();
+        let pts: Vec<(u64, u64)> =
+            mine.iter().filter_map(|p| stamp(p).map(|s| (p.trigger.tick, s))).collect();
+        let Some(clock) = RobustClock::fit(&pts) else { continue };
+        let off =
+            |p: &Pair| stamp(p).is_some_and(|s| clock.residual_ns(p.trigger.tick, s).abs() > clock.limit_ns);
+        if !mine.iter().any(off) {
+            continue;
+        }
+        // Every trigger of this camera, by number and by clock.
+        let mut triggers: Vec<Trigger> = mine.iter().map(|p| p.trigger).collect();
+        triggers.extend(pairing.missing.iter().filter(|t| t.camera == cam).copied());
+        triggers.sort_by_key(|t| t.tick);
+        let (keep, moved): (Vec<Pair>, Vec<Pair>) = mine.iter().partition(|p| !off(p));
+        let mut taken: std::collections::BTreeSet<u32> = keep.iter().map(|p| p.trigger.frame).collect();
+        let mut pairs = keep;
+        for p in moved {
+            let at = clock.tick_at(stamp(&p).expect("off needs a stamp"));
+            let nearest = triggers
+                .iter()
+                .filter(|t| !taken.contains(&t.frame))
+                .min_by(|a, b| (a.tick as f64 - at).abs().total_cmp(&(b.tick as f64 - at).abs()));
+            match nearest {
+                Some(t) if (t.tick as f64 - at).abs() * clock.slope <= clock.limit_ns => {
+                    taken.insert(t.frame);
+                    let delay_us = t.host_us.map(|h| p.arrived_us - h);
+                    pairs.push(Pair { trigger: *t, delay_us, ..p });
+                }
+                _ => pairing.extra.push(Extra {
+                    arrival: p.arrival,
+                    camera: cam,
+                    frame: p.trigger.frame,
+                    arrived_us: p.arrived_us,
+                    reason: ExtraReason::NoTrigger,
+                }),
+            }
+        }
+        for t in triggers.iter().filter(|t| !taken.contains(&t.frame)) {
+            if mine.iter().any(|p| p.trigger.frame == t.frame) {
+                missed.push((cam, t.frame));
+            }
+        }
+        pairing.missing.retain(|t| t.camera != cam);
+        pairing.missing.extend(triggers.iter().filter(|t| !taken.contains(&t.frame)).copied());
+        pairing.pairs.retain(|p| p.trigger.camera != cam);
+        pairing.pairs.extend(pairs);
+    }
+    pairing.pairs.sort_by_key(|p| (p.trigger.tick, p.trigger.camera));
+    pairing.missing.sort_by_key(|t| (t.tick, t.camera));
+    missed
 }
 
 #[cfg(test)]
