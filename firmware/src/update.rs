@@ -15,23 +15,19 @@ use lightrig_protocol::update::{
 
 use crate::hal::{FirmwareSlots, SlotError};
 
-/// The update in progress, if any.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+/// The update in progress, if any: `Idle`, `Receiving` or `Ready` (`Unconfirmed` is the
+/// slots' state, never held here).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Updater {
     phase: Phase,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-enum Phase {
-    #[default]
-    Idle,
-    Receiving {
-        image: ImageInfo,
-        received: u32,
-    },
-    Ready {
-        image: ImageInfo,
-    },
+type Phase = UpdatePhase;
+
+impl Default for Updater {
+    fn default() -> Self {
+        Updater { phase: Phase::Idle }
+    }
 }
 
 fn slot_err(e: SlotError) -> UpdateError {
@@ -62,7 +58,7 @@ impl Updater {
             UpdateCommand::Write { offset, data } => self.write(*offset, data, slots)?,
             UpdateCommand::Finish(sig) => self.finish(&sig.to_bytes(), slots)?,
             UpdateCommand::Cancel => match self.phase {
-                Phase::Idle => return Err(UpdateError::NotBegun),
+                Phase::Idle | Phase::Unconfirmed => return Err(UpdateError::NotBegun),
                 Phase::Receiving { .. } => self.phase = Phase::Idle,
                 Phase::Ready { .. } => {
                     // The image is marked for the swap: writing the "booted" mark over it
@@ -167,9 +163,7 @@ impl Updater {
         let unconfirmed = slots.unconfirmed().unwrap_or(false);
         let phase = match self.phase {
             Phase::Idle if unconfirmed => UpdatePhase::Unconfirmed,
-            Phase::Idle => UpdatePhase::Idle,
-            Phase::Receiving { image, received } => UpdatePhase::Receiving { image, received },
-            Phase::Ready { image } => UpdatePhase::Ready { image },
+            other => other,
         };
         let running = find(slot, |at, buf| slots.read_active(at, buf).is_ok());
         // The update slot holds the image before the last swap only while no new one is being
