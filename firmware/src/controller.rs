@@ -350,14 +350,16 @@ impl<C: Clock, B: Board> Controller<C, B> {
         }
     }
 
-    /// A firmware update command. An update begins only with the rig at rest, and with the
-    /// lasers disarmed: nothing moves or lights until it ends (a reset, or `Cancel`).
+    /// A firmware update command. An update begins only with no sequence running; it disarms
+    /// the lasers and stops the motors: nothing moves or lights until it ends (a reset, or
+    /// `Cancel`).
     fn update(&mut self, cmd: &UpdateCommand, now: u64) -> Result<Reply, Error> {
         if let UpdateCommand::Begin(_) = cmd {
             if let state @ DeviceState::Running { .. } = self.rig.state() {
                 return Err(Error::InvalidState(state));
             }
             self.rig.disarm(now);
+            self.rig.stop_motion(now);
         }
         let board = self.info.board;
         let status = self.update.handle(cmd, self.rig.board_mut(), board).map_err(Error::Update)?;

@@ -79,13 +79,25 @@ fn a_firmware_nobody_confirms_is_rolled_back_after_the_confirmation_window() {
 }
 
 #[test]
-fn nothing_lights_or_moves_while_an_update_is_under_way() {
+fn an_update_stops_what_lights_or_moves_and_nothing_starts_until_it_ends() {
     // Lasers configured and armed.
     let mut c = common::setup(device());
     assert_ne!(c.transport().device().rig().armed(), 0);
+    // Stepper 0 on a long move (80 000 steps at 16 000 steps/s: 5 s).
+    use lightrig_protocol::sequence::{Action, Profile};
+    let far = Action::StepperMove { axis: 0, target: 40_000, profile: Profile { max_speed: 0, accel: 0 } };
+    c.request(Command::Immediate(far)).unwrap();
+    c.idle(500_000).unwrap();
     let img = virtual_image(v(2));
     flash::update(&mut c, UpdateCommand::Begin(img.info)).unwrap();
     assert_eq!(c.transport().device().rig().armed(), 0, "lasers disarmed by Begin");
+    // The motor decelerates to a stop (0.1 s at 160 000 steps/s²), far from its target.
+    let at_begin = c.transport().device().rig().board().steppers[0].position;
+    c.idle(1_000_000).unwrap();
+    let stopped = c.transport().device().rig().board().steppers[0].position;
+    c.idle(1_000_000).unwrap();
+    assert_eq!(c.transport().device().rig().board().steppers[0].position, stopped, "at rest");
+    assert!(stopped - at_begin < 1_000 && stopped < 20_000, "{at_begin} → {stopped}");
     let e = c.request(Command::Arm { lasers: 0b1 }).unwrap_err();
     assert_eq!(refused_for_update(e), UpdateError::InProgress);
     flash::update(&mut c, UpdateCommand::Cancel).unwrap();

@@ -332,6 +332,13 @@ impl<B: Board> Rig<B> {
         self.heartbeat.watching |= watch;
     }
 
+    /// Every moving motor decelerates to a stop (a firmware update begins: nothing moves
+    /// until it ends).
+    pub fn stop_motion(&mut self, now: u64) {
+        self.due_fresh = false;
+        self.stop_motors(now, false);
+    }
+
     /// Emergency stop: safe state at once, motors without deceleration.
     pub fn emergency_stop(&mut self, now: u64) {
         self.due_fresh = false;
