@@ -354,14 +354,16 @@ impl<C: Clock, B: Board> Controller<C, B> {
     /// the lasers and stops the motors: nothing moves or lights until it ends (a reset, or
     /// `Cancel`).
     fn update(&mut self, cmd: &UpdateCommand, now: u64) -> Result<Reply, Error> {
-        if let UpdateCommand::Begin(_) = cmd {
+        let board = self.info.board;
+        if let UpdateCommand::Begin(image) = cmd {
             if let state @ DeviceState::Running { .. } = self.rig.state() {
                 return Err(Error::InvalidState(state));
             }
+            // An image this board cannot take changes nothing; one it can stops the rig first.
+            Updater::check_begin(image, self.rig.board(), board).map_err(Error::Update)?;
             self.rig.disarm(now);
             self.rig.stop_motion(now);
         }
-        let board = self.info.board;
         let status = self.update.handle(cmd, self.rig.board_mut(), board).map_err(Error::Update)?;
         match (cmd, status.phase) {
             // Swapped in at the reset that follows the answer.

@@ -77,10 +77,11 @@ impl Updater {
         Ok(self.status(slots))
     }
 
-    fn begin<S: FirmwareSlots + ?Sized>(
-        &mut self,
+    /// Whether `Begin(image)` would be refused for the board or the image itself (no slots,
+    /// another board, too large): checked before anything is stopped or erased.
+    pub fn check_begin<S: FirmwareSlots + ?Sized>(
         image: &ImageInfo,
-        slots: &mut S,
+        slots: &S,
         board: BoardId,
     ) -> Result<(), UpdateError> {
         let slot = slots.active_len();
@@ -93,6 +94,16 @@ impl Updater {
         if image.signed_len() > slot || image.code_len == 0 {
             return Err(UpdateError::TooLarge { image: image.signed_len(), slot });
         }
+        Ok(())
+    }
+
+    fn begin<S: FirmwareSlots + ?Sized>(
+        &mut self,
+        image: &ImageInfo,
+        slots: &mut S,
+        board: BoardId,
+    ) -> Result<(), UpdateError> {
+        Self::check_begin(image, slots, board)?;
         if let Phase::Receiving { image: going, .. } = self.phase {
             if going == *image {
                 // The same image: go on where the transfer stopped.

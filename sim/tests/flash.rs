@@ -113,6 +113,7 @@ fn an_update_stops_what_lights_or_moves_and_nothing_starts_until_it_ends() {
     let e = flash::send(&mut c, &other, |_, _| {}).unwrap_err();
     let FlashError::Client(e) = e else { panic!("{e}") };
     assert!(matches!(refused_for_update(e), UpdateError::WrongBoard { .. }));
+    assert_ne!(c.transport().device().rig().armed(), 0, "a refused image changes nothing");
     c.request(Command::Arm { lasers: 0b1 }).unwrap();
 }
 
