@@ -16,7 +16,7 @@ use lightrig_protocol::event::DeviceState;
 use lightrig_protocol::link::{Delivery, Link, LinkConfig, Role};
 use lightrig_protocol::message::Status;
 use lightrig_protocol::session::DeviceInfo;
-use lightrig_protocol::update::{UpdateCommand, UpdateError, UpdatePhase};
+use lightrig_protocol::update::{UpdateCommand, UpdateError};
 use lightrig_protocol::{
     Command, DeviceMsg, Error, HostMsg, Reply, MAX_FRAME, PROTOCOL_VERSION, SCHEMA_HASH,
 };
@@ -70,8 +70,8 @@ pub struct Controller<C: Clock, B: Board> {
     update: Updater,
     /// Tick by which a swapped-in firmware must be confirmed.
     confirm_by: Option<u64>,
-    /// The board should reset (an image is ready to swap in, or was never confirmed).
-    reset_requested: bool,
+    /// A swapped-in firmware was not confirmed in time: the board should reset (rollback).
+    rollback_requested: bool,
 }
 
 /// Where the host session stands.
@@ -115,7 +115,7 @@ impl<C: Clock, B: Board> Controller<C, B> {
             ignored_datagrams: 0,
             update: Updater::default(),
             confirm_by,
-            reset_requested: false,
+            rollback_requested: false,
         }
     }
 
@@ -146,7 +146,7 @@ impl<C: Clock, B: Board> Controller<C, B> {
             self.confirm_by = None;
             // Nobody confirmed the new firmware: back to the old one.
             if self.rig.board_mut().unconfirmed().unwrap_or(false) {
-                self.reset_requested = true;
+                self.rollback_requested = true;
             }
         }
         self.pump_events();
@@ -156,7 +156,9 @@ impl<C: Clock, B: Board> Controller<C, B> {
     /// has the answer that says so), or a swapped-in firmware was not confirmed in time. The
     /// board's run loop resets the MCU; the bootloader does the rest.
     pub fn wants_reset(&self) -> bool {
-        self.reset_requested && self.link.unacked() == 0
+        // Derived from the updater, not latched: a `Cancel` that reaches the device before it
+        // resets unmarks the image, and then nothing is left to reset for.
+        (self.update.ready() || self.rollback_requested) && self.link.unacked() == 0
     }
 
     /// Tick of the last command from the host.
@@ -365,11 +367,9 @@ impl<C: Clock, B: Board> Controller<C, B> {
             self.rig.stop_motion(now);
         }
         let status = self.update.handle(cmd, self.rig.board_mut(), board).map_err(Error::Update)?;
-        match (cmd, status.phase) {
-            // Swapped in at the reset that follows the answer.
-            (UpdateCommand::Finish(_), UpdatePhase::Ready { .. }) => self.reset_requested = true,
-            (UpdateCommand::Confirm, _) => self.confirm_by = None,
-            _ => {}
+        // A Ready image is swapped in at the reset that follows the answer (`wants_reset`).
+        if let UpdateCommand::Confirm = cmd {
+            self.confirm_by = None;
         }
         Ok(Reply::Update(status))
     }

@@ -45,6 +45,11 @@ impl Updater {
         self.phase != Phase::Idle
     }
 
+    /// An image received, checked and marked: the next reset swaps it in.
+    pub fn ready(&self) -> bool {
+        matches!(self.phase, Phase::Ready { .. })
+    }
+
     /// Carries out `cmd` on `slots` for a device that is a `board`.
     pub fn handle<S: FirmwareSlots + ?Sized>(
         &mut self,

@@ -179,3 +179,19 @@ fn a_transfer_cut_half_way_goes_on_where_the_device_stands() {
     assert_eq!(c.info().firmware, v(2));
     flash::confirm(&mut c).unwrap();
 }
+
+#[test]
+fn a_cancel_right_after_finish_unmarks_the_image_and_the_device_does_not_reset() {
+    let mut c = device();
+    let boot = c.info().boot_id;
+    let img = virtual_image(v(2));
+    // The Cancel rides on the frame that acknowledges Finish's answer: the device sees it
+    // before the reset that answer asked for.
+    assert_eq!(flash::send(&mut c, &img, |_, _| {}).unwrap().phase, UpdatePhase::Ready { image: img.info });
+    assert_eq!(flash::update(&mut c, UpdateCommand::Cancel).unwrap().phase, UpdatePhase::Idle);
+    c.idle(2_000_000).unwrap();
+    let st = flash::update(&mut c, UpdateCommand::Status).unwrap();
+    assert_eq!((st.phase, st.running.map(|i| i.version)), (UpdatePhase::Idle, Some(v(1))));
+    assert_eq!(c.transport().device().info().boot_id, boot, "no reset");
+    assert!(!c.transport().device().wants_reset());
+}
