@@ -26,6 +26,7 @@ mod fmt;
 
 #[cfg(feature = "boot")]
 pub mod boot;
+pub mod boards;
 pub mod controller;
 pub mod galvo;
 pub mod hal;

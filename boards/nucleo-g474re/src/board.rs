@@ -28,7 +28,7 @@ use lightrig_protocol::sequence::AxisRef;
 use crate::inputs;
 use crate::step::StepPulse;
 use crate::trigger::Trigger;
-use crate::voice::VoiceStream;
+use crate::voice::VoiceOutputs;
 
 /// The galvo DAC's SPI device: SPI1 with the DAC8563's SYNC as chip select.
 #[cfg(not(feature = "xy2-100"))]
@@ -113,21 +113,21 @@ impl Motor {
 /// Everything the rig drives on this board.
 pub struct Nucleo {
     pub galvo: Galvo,
-    pub lasers: [SafeOutput; 2],
-    pub interlocks: [Input<'static>; 2],
+    pub lasers: [SafeOutput; 4],
+    pub interlocks: [Input<'static>; 4],
     pub trigger: Trigger,
     /// Camera 0 exposure input (PB10, TIM2_CH3): held so nothing else claims it; its edges are
     /// captured by TIM2 and collected in the EXTI handler.
     pub _exposure: Flex<'static>,
-    pub stepper: Motor,
+    pub steppers: [Motor; 2],
     pub wheel: Motor,
-    pub voice: VoiceStream,
+    pub voice: VoiceOutputs,
 }
 
 impl Nucleo {
     fn motor(&mut self, motor: AxisRef) -> Option<&mut Motor> {
         match motor {
-            AxisRef::Stepper(0) => Some(&mut self.stepper),
+            AxisRef::Stepper(n) => self.steppers.get_mut(usize::from(n)),
             AxisRef::FilterWheel(0) => Some(&mut self.wheel),
             _ => None,
         }
@@ -217,8 +217,6 @@ impl lightrig_firmware::hal::FirmwareSlots for Nucleo {}
 
 impl VoiceCoils for Nucleo {
     fn write_samples(&mut self, channel: u8, first_sample: u64, samples: &[i16], at: u64) {
-        if channel == 0 {
-            self.voice.write(first_sample, samples, at);
-        }
+        self.voice.write(channel, first_sample, samples, at);
     }
 }

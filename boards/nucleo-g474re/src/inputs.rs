@@ -34,8 +34,8 @@ static OVERFLOW: Mutex<RefCell<bool>> = Mutex::new(RefCell::new(false));
 
 /// EXTI line of camera 0's exposure input (PB10).
 pub const EXPOSURE0_LINE: usize = 10;
-/// EXTI lines of the interlock inputs (PC8, PA9).
-pub const INTERLOCK_LINES: [usize; 2] = [8, 9];
+/// EXTI lines of the interlock inputs (PC8, PA9, PC2, PC3) and their ports (A = 0).
+pub const INTERLOCK_LINES: [(usize, u8); 4] = [(8, 2), (9, 0), (2, 2), (3, 2)];
 
 /// TIM2 channel 3 (CCER and CCR index 2; CCMR2 field 0) and PB10's alternate function for it.
 const CAPTURE_CHANNEL: usize = 2;
@@ -68,7 +68,7 @@ pub fn exposure_pin(mut pin: Flex<'static>) -> Flex<'static> {
 pub fn init() {
     pac::RCC.apb2enr().modify(|w| w.set_syscfgen(true));
     // (line, port index: A = 0)
-    for (line, port) in [(EXPOSURE0_LINE, 1u8), (INTERLOCK_LINES[0], 2), (INTERLOCK_LINES[1], 0)] {
+    for (line, port) in core::iter::once((EXPOSURE0_LINE, 1u8)).chain(INTERLOCK_LINES) {
         pac::SYSCFG.exticr(line / 4).modify(|w| w.set_exti(line % 4, port));
         pac::EXTI.rtsr(0).modify(|w| w.set_line(line, true));
         pac::EXTI.ftsr(0).modify(|w| w.set_line(line, true));
@@ -77,6 +77,8 @@ pub fn init() {
     }
     // SAFETY: the handlers below only touch critical-section-protected state.
     unsafe {
+        cortex_m::peripheral::NVIC::unmask(pac::Interrupt::EXTI2);
+        cortex_m::peripheral::NVIC::unmask(pac::Interrupt::EXTI3);
         cortex_m::peripheral::NVIC::unmask(pac::Interrupt::EXTI9_5);
         cortex_m::peripheral::NVIC::unmask(pac::Interrupt::EXTI15_10);
     }
@@ -122,13 +124,28 @@ fn EXTI15_10() {
     }
 }
 
-#[interrupt]
-fn EXTI9_5() {
+/// An interlock changed: clear its pending bits and wake the loop, which reads the levels.
+fn interlock_edge() {
     let pending = pac::EXTI.pr(0).read();
-    for line in INTERLOCK_LINES {
+    for (line, _) in INTERLOCK_LINES {
         if pending.line(line) {
             pac::EXTI.pr(0).write(|w| w.set_line(line, true));
             WAKE.signal(());
         }
     }
+}
+
+#[interrupt]
+fn EXTI9_5() {
+    interlock_edge();
+}
+
+#[interrupt]
+fn EXTI2() {
+    interlock_edge();
+}
+
+#[interrupt]
+fn EXTI3() {
+    interlock_edge();
 }

@@ -45,8 +45,9 @@ use lightrig_firmware::galvo::Xy2Gpio;
 use lightrig_firmware::galvo::{SpiDacGalvo, SpiDacKind};
 use lightrig_firmware::timer_schedule::{lookahead_tick, wake_tick};
 use lightrig_firmware::Controller;
-use lightrig_protocol::session::{BoardId, Capabilities, DeviceInfo, Version};
-use lightrig_protocol::{MAX_FRAME, MAX_PACKET, PROTOCOL_VERSION, SCHEMA_HASH};
+use lightrig_firmware::boards::{NUCLEO_G474RE, NUCLEO_G474RE_TICK_HZ};
+use lightrig_protocol::session::{BoardId, DeviceInfo, Version};
+use lightrig_protocol::{MAX_FRAME, PROTOCOL_VERSION, SCHEMA_HASH};
 use static_cell::StaticCell;
 
 use crate::board::{now_ticks, Motor, Nucleo, SafeOutput, LOOKAHEAD_TICKS};
@@ -57,6 +58,7 @@ bind_interrupts!(struct Irqs {
     USB_LP => usb::InterruptHandler<USB>;
     RNG => rng::InterruptHandler<RNG>;
     DMA1_CHANNEL1 => dma::InterruptHandler<peripherals::DMA1_CH1>;
+    DMA1_CHANNEL2 => dma::InterruptHandler<peripherals::DMA1_CH2>;
 });
 
 /// USB ids and interface layout the host's `UsbTransport` expects (host/src/transport/usb.rs).
@@ -76,6 +78,9 @@ const WRITE_TIMEOUT: Duration = Duration::from_millis(10);
 const WATCHDOG_US: u32 = 500_000;
 
 type UsbDrv = Driver<'static, USB>;
+
+// The tick rate the host is told is the one embassy-time counts.
+const _: () = assert!(embassy_time::TICK_HZ == NUCLEO_G474RE_TICK_HZ as u64);
 
 fn clocks() -> Config {
     let mut config = Config::default();
@@ -135,21 +140,42 @@ async fn main(spawner: Spawner) {
 
     let trigger = Trigger::new(Flex::new(p.PA10));
     // The step pulses' one-pulse timers (step.rs programs them): taken so nothing else can.
-    let _step_timers = (p.TIM3, p.TIM15);
+    let _step_timers = (p.TIM3, p.TIM15, p.TIM17);
+    // Pin map: docs/boards/nucleo-g474re.md (the same counts as `boards::NUCLEO_G474RE`).
     let board = Nucleo {
         galvo,
-        lasers: [SafeOutput::new(Flex::new(p.PB5)), SafeOutput::new(Flex::new(p.PC7))],
-        interlocks: [Input::new(p.PC8, Pull::None), Input::new(p.PA9, Pull::None)],
+        lasers: [
+            SafeOutput::new(Flex::new(p.PB5)),
+            SafeOutput::new(Flex::new(p.PC7)),
+            SafeOutput::new(Flex::new(p.PC4)),
+            SafeOutput::new(Flex::new(p.PC5)),
+        ],
+        interlocks: [
+            Input::new(p.PC8, Pull::None),
+            Input::new(p.PA9, Pull::None),
+            Input::new(p.PC2, Pull::None),
+            Input::new(p.PC3, Pull::None),
+        ],
         trigger,
         _exposure: inputs::exposure_pin(Flex::new(p.PB10)),
-        stepper: Motor {
-            step: StepPulse::new(Flex::new(p.PA6), StepTimer::Tim3),
-            dir: Output::new(p.PA8, Level::Low, Speed::High),
-            enable: SafeOutput::new(Flex::new(p.PA1)),
-            limit_min: Some(Input::new(p.PC0, Pull::None)),
-            limit_max: Some(Input::new(p.PC1, Pull::None)),
-            index: Some(Input::new(p.PB0, Pull::None)),
-        },
+        steppers: [
+            Motor {
+                step: StepPulse::new(Flex::new(p.PC6), StepTimer::Tim3),
+                dir: Output::new(p.PA8, Level::Low, Speed::High),
+                enable: SafeOutput::new(Flex::new(p.PA1)),
+                limit_min: Some(Input::new(p.PC0, Pull::None)),
+                limit_max: Some(Input::new(p.PC1, Pull::None)),
+                index: Some(Input::new(p.PB0, Pull::None)),
+            },
+            Motor {
+                step: StepPulse::new(Flex::new(p.PB9), StepTimer::Tim17),
+                dir: Output::new(p.PB12, Level::Low, Speed::High),
+                enable: SafeOutput::new(Flex::new(p.PB11)),
+                limit_min: Some(Input::new(p.PA0, Pull::None)),
+                limit_max: Some(Input::new(p.PB2, Pull::None)),
+                index: Some(Input::new(p.PB7, Pull::None)),
+            },
+        ],
         wheel: Motor {
             step: StepPulse::new(Flex::new(p.PB14), StepTimer::Tim15),
             dir: Output::new(p.PB13, Level::Low, Speed::High),
@@ -158,12 +184,16 @@ async fn main(spawner: Spawner) {
             limit_max: None,
             index: Some(Input::new(p.PB1, Pull::None)),
         },
-        voice: voice::VoiceStream::new(),
+        voice: voice::VoiceOutputs::new(),
     };
     inputs::init();
 
-    let dac = DacChannel::new_triggered(p.DAC1, p.DMA1_CH1, embassy_stm32::triggers::TIM6_TRGO, Irqs, p.PA4);
-    spawner.spawn(voice_coil_dma(dac).expect("spawn voice-coil task: pool size 1, spawned once"));
+    // Voice coils: DAC1 channel 1 (PA4) and DAC2 channel 1 (PA6), both paced by TIM6, which is
+    // stopped until a stream starts: both DMAs begin at their rings' first slot in lockstep.
+    let coil0 = DacChannel::new_triggered(p.DAC1, p.DMA1_CH1, embassy_stm32::triggers::TIM6_TRGO, Irqs, p.PA4);
+    let coil1 = DacChannel::new_triggered(p.DAC2, p.DMA1_CH2, embassy_stm32::triggers::TIM6_TRGO, Irqs, p.PA6);
+    spawner.spawn(voice_coil_dma(coil0, 0).expect("spawn voice-coil task 0: pool size 2"));
+    spawner.spawn(voice_coil_dma(coil1, 1).expect("spawn voice-coil task 1: pool size 2"));
 
     // USB: vendor bulk interface 0 (EP 0x01 OUT, 0x81 IN), then CDC-ACM (interfaces 1-2).
     let driver = Driver::new(p.USB, Irqs, p.PA12, p.PA11);
@@ -213,22 +243,10 @@ async fn main(spawner: Spawner) {
         firmware: Version { major: 0, minor: 1, patch: 0 },
         board: BoardId::NucleoG474re,
         serial,
-        tick_hz: embassy_time::TICK_HZ as u32,
+        tick_hz: NUCLEO_G474RE_TICK_HZ,
         reset_cause,
         boot_id,
-        capabilities: Capabilities {
-            galvos: 1,
-            lasers: 2,
-            steppers: 1,
-            filter_wheels: 1,
-            voice_coils: 1,
-            partials_per_coil: 8,
-            cameras: 1,
-            sequence_buffer: 0, // the controller fills in its own
-            event_queue: 0,
-            link_window: 0,
-            max_packet: MAX_PACKET as u16,
-        },
+        capabilities: NUCLEO_G474RE,
     };
     defmt::info!("boot id {=u32:08x}, serial {=u64:016x}", boot_id, serial);
     let mut ctl = Controller::new(EmbassyClock, board, info, RTO_TICKS);
@@ -355,9 +373,9 @@ async fn usb_task(mut usb: UsbDevice<'static, UsbDrv>) -> ! {
     usb.run().await
 }
 
-/// Runs the circular DMA that feeds the DAC from the voice-coil ring; never completes.
-#[embassy_executor::task]
-async fn voice_coil_dma(mut dac: DacChannel<'static, Async>) {
-    dac.write(ValueArray::Bit12Left(voice::ring()), true).await;
-    defmt::error!("voice-coil DMA stopped");
+/// Runs the circular DMA that feeds a coil's DAC from its ring; never completes.
+#[embassy_executor::task(pool_size = 2)]
+async fn voice_coil_dma(mut dac: DacChannel<'static, Async>, coil: usize) {
+    dac.write(ValueArray::Bit12Left(voice::ring(coil)), true).await;
+    defmt::error!("voice-coil {} DMA stopped", coil);
 }

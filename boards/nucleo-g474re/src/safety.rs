@@ -14,13 +14,17 @@ use embassy_stm32::pac::gpio::vals::Moder;
 use lightrig_protocol::session::ResetCause;
 
 /// Port index (A = 0) and pin of every output that must go inactive on a panic.
-pub const SAFE_OUTPUTS: [(usize, usize); 7] = [
+pub const SAFE_OUTPUTS: [(usize, usize); 11] = [
     (1, 5),  // PB5  laser 0 enable
     (2, 7),  // PC7  laser 1 enable
+    (2, 4),  // PC4  laser 2 enable
+    (2, 5),  // PC5  laser 3 enable
     (0, 10), // PA10 camera 0 trigger (TIM2_CH4)
     (0, 1),  // PA1  stepper 0 enable
+    (1, 11), // PB11 stepper 1 enable
     (1, 15), // PB15 filter wheel 0 enable
-    (0, 6),  // PA6  stepper 0 step (TIM3_CH1)
+    (2, 6),  // PC6  stepper 0 step (TIM3_CH1)
+    (1, 9),  // PB9  stepper 1 step (TIM17_CH1)
     (1, 14), // PB14 filter wheel 0 step (TIM15_CH1)
 ];
 

@@ -1,5 +1,5 @@
-//! Step pulses from one-pulse-mode timers: stepper 0's STEP on TIM3_CH1 (PA6, AF2), the filter
-//! wheel's on TIM15_CH1 (PB14, AF1). The CPU starts the timer at the step's tick (the board
+//! Step pulses from one-pulse-mode timers: stepper 0's STEP on TIM3_CH1 (PC6, AF2), stepper
+//! 1's on TIM17_CH1 (PB9, AF1), the filter wheel's on TIM15_CH1 (PB14, AF1). The CPU starts the timer at the step's tick (the board
 //! has already waited for it); the timer makes the 2 µs pulse and stops, so the loop no longer
 //! spins for the pulse's width.
 
@@ -26,14 +26,16 @@ const MAX_BUSY_POLLS: u32 = 1_000;
 /// Which timer makes a STEP pin's pulses.
 #[derive(Clone, Copy)]
 pub enum StepTimer {
-    /// TIM3 channel 1 (PA6, AF2).
+    /// TIM3 channel 1 (PC6, AF2).
     Tim3,
     /// TIM15 channel 1 (PB14, AF1); has a main output enable.
     Tim15,
+    /// TIM17 channel 1 (PB9, AF1); has a main output enable.
+    Tim17,
 }
 
 impl StepTimer {
-    /// The registers shared by both (same offsets in TIM3 and TIM15: CR1, CCMR1, CCER, CNT,
+    /// The registers they share (same offsets in TIM3, TIM15 and TIM17: CR1, CCMR1, CCER, CNT,
     /// PSC, ARR, CCR1), through the general-purpose view.
     fn regs(self) -> TimGp16 {
         match self {
@@ -41,13 +43,15 @@ impl StepTimer {
             // SAFETY: TIM15's block has these registers at the general-purpose offsets; only
             // they are used through this view.
             StepTimer::Tim15 => unsafe { TimGp16::from_ptr(pac::TIM15.as_ptr()) },
+            // SAFETY: as TIM15 (TIM17 is the one-channel member of the same family).
+            StepTimer::Tim17 => unsafe { TimGp16::from_ptr(pac::TIM17.as_ptr()) },
         }
     }
 
     fn af(self) -> u8 {
         match self {
             StepTimer::Tim3 => 2,
-            StepTimer::Tim15 => 1,
+            StepTimer::Tim15 | StepTimer::Tim17 => 1,
         }
     }
 }
@@ -64,6 +68,7 @@ impl StepPulse {
         match timer {
             StepTimer::Tim3 => pac::RCC.apb1enr1().modify(|w| w.set_tim3en(true)),
             StepTimer::Tim15 => pac::RCC.apb2enr().modify(|w| w.set_tim15en(true)),
+            StepTimer::Tim17 => pac::RCC.apb2enr().modify(|w| w.set_tim17en(true)),
         }
         let t = timer.regs();
         t.cr1().modify(|w| {
@@ -85,8 +90,10 @@ impl StepPulse {
             w.set_ccp(0, false);
             w.set_cce(0, true);
         });
-        if let StepTimer::Tim15 = timer {
-            pac::TIM15.bdtr().modify(|w| w.set_moe(true));
+        match timer {
+            StepTimer::Tim3 => {}
+            StepTimer::Tim15 => pac::TIM15.bdtr().modify(|w| w.set_moe(true)),
+            StepTimer::Tim17 => pac::TIM17.bdtr().modify(|w| w.set_moe(true)),
         }
         pin.set_as_af_unchecked(timer.af(), AfType::output(OutputType::PushPull, Speed::High));
         Self { _pin: pin, timer }
