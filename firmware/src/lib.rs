@@ -24,9 +24,9 @@
 #[macro_use]
 mod fmt;
 
+pub mod boards;
 #[cfg(feature = "boot")]
 pub mod boot;
-pub mod boards;
 pub mod controller;
 pub mod galvo;
 pub mod hal;

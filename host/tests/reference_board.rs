@@ -83,7 +83,10 @@ fn the_reference_board_offers_what_each_rig_needs_at_once() {
     assert_eq!(count("fluorescent-immersion.toml"), [1, 1, 1, 0, 0]);
     // DISCO's registration spotlights are a fourth switched output (`[plan] registration`).
     let c = NUCLEO_G474RE;
-    assert_eq!((c.galvos, c.lasers, c.steppers, c.filter_wheels, c.voice_coils, c.cameras), (1, 4, 2, 1, 2, 1));
+    assert_eq!(
+        (c.galvos, c.lasers, c.steppers, c.filter_wheels, c.voice_coils, c.cameras),
+        (1, 4, 2, 1, 2, 1)
+    );
 }
 
 /// The check bites: a peripheral beyond the board's is refused at its key and line.

@@ -6,6 +6,8 @@
 //!   image (`--virtual-key` signs with the virtual board's public development key).
 //! - `lightrig flash IMAGE --connect SPEC`: sends it, waits for the device to reset into the
 //!   bootloader's swap, checks the new firmware answers with the image's version, confirms it.
+//! - `lightrig flash --probe FIRMWARE.elf [--bootloader BOOT.elf]`: the first flash of a blank
+//!   board through its SWD probe (`flash_probe.rs`).
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -35,6 +37,20 @@ pub struct Args {
     /// reset, or when the device is not confirmed within 60 s.
     #[arg(long)]
     pub no_confirm: bool,
+    /// Write through the board's SWD probe instead (first flash of a blank board): IMAGE is
+    /// then the firmware's ELF file. Needs probe-rs; exits 3 when no probe is found.
+    #[arg(long, conflicts_with = "no_confirm")]
+    pub probe: bool,
+    /// With --probe: the bootloader's ELF file, written before the firmware.
+    #[arg(long, requires = "probe")]
+    pub bootloader: Option<PathBuf>,
+    /// With --probe: the board, which names the chip (`nucleo-g474re`).
+    #[arg(long, requires = "probe", default_value = "nucleo-g474re")]
+    pub board: String,
+    /// With --probe: which probe, as probe-rs names it (VID:PID[:SERIAL]), when several are
+    /// plugged in.
+    #[arg(long, requires = "probe")]
+    pub probe_id: Option<String>,
 }
 
 /// `lightrig flash` subcommands.
@@ -84,6 +100,18 @@ pub fn run(args: &Args) -> ExitCode {
         (Some(Cmd::Sign { code, key, virtual_key, board, version, schema_hash, out }), _) => {
             sign(code, key.as_deref(), *virtual_key, board, version, schema_hash.unwrap_or(SCHEMA_HASH), out)
         }
+        (None, Some(elf)) if args.probe => match board_named(&args.board) {
+            Some(board) => crate::cmd::flash_probe::flash(
+                board,
+                elf,
+                args.bootloader.as_deref(),
+                args.probe_id.as_deref(),
+            ),
+            None => Err(err(
+                USAGE,
+                format!("--board {}: unknown; boards: nucleo-g474re, qemu-mps2-an386, virtual", args.board),
+            )),
+        },
         (None, Some(image)) => send(image, &args.connect, !args.no_confirm),
         (None, None) => Err(err(
             USAGE,

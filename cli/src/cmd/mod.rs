@@ -6,6 +6,7 @@ pub mod device;
 pub mod display;
 pub mod fit;
 pub mod flash;
+pub mod flash_probe;
 pub mod hdr;
 pub mod selfcheck;
 pub mod sim;
