@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# Builds the NUCLEO-G474RE firmware for thumbv7em-none-eabihf (release, locked), in both galvo
-# variants (DAC8563 on SPI, feature `xy2-100`), and prints each size report: flash = .text +
-# .rodata + .data (its load image), RAM = .data + .bss (+ stack above). Installs what it needs
-# first, idempotently and without questions.
+# Builds the NUCLEO-G474RE bootloader and firmware for thumbv7em-none-eabihf (release, locked),
+# the firmware in both galvo variants (DAC8563 on SPI, feature `xy2-100`) with an update key,
+# and prints each size report against its partition (layout.rs): flash = .text + .rodata +
+# .data (its load image), RAM = .data + .bss (+ stack above). Installs what it needs first,
+# idempotently and without questions.
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -21,6 +22,16 @@ if [ -z "$size_tool" ]; then
   size_tool=arm-none-eabi-size
 fi
 
+# The bootloader (its own crate beside this one): 24 KiB at the start of flash.
+t0=$SECONDS
+(cd ../nucleo-g474re-bootloader && cargo build --release --locked)
+echo "build (bootloader): $((SECONDS - t0))s"
+read -r text data bss _ < <("$size_tool" -B ../nucleo-g474re-bootloader/target/thumbv7em-none-eabihf/release/lightrig-nucleo-g474re-bootloader | tail -1)
+printf 'size (bootloader): flash %d bytes (%d KiB of its 24 KiB partition)\n' "$((text + data))" $(((text + data + 1023) / 1024))
+[ $((text + data)) -le $((24 * 1024)) ] || { echo "the bootloader outgrew its partition (layout.rs)" >&2; exit 1; }
+
+# A key for the build check only (any public key builds the same code; labs build with theirs).
+export LIGHTRIG_UPDATE_KEY=${LIGHTRIG_UPDATE_KEY:-5ca1ab1e5ca1ab1e5ca1ab1e5ca1ab1e5ca1ab1e5ca1ab1e5ca1ab1e5ca1ab1e}
 elf=${CARGO_TARGET_DIR:-target}/thumbv7em-none-eabihf/release/lightrig-nucleo-g474re
 # Both galvo outputs: the DAC8563 on SPI1 (default) and the XY2-100 link (feature `xy2-100`).
 for variant in dac8563 xy2-100; do
@@ -34,6 +45,7 @@ for variant in dac8563 xy2-100; do
   read -r text data bss _ < <("$size_tool" -B "$elf" | tail -1)
   flash=$((text + data))
   ram=$((data + bss))
-  printf 'size (%s): flash %d bytes (%d KiB of 512 KiB), RAM %d bytes (%d KiB of 128 KiB, stack not included)\n' \
+  printf 'size (%s): flash %d bytes (%d KiB of its 232 KiB partition), RAM %d bytes (%d KiB of 128 KiB, stack not included)\n' \
     "$variant" "$flash" $(((flash + 1023) / 1024)) "$ram" $(((ram + 1023) / 1024))
+  [ "$flash" -le $((232 * 1024)) ] || { echo "the firmware outgrew the active partition (layout.rs)" >&2; exit 1; }
 done

@@ -19,13 +19,14 @@ use lightrig_firmware::galvo::GalvoOutput;
 use lightrig_firmware::galvo::SpiDacGalvo;
 #[cfg(feature = "xy2-100")]
 use lightrig_firmware::galvo::Xy2Gpio;
-use lightrig_firmware::hal::{Cameras, Capture, Galvos, HwError, Lasers, Motors, VoiceCoils};
+use lightrig_firmware::hal::{Cameras, Capture, FirmwareSlots, Galvos, HwError, Lasers, Motors, SlotError, VoiceCoils};
 use lightrig_firmware::timer_schedule::{must_wait, Counter};
 use lightrig_protocol::config::Xy;
 use lightrig_protocol::event::Switch;
 use lightrig_protocol::sequence::AxisRef;
 
 use crate::inputs;
+use crate::slots::Slots;
 use crate::step::StepPulse;
 use crate::trigger::Trigger;
 use crate::voice::VoiceOutputs;
@@ -122,6 +123,7 @@ pub struct Nucleo {
     pub steppers: [Motor; 2],
     pub wheel: Motor,
     pub voice: VoiceOutputs,
+    pub slots: Slots,
 }
 
 impl Nucleo {
@@ -212,8 +214,44 @@ impl Cameras for Nucleo {
     }
 }
 
-/// No bootloader on the reference board yet: flashed through its ST-LINK.
-impl lightrig_firmware::hal::FirmwareSlots for Nucleo {}
+/// The embassy-boot slots (`slots.rs`).
+impl FirmwareSlots for Nucleo {
+    fn active_len(&self) -> u32 {
+        self.slots.active_len()
+    }
+
+    fn fallback_offset(&self) -> u32 {
+        self.slots.fallback_offset()
+    }
+
+    fn read_active(&mut self, offset: u32, buf: &mut [u8]) -> Result<(), SlotError> {
+        self.slots.read_active(offset, buf)
+    }
+
+    fn read_update(&mut self, offset: u32, buf: &mut [u8]) -> Result<(), SlotError> {
+        self.slots.read_update(offset, buf)
+    }
+
+    fn erase_update(&mut self) -> Result<(), SlotError> {
+        self.slots.erase_update()
+    }
+
+    fn write_update(&mut self, offset: u32, data: &[u8]) -> Result<(), SlotError> {
+        self.slots.write_update(offset, data)
+    }
+
+    fn verify_and_mark(&mut self, len: u32, signature: &[u8; 64]) -> Result<(), SlotError> {
+        self.slots.verify_and_mark(len, signature)
+    }
+
+    fn unconfirmed(&mut self) -> Result<bool, SlotError> {
+        self.slots.unconfirmed()
+    }
+
+    fn confirm(&mut self) -> Result<(), SlotError> {
+        self.slots.confirm()
+    }
+}
 
 impl VoiceCoils for Nucleo {
     fn write_samples(&mut self, channel: u8, first_sample: u64, samples: &[i16], at: u64) {

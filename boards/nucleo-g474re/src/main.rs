@@ -8,16 +8,24 @@
 mod board;
 mod inputs;
 mod safety;
+mod slots;
 mod step;
 mod trigger;
 mod voice;
 #[cfg(feature = "xy2-100")]
 mod xy2;
 
+/// The flash layout shared with the bootloader and the build script.
+#[allow(dead_code)]
+mod layout {
+    include!("../layout.rs");
+}
+
 use defmt_rtt as _;
 use embassy_executor::Spawner;
 use embassy_futures::select::{select4, Either4};
 use embassy_stm32::dac::{DacChannel, ValueArray};
+use embassy_stm32::flash::Flash;
 use embassy_stm32::gpio::{Flex, Input, Level, Output, Pull, Speed};
 use embassy_stm32::mode::Async;
 use embassy_stm32::peripherals::{RNG, USB};
@@ -51,6 +59,7 @@ use lightrig_protocol::{MAX_FRAME, PROTOCOL_VERSION, SCHEMA_HASH};
 use static_cell::StaticCell;
 
 use crate::board::{now_ticks, Motor, Nucleo, SafeOutput, LOOKAHEAD_TICKS};
+use crate::slots::Slots;
 use crate::step::{StepPulse, StepTimer};
 use crate::trigger::Trigger;
 
@@ -74,6 +83,8 @@ const MAX_SLEEP: Duration = Duration::from_millis(50);
 /// A frame the host does not collect within this time is dropped (the link resends it), so an
 /// abandoned port cannot stall the rig's poll, and with it the heartbeat watchdog.
 const WRITE_TIMEOUT: Duration = Duration::from_millis(10);
+/// This firmware's version when the active slot holds no signed image (flashed by probe).
+const FIRMWARE: Version = Version { major: 0, minor: 1, patch: 0 };
 /// Independent watchdog: resets the MCU (lasers go high-impedance) if the loop stops.
 const WATCHDOG_US: u32 = 500_000;
 
@@ -142,7 +153,7 @@ async fn main(spawner: Spawner) {
     // The step pulses' one-pulse timers (step.rs programs them): taken so nothing else can.
     let _step_timers = (p.TIM3, p.TIM15, p.TIM17);
     // Pin map: docs/boards/nucleo-g474re.md (the same counts as `boards::NUCLEO_G474RE`).
-    let board = Nucleo {
+    let mut board = Nucleo {
         galvo,
         lasers: [
             SafeOutput::new(Flex::new(p.PB5)),
@@ -185,6 +196,7 @@ async fn main(spawner: Spawner) {
             index: Some(Input::new(p.PB1, Pull::None)),
         },
         voice: voice::VoiceOutputs::new(),
+        slots: Slots::new(Flash::new_blocking(p.FLASH)),
     };
     inputs::init();
 
@@ -237,10 +249,13 @@ async fn main(spawner: Spawner) {
     let usb = builder.build();
     spawner.spawn(usb_task(usb).expect("spawn USB task: pool size 1, spawned once"));
 
+    // The version the active slot's signed image says (one sent over the link); the crate's
+    // own for a firmware flashed through the probe.
+    let firmware = board.slots.running().map_or(FIRMWARE, |i| i.version);
     let info = DeviceInfo {
         protocol_version: PROTOCOL_VERSION,
         schema_hash: SCHEMA_HASH,
-        firmware: Version { major: 0, minor: 1, patch: 0 },
+        firmware,
         board: BoardId::NucleoG474re,
         serial,
         tick_hz: NUCLEO_G474RE_TICK_HZ,
@@ -299,6 +314,13 @@ async fn main(spawner: Spawner) {
                 // The host is not reading; the link retransmits once it is back.
                 break;
             }
+        }
+        if ctl.wants_reset() {
+            // An update is marked (the host has the answer that says so), or a swapped-in
+            // firmware was not confirmed in time: the bootloader swaps at the reset.
+            defmt::info!("resetting into the bootloader");
+            safety::release_outputs();
+            cortex_m::peripheral::SCB::sys_reset();
         }
     }
 }
