@@ -486,7 +486,7 @@ fn the_examples_in_the_format_doc_parse() {
             _ => {}
         }
     }
-    assert_eq!((manifests, records, lines), (1, 14, 4));
+    assert_eq!((manifests, records, lines), (1, 15, 4));
 }
 
 #[test]

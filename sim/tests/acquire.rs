@@ -12,7 +12,7 @@ use lightrig_firmware::sim::SimBoard;
 use lightrig_host::acquire::{self, plan_summary, AcquireError, Captured, DirectoryInput, FrameInput};
 use lightrig_host::client::Client;
 use lightrig_host::plan::{lls, Plan};
-use lightrig_host::session::{Manifest, Session};
+use lightrig_host::session::{Manifest, Record, Session};
 use lightrig_protocol::event::TriggerEvent;
 use lightrig_sim::transport::{Impairment, VirtualTransport};
 
@@ -693,5 +693,48 @@ fn a_device_reset_mid_step_is_seen_and_the_step_acquired_again_under_the_new_boo
     assert_eq!(interrupted.len(), 1, "one step was cut short and acquired again");
     drop(session);
     check_complete(&dir, &plan);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn a_finished_sessions_missing_frames_are_retaken_by_reopening_their_steps() {
+    let dir = temp_dir("retake");
+    let plan = lls_plan();
+    let mut session = new_session(&dir, &plan);
+    let mut client = connect(SimBoard::default());
+    // Step 0's frame 5 lost at each of its three tries: the session ends with it missing.
+    let mut cam = TestCamera { drop: vec![5, 26, 47], ..Default::default() };
+    acquire::run(&mut client, &mut session, &plan, &mut cam, |_| {}).unwrap();
+    assert!(session.is_done());
+    let missing = session.steps_missing_frames();
+    assert_eq!(missing.len(), 1);
+    assert_eq!(missing[0].0, 0);
+    assert!(missing[0].1.starts_with("1 frame(s) missing (camera 0 frame 5: "), "{}", missing[0].1);
+    drop(session);
+
+    // Later, the camera fixed: the session is opened again and the step taken back.
+    let (mut session, _) = Session::open(&dir).unwrap();
+    assert!(session.is_done());
+    // Only the completed attempt of a done step can be taken back.
+    let wrong = Record::StepReopened { step: 0, attempt: 1, reason: "x".into(), host_time: String::new() };
+    assert!(session.append(&wrong).unwrap_err().to_string().contains("its completed attempt is 3"));
+    assert_eq!(session.reopen_missing().unwrap(), vec![0]);
+    assert!(!session.is_done());
+    assert_eq!(session.manifest().format, lightrig_host::session::FORMAT_VERSION);
+    let mut client = connect(SimBoard::default());
+    let mut cam = TestCamera::default();
+    acquire::run(&mut client, &mut session, &plan, &mut cam, |_| {}).unwrap();
+    assert_eq!(cam.triggers, 21, "only step 0 acquired again");
+    drop(session);
+
+    check_complete(&dir, &plan);
+    let (s, _) = Session::read(&dir).unwrap();
+    assert_eq!(s.state().done_attempt(0).map(|(a, _)| a), Some(4));
+    assert!(s.state().superseded().contains(&(0, 3)), "the earlier attempt is kept, superseded");
+    assert!(s.steps_missing_frames().is_empty());
+    assert_eq!(s.state().done_attempt(1).map(|(a, _)| a), Some(1), "other steps untouched");
+    let (mut session, _) = Session::open(&dir).unwrap();
+    assert_eq!(session.reopen_missing().unwrap(), Vec::<u32>::new(), "nothing left to retake");
+    assert!(session.is_done());
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -69,6 +69,11 @@ pub struct ResumeArgs {
     /// The overrides the session was started with (`acquire --set`), for `--rig`'s check.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub overrides: Vec<Override>,
+    /// On a finished session: acquire again every step whose frames went missing (the camera
+    /// lost them at every try). Each such step is run whole; its earlier attempt stays in the
+    /// journal, superseded.
+    #[arg(long)]
+    pub retake_missing: bool,
 }
 
 pub(crate) fn connect_spec(rig: &RigFile, over: Option<&Connect>) -> Connect {
@@ -564,9 +569,24 @@ pub fn resume(args: &ResumeArgs) -> Result<(), CliError> {
     let opened = if args.drop_damaged_tail { Session::open_dropping_damage(dir) } else { Session::open(dir) };
     let (mut session, recovery) = opened.map_err(|e| err(INPUT, e.to_string()))?;
     eprintln!("resuming {}: {recovery}", dir.display());
+    let retake = session.is_done() && args.retake_missing;
     if session.is_done() {
-        eprintln!("{}: the session is already complete", dir.display());
-        return Ok(());
+        let missing = session.steps_missing_frames();
+        if missing.is_empty() {
+            eprintln!("{}: the session is already complete, every frame present", dir.display());
+            return Ok(());
+        }
+        if !retake {
+            eprintln!(
+                "{}: the session is complete, with frames missing in {} step(s):\n{}\nacquire those steps \
+                 again with `lightrig resume {} --retake-missing`",
+                dir.display(),
+                missing.len(),
+                missing.iter().map(|(s, why)| format!("  step {s}: {why}")).collect::<Vec<_>>().join("\n"),
+                dir.display()
+            );
+            return Ok(());
+        }
     }
     let text = session.manifest().rig.clone();
     let base: PathBuf = match rig_path {
@@ -596,6 +616,10 @@ pub fn resume(args: &ResumeArgs) -> Result<(), CliError> {
             "the rig file's plan no longer matches the session's (a different device tick rate or a changed \
              planner); finish it with the host version that started it",
         ));
+    }
+    if retake {
+        let steps = session.reopen_missing().map_err(|e| err(INPUT, e.to_string()))?;
+        eprintln!("retaking {} step(s) with missing frames: {steps:?}", steps.len());
     }
     ready.run(&rig, &mut session)
 }

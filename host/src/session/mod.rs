@@ -52,8 +52,8 @@ pub use records::{
 pub use state::{Attempt, Outcome, State};
 
 /// Version of the session format this host writes (and the newest it reads). 2 added the
-/// `StepPrepared` record.
-pub const FORMAT_VERSION: u32 = 3;
+/// `StepPrepared` record, 3 `FaultCleared`, 4 `StepReopened`.
+pub const FORMAT_VERSION: u32 = 4;
 /// The manifest's file name.
 pub const MANIFEST: &str = "manifest.json";
 /// The journal's file name.
@@ -468,14 +468,8 @@ impl Session {
             session.syncer = Some(syncer);
         }
         session.check_files(write, &mut recovery)?;
-        if write && !session.state.done && session.manifest.format < FORMAT_VERSION {
-            // Going on with a session an older host began: it now holds this format's records,
-            // and says so.
-            session.manifest.format = FORMAT_VERSION;
-            let mut json = serde_json::to_vec_pretty(&session.manifest).expect("a manifest serializes");
-            json.push(b'\n');
-            let path = session.dir.join(MANIFEST);
-            fsutil::write_atomic(&path, &json).map_err(io_at(&path))?;
+        if write && !session.state.done {
+            session.upgrade_format()?;
         }
         if write {
             if session.state.records == 0 {
@@ -635,6 +629,64 @@ impl Session {
     /// The manifest plan's steps not done yet, in plan order.
     pub fn pending_steps(&self) -> Vec<StepId> {
         self.state.pending_steps(&self.manifest.plan)
+    }
+
+    /// Going on with a session an older host began: it now holds this format's records, and
+    /// its manifest says so.
+    fn upgrade_format(&mut self) -> Result<()> {
+        if self.manifest.format >= FORMAT_VERSION {
+            return Ok(());
+        }
+        self.manifest.format = FORMAT_VERSION;
+        let mut json = serde_json::to_vec_pretty(&self.manifest).expect("a manifest serializes");
+        json.push(b'\n');
+        let path = self.dir.join(MANIFEST);
+        fsutil::write_atomic(&path, &json).map_err(io_at(&path))
+    }
+
+    /// Steps whose completed attempt recorded missing frames, in plan order, with a line saying
+    /// what is missing.
+    pub fn steps_missing_frames(&self) -> Vec<(StepId, String)> {
+        self.manifest
+            .plan
+            .steps
+            .iter()
+            .filter_map(|s| {
+                let missing = self.state.missing_of(s.id);
+                let first = missing.first()?;
+                Some((
+                    s.id,
+                    format!(
+                        "{} frame(s) missing (camera {} frame {}: {})",
+                        missing.len(),
+                        first.camera,
+                        first.frame,
+                        first.reason
+                    ),
+                ))
+            })
+            .collect()
+    }
+
+    /// Takes back the completed attempts that recorded missing frames (`StepReopened`), so that
+    /// the next run acquires those steps again, and journals the run as a resume. The earlier
+    /// attempts' records and files stay, superseded. Returns the steps reopened.
+    pub fn reopen_missing(&mut self) -> Result<Vec<StepId>> {
+        self.writable()?;
+        let steps = self.steps_missing_frames();
+        if steps.is_empty() {
+            return Ok(Vec::new());
+        }
+        self.upgrade_format()?;
+        for (step, why) in &steps {
+            let attempt =
+                self.state.done_attempt(*step).map(|(a, _)| a).expect("a step with missing frames is done");
+            let reason = format!("retaken: {why}");
+            self.append(&Record::StepReopened { step: *step, attempt, reason, host_time: now_rfc3339() })?;
+        }
+        let attempt = self.state.resumes + 1;
+        self.append(&Record::Resumed { attempt, host_time: now_rfc3339(), dropped_bytes: 0 })?;
+        Ok(steps.into_iter().map(|(s, _)| s).collect())
     }
 
     /// `SessionDone` was written.

@@ -351,7 +351,20 @@ pub enum Record {
         /// Wall clock.
         host_time: String,
     },
-    /// Every step is done; nothing follows.
+    /// A completed attempt is taken back so the step is acquired again (format 4): the retake
+    /// of a finished session's missing frames (`lightrig resume --retake-missing`). The attempt
+    /// counts as superseded from here on; the record may follow `SessionDone`, which it undoes.
+    StepReopened {
+        /// Step.
+        step: StepId,
+        /// The completed attempt taken back.
+        attempt: u32,
+        /// Why, in words.
+        reason: String,
+        /// Wall clock.
+        host_time: String,
+    },
+    /// Every step is done; nothing follows but a `StepReopened`.
     SessionDone {
         /// Wall clock.
         host_time: String,
@@ -374,6 +387,7 @@ impl Record {
             Record::FrameExtra(_) => "FrameExtra",
             Record::StepDone { .. } => "StepDone",
             Record::StepAbandoned { .. } => "StepAbandoned",
+            Record::StepReopened { .. } => "StepReopened",
             Record::SessionDone { .. } => "SessionDone",
         }
     }

@@ -16,7 +16,8 @@ pub enum Outcome {
     Open,
     /// `StepDone`: complete.
     Done,
-    /// `StepAbandoned`: superseded by a later attempt.
+    /// `StepAbandoned`, or a completed attempt taken back by `StepReopened`: superseded by a
+    /// later attempt.
     Abandoned {
         /// Why.
         reason: String,
@@ -77,7 +78,7 @@ impl State {
         if self.records == 0 && !matches!(rec, Record::SessionStarted { .. }) {
             return Err(format!("the journal must start with SessionStarted, not {}", rec.kind()));
         }
-        if self.done {
+        if self.done && !matches!(rec, Record::StepReopened { .. }) {
             return Err(format!("{} after SessionDone: the session is complete", rec.kind()));
         }
         match rec {
@@ -164,6 +165,20 @@ impl State {
             }
             Record::StepAbandoned { step, attempt, .. } => {
                 self.check_open(*step, *attempt, "StepAbandoned")?;
+            }
+            Record::StepReopened { step, attempt, .. } => {
+                if let Some((s, a)) = self.open {
+                    return Err(format!("StepReopened of step {step} while attempt {a} of step {s} is open"));
+                }
+                match self.done_attempt(*step) {
+                    Some((done, _)) if done == *attempt => {}
+                    Some((done, _)) => {
+                        return Err(format!(
+                            "StepReopened of step {step} attempt {attempt}: its completed attempt is {done}"
+                        ))
+                    }
+                    None => return Err(format!("StepReopened of step {step}: the step is not done")),
+                }
             }
             Record::SessionDone { .. } => {
                 if let Some((s, a)) = self.open {
@@ -253,6 +268,10 @@ impl State {
             Record::StepAbandoned { step, attempt, reason, .. } => {
                 self.attempt_mut(*step, *attempt).outcome = Outcome::Abandoned { reason: reason.clone() };
                 self.open = None;
+            }
+            Record::StepReopened { step, attempt, reason, .. } => {
+                self.attempt_mut(*step, *attempt).outcome = Outcome::Abandoned { reason: reason.clone() };
+                self.done = false;
             }
             Record::SessionDone { .. } => self.done = true,
         }
