@@ -68,6 +68,11 @@ pub trait VoiceCoils {
     /// [`crate::rig::VOICE_COIL_LATENCY_BLOCKS`] blocks after their nominal time.
     /// `at` is the tick of the hand-over.
     fn write_samples(&mut self, channel: u8, first_sample: u64, samples: &[i16], at: u64);
+    /// The sample rates the outputs can play, inclusive: a configuration outside them is
+    /// refused (`voice_coil.sample_rate_hz`). The default is the protocol's whole range.
+    fn sample_rates(&self) -> (u32, u32) {
+        lightrig_protocol::config::SAMPLE_RATE_RANGE
+    }
 }
 
 /// The flash slots of a board with a bootloader (embassy-boot's active, update and state

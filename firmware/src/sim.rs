@@ -171,6 +171,8 @@ pub struct SimBoard {
     pub galvo_fails: bool,
     /// Flash slots with a bootloader (`None`: not updated over the link).
     pub slots: Option<SimSlots>,
+    /// The voice-coil sample rates it plays (a board's DAC timer may play only one).
+    pub sample_rates: (u32, u32),
 }
 
 /// The simulated board's flash: 2 KiB pages and 8-byte writes, as on the STM32G4.
@@ -232,6 +234,7 @@ impl Default for SimBoard {
             samples: Default::default(),
             galvo_fails: false,
             slots: None,
+            sample_rates: lightrig_protocol::config::SAMPLE_RATE_RANGE,
         }
     }
 }
@@ -375,6 +378,10 @@ impl VoiceCoils for SimBoard {
         }
         let len = samples.len() as u16;
         self.push(at, Output::Samples { channel, first: first_sample, len });
+    }
+
+    fn sample_rates(&self) -> (u32, u32) {
+        self.sample_rates
     }
 }
 

@@ -658,3 +658,26 @@ fn a_sequence_is_checked_again_at_start_against_the_configuration_of_then() {
     rig.run_until(30_000);
     assert_eq!(laser_levels(&rig, 0), [(20_000, true), (21_000, false), (21_200, true), (22_000, false)]);
 }
+
+#[test]
+fn a_voice_coil_rate_the_board_cannot_play_is_refused_with_the_rates_it_can() {
+    use lightrig_firmware::sim::SimBoard;
+    use lightrig_firmware::Rig;
+    use lightrig_protocol::config::{ConfigError, ConfigField, InvalidReason, VoiceCoilConfig};
+    // A board whose DAC timer plays 48 kHz only (the NUCLEO-G474RE).
+    let board = SimBoard { sample_rates: (48_000, 48_000), ..SimBoard::default() };
+    let mut rig = Rig::new(board, caps(), TICK_HZ);
+    rig.host_seen(0, false);
+    let at_96k = VoiceCoilConfig { sample_rate_hz: 96_000, ..coil(1) };
+    assert_eq!(
+        rig.configure(&ConfigItem::VoiceCoil(at_96k), 0),
+        Err(Error::InvalidConfig(ConfigError {
+            field: ConfigField::VoiceCoilSampleRate,
+            index: 1,
+            reason: InvalidReason::OutsideRange { min: 48_000, max: 48_000 },
+        }))
+    );
+    rig.configure(&ConfigItem::VoiceCoil(coil(1)), 0).unwrap();
+    // The simulated board by default plays the protocol's whole range.
+    common::rig().configure(&ConfigItem::VoiceCoil(at_96k), 0).unwrap();
+}

@@ -257,4 +257,9 @@ impl VoiceCoils for Nucleo {
     fn write_samples(&mut self, channel: u8, first_sample: u64, samples: &[i16], at: u64) {
         self.voice.write(channel, first_sample, samples, at);
     }
+
+    /// TIM6 paces both DACs at one rate.
+    fn sample_rates(&self) -> (u32, u32) {
+        (crate::voice::SAMPLE_RATE_HZ, crate::voice::SAMPLE_RATE_HZ)
+    }
 }

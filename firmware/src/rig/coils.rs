@@ -2,7 +2,7 @@
 //! passed and handed to the board's DMA, the fade to silence.
 
 use heapless::{Deque, Vec};
-use lightrig_protocol::config::VoiceCoilConfig;
+use lightrig_protocol::config::{ConfigError, ConfigField, InvalidReason, VoiceCoilConfig};
 use lightrig_protocol::error::Peripheral;
 use lightrig_protocol::sequence::Partial;
 use lightrig_protocol::{Error, MAX_PARTIALS};
@@ -41,6 +41,15 @@ impl<B: Board> Rig<B> {
     /// Applies a voice-coil channel's configuration: a fresh synthesiser with sample 0 at `now`;
     /// refused while the channel sounds.
     pub(super) fn configure_coil(&mut self, c: VoiceCoilConfig, now: u64) -> Result<(), Error> {
+        let (lo, hi) = self.board.sample_rates();
+        if !(lo..=hi).contains(&c.sample_rate_hz) {
+            // A board whose timer plays one rate (or a few) says so rather than play at another.
+            return Err(Error::InvalidConfig(ConfigError {
+                field: ConfigField::VoiceCoilSampleRate,
+                index: c.channel,
+                reason: InvalidReason::OutsideRange { min: lo.into(), max: hi.into() },
+            }));
+        }
         let k = self.coils.get_mut(usize::from(c.channel)).ok_or(Error::Unsupported)?;
         if !k.synth.is_silent() || !k.pending.is_empty() {
             // A restart would click: fade the channel first (an empty partial list).
