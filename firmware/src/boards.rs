@@ -30,3 +30,27 @@ pub const NUCLEO_G474RE_TICK_HZ: u32 = 1_000_000;
 
 /// The one voice-coil sample rate the NUCLEO-G474RE plays (168 MHz / 3500, TIM6).
 pub const NUCLEO_G474RE_VOICE_COIL_HZ: u32 = 48_000;
+
+/// The public key of the development key pair the virtual and the emulated (QEMU) board trust:
+/// its secret is public (`lightrig_sim::flash::VIRTUAL_SECRET`, `lightrig flash sign
+/// --virtual-key`), so anyone can sign images for them. Never for a board on a real rig.
+pub const DEVELOPMENT_PUBLIC_KEY: [u8; 32] = [
+    251, 31, 22, 179, 232, 144, 98, 133, 153, 221, 29, 43, 169, 153, 200, 13, 159, 76, 218, 34, 39, 155, 240,
+    0, 56, 88, 250, 71, 150, 22, 92, 149,
+];
+
+/// The emulated board's flash file (QEMU `mps2-an386`, `flash=PATH`): embassy-boot's state,
+/// active and update partitions as (offset, length), 4 KiB pages. The harness programs a new
+/// file as a factory would (an image in the active partition, the rest erased).
+pub mod qemu_flash {
+    /// Erase page.
+    pub const PAGE: u32 = 4096;
+    /// embassy-boot's state partition.
+    pub const STATE: (u32, u32) = (0, 2 * PAGE);
+    /// The active partition: 64 KiB, for the images the tests send.
+    pub const ACTIVE: (u32, u32) = (STATE.1, 16 * PAGE);
+    /// The update partition: one page larger than the active one.
+    pub const DFU: (u32, u32) = (ACTIVE.0 + ACTIVE.1, 17 * PAGE);
+    /// The file's length.
+    pub const FILE_LEN: u32 = DFU.0 + DFU.1;
+}

@@ -6,6 +6,7 @@
 //! lightrig-hil suite --port /dev/ttyACM0 [--baud B]               a real board, serial
 //! lightrig-hil suite --usb 1209:4c52[:SERIAL]                     a real board, USB
 //! lightrig-hil figures [--elf ELF] [--shift N]                    instruction counts and UART throughput
+//! lightrig-hil update [--elf ELF] [--shift N]                     firmware updates, resets and power cuts (QEMU)
 //! lightrig-hil pins --port /dev/pts/N                             the emulated board's recorded outputs
 //! ```
 
@@ -13,6 +14,7 @@ mod debug;
 mod figures;
 mod qemu;
 mod suite;
+mod update;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -31,7 +33,7 @@ struct Args {
 }
 
 const USAGE: &str =
-    "usage: lightrig-hil [suite|figures|pins] [--elf ELF] [--shift N] [--port PATH [--baud B]] \
+    "usage: lightrig-hil [suite|figures|pins|update] [--elf ELF] [--shift N] [--port PATH [--baud B]] \
                      [--usb VID:PID[:SERIAL]] [--only NAME]... [--logs DIR]";
 
 fn parse() -> Result<Args, String> {
@@ -49,7 +51,7 @@ fn parse() -> Result<Args, String> {
     while let Some(arg) = it.next() {
         let mut value = |name: &str| it.next().ok_or(format!("{name} needs a value\n{USAGE}"));
         match arg.as_str() {
-            "suite" | "figures" | "pins" => a.command = arg,
+            "suite" | "figures" | "pins" | "update" => a.command = arg,
             "--elf" => a.elf = Some(value("--elf")?.into()),
             "--shift" => a.shift = value("--shift")?.parse().map_err(|e| format!("--shift: {e}"))?,
             "--port" => a.port = Some(value("--port")?),
@@ -121,6 +123,14 @@ fn run(a: Args) -> Result<bool, String> {
         };
         figures::run(&elf, a.shift, &a.logs)?;
         return Ok(true);
+    }
+    if a.command == "update" {
+        let elf = match a.elf {
+            Some(e) => e,
+            None => qemu::build_firmware()?,
+        };
+        println!("lightrig-hil: firmware updates of the emulated board (QEMU mps2-an386)");
+        return Ok(update::run(&elf, a.shift, &a.logs.join("update"))? == 0);
     }
     if let Some(path) = a.port.clone() {
         println!("lightrig-hil: suite against serial {path}");

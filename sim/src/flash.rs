@@ -43,7 +43,7 @@ pub fn factory(version: Version) -> SimSlots {
     let dfu = active.on_same_chip(ACTIVE_LEN + 2048);
     let state = active.on_same_chip(2048);
     active.program(0, &virtual_image(version).signed);
-    SimSlots(BootSlots::new(active, dfu, state, virtual_key().verifying_key().to_bytes()))
+    SimSlots(BootSlots::new(active, dfu, state, lightrig_firmware::boards::DEVELOPMENT_PUBLIC_KEY))
 }
 
 /// What the active slot holds.

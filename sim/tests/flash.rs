@@ -195,3 +195,11 @@ fn a_cancel_right_after_finish_unmarks_the_image_and_the_device_does_not_reset()
     assert_eq!(c.transport().device().info().boot_id, boot, "no reset");
     assert!(!c.transport().device().wants_reset());
 }
+
+#[test]
+fn the_development_public_key_is_the_virtual_secrets() {
+    assert_eq!(
+        lightrig_sim::flash::virtual_key().verifying_key().to_bytes(),
+        lightrig_firmware::boards::DEVELOPMENT_PUBLIC_KEY
+    );
+}

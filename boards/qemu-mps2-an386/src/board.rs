@@ -4,7 +4,9 @@
 use core::cell::RefCell;
 
 use critical_section::Mutex;
-use lightrig_firmware::hal::{Cameras, Capture, Galvos, HwError, Lasers, Motors, VoiceCoils};
+use lightrig_firmware::hal::{
+    Cameras, Capture, FirmwareSlots, Galvos, HwError, Lasers, Motors, SlotError, VoiceCoils,
+};
 use lightrig_firmware::record::RecordingBoard;
 use lightrig_protocol::config::Xy;
 use lightrig_protocol::event::Switch;
@@ -21,8 +23,11 @@ pub fn with_pins<R>(f: impl FnOnce(&mut RecordingBoard<RECORDS>) -> R) -> Option
     critical_section::with(|cs| PINS.borrow(cs).try_borrow_mut().ok().map(|mut p| f(&mut p)))
 }
 
-/// The board the controller drives.
-pub struct QemuBoard;
+/// The board the controller drives: the recorded pins, and the update slots in the flash file
+/// when the command line names one.
+pub struct QemuBoard {
+    pub slots: Option<crate::flash::Slots>,
+}
 
 impl Galvos for QemuBoard {
     fn set_galvo(&mut self, pair: u8, to: Xy, at: u64) -> Result<(), HwError> {
@@ -69,8 +74,44 @@ impl Cameras for QemuBoard {
     }
 }
 
-/// No bootloader on the emulated board yet: not updated over the link.
-impl lightrig_firmware::hal::FirmwareSlots for QemuBoard {}
+/// The slots in the flash file (`flash.rs`); without one, not updated over the link.
+impl FirmwareSlots for QemuBoard {
+    fn active_len(&self) -> u32 {
+        self.slots.as_ref().map_or(0, |s| s.active_len())
+    }
+
+    fn fallback_offset(&self) -> u32 {
+        self.slots.as_ref().map_or(0, |s| s.fallback_offset())
+    }
+
+    fn read_active(&mut self, offset: u32, buf: &mut [u8]) -> Result<(), SlotError> {
+        self.slots.as_mut().ok_or(SlotError::Unsupported)?.read_active(offset, buf)
+    }
+
+    fn read_update(&mut self, offset: u32, buf: &mut [u8]) -> Result<(), SlotError> {
+        self.slots.as_mut().ok_or(SlotError::Unsupported)?.read_update(offset, buf)
+    }
+
+    fn erase_update(&mut self) -> Result<(), SlotError> {
+        self.slots.as_mut().ok_or(SlotError::Unsupported)?.erase_update()
+    }
+
+    fn write_update(&mut self, offset: u32, data: &[u8]) -> Result<(), SlotError> {
+        self.slots.as_mut().ok_or(SlotError::Unsupported)?.write_update(offset, data)
+    }
+
+    fn verify_and_mark(&mut self, len: u32, signature: &[u8; 64]) -> Result<(), SlotError> {
+        self.slots.as_mut().ok_or(SlotError::Unsupported)?.verify_and_mark(len, signature)
+    }
+
+    fn unconfirmed(&mut self) -> Result<bool, SlotError> {
+        self.slots.as_mut().map_or(Ok(false), |s| s.unconfirmed())
+    }
+
+    fn confirm(&mut self) -> Result<(), SlotError> {
+        self.slots.as_mut().ok_or(SlotError::Unsupported)?.confirm()
+    }
+}
 
 impl VoiceCoils for QemuBoard {
     fn write_samples(&mut self, channel: u8, first_sample: u64, samples: &[i16], at: u64) {

@@ -14,6 +14,7 @@
 
 mod bench;
 mod board;
+mod flash;
 mod irq;
 mod semi;
 mod time;
@@ -41,16 +42,16 @@ use crate::uart::{UART0, UART1};
 /// The controller's retransmission timeout: 50 ms in ticks.
 const RTO_TICKS: u64 = 50_000;
 
-fn device_info(boot_id: u32) -> DeviceInfo {
+fn device_info(boot_id: u32, firmware: Version, reset_cause: ResetCause) -> DeviceInfo {
     DeviceInfo {
         // The controller fills in the protocol version, schema hash and its own capacities.
         protocol_version: 0,
         schema_hash: 0,
-        firmware: Version { major: 0, minor: 1, patch: 0 },
+        firmware,
         board: BoardId::QemuMps2An386,
         serial: 0x4C52_514D_5532_3836, // "LRQMU286": one emulated board
         tick_hz: embassy_time::TICK_HZ as u32,
-        reset_cause: ResetCause::PowerOn,
+        reset_cause,
         boot_id,
         capabilities: Capabilities {
             galvos: 2,
@@ -66,6 +67,58 @@ fn device_info(boot_id: u32) -> DeviceInfo {
             max_packet: lightrig_protocol::MAX_PACKET as u16,
         },
     }
+}
+
+/// Starts since QEMU powered the board on: RAM outside the ELF survives a reset.
+fn starts_since_power_on() -> u32 {
+    const MAGIC: u32 = 0x4C52_5354; // "LRST"
+    #[link_section = ".uninit.lightrig_starts"]
+    static mut STARTS: MaybeUninit<[u32; 2]> = MaybeUninit::uninit();
+    // SAFETY: runs once, before anything else uses the memory; any bit pattern is a valid
+    // [u32; 2] (QEMU powers RAM on as zeros).
+    unsafe {
+        let p = core::ptr::addr_of_mut!(STARTS).cast::<[u32; 2]>();
+        let [magic, n] = p.read_volatile();
+        let n = if magic == MAGIC { n.wrapping_add(1) } else { 0 };
+        p.write_volatile([MAGIC, n]);
+        n
+    }
+}
+
+/// The bootloader's part, run before the firmware at every start: with a flash file, embassy-boot
+/// swaps a marked image in (or an unconfirmed one back), power-fail safe; the version reported
+/// is the one the active slot's signed image carries. QEMU runs this ELF whatever the slot
+/// holds: the slot's code is not executed (see docs/flashing.md).
+fn boot_step(args: &semi::Args) -> (Option<flash::Slots>, Version) {
+    const BUILT: Version = Version { major: 0, minor: 1, patch: 0 };
+    if args.flash.is_empty() {
+        return (None, BUILT);
+    }
+    let Some(mut file) = flash::FileFlash::open(&args.flash) else {
+        defmt::error!("flash file: cannot open it; no update slots");
+        return (None, BUILT);
+    };
+    file.cut = args.cut;
+    static FLASH: static_cell::StaticCell<
+        embassy_sync::blocking_mutex::Mutex<
+            embassy_sync::blocking_mutex::raw::NoopRawMutex,
+            core::cell::RefCell<flash::FileFlash>,
+        >,
+    > = static_cell::StaticCell::new();
+    let shared = FLASH.init(embassy_sync::blocking_mutex::Mutex::new(core::cell::RefCell::new(file)));
+    let mut slots = flash::slots(shared);
+    match slots.boot() {
+        Ok(state) => defmt::info!("boot step: {}", defmt::Debug2Format(&state)),
+        Err(_) => defmt::error!("boot step: flash error; starting the active slot as it is"),
+    }
+    // The cut is for the boot step only.
+    shared.lock(|f| f.borrow_mut().cut = None);
+    use lightrig_firmware::hal::FirmwareSlots;
+    let len = slots.active_len();
+    let version =
+        lightrig_protocol::update::ImageInfo::find(len, |at, buf| slots.read_active(at, buf).is_ok())
+            .map_or(BUILT, |i| i.version);
+    (Some(slots), version)
 }
 
 /// Set by the executor's pender (a task was woken); the idle loop sleeps only while it is clear.
@@ -89,13 +142,20 @@ fn main() -> ! {
         while UART0.writable() < uart::RING {}
         semi::exit(true);
     }
-    defmt::info!("lightrig-qemu: boot id {=u32:#010x}", args.boot_id);
+    // A reset keeps RAM (the command line, and so its boot id, stays): count the starts so each
+    // has its own boot id, and a software reset says so.
+    let starts = starts_since_power_on();
+    let boot_id = args.boot_id ^ starts.wrapping_mul(0x9E37_79B9);
+    let reset_cause = if starts == 0 { ResetCause::PowerOn } else { ResetCause::Software };
+    defmt::info!("lightrig-qemu: boot id {=u32:#010x}, start {=u32} since power-on", boot_id, starts);
+    let (slots, firmware) = boot_step(&args);
+    let board = QemuBoard { slots };
 
     static mut EXECUTOR: MaybeUninit<Executor> = MaybeUninit::uninit();
     // SAFETY: `main` runs once and never returns, so this is the only reference ever made.
     let executor: &'static Executor =
         unsafe { (*core::ptr::addr_of_mut!(EXECUTOR)).write(Executor::new(core::ptr::null_mut())) };
-    match run(args.boot_id) {
+    match run(device_info(boot_id, firmware, reset_cause), board) {
         Ok(task) => executor.spawner().spawn(task),
         Err(_) => semi::exit(false),
     }
@@ -143,8 +203,8 @@ impl Pending {
 
 /// The run loop: one task owns the controller.
 #[embassy_executor::task]
-async fn run(boot_id: u32) -> ! {
-    let mut ctl = Controller::new(EmbassyClock, QemuBoard, device_info(boot_id), RTO_TICKS);
+async fn run(info: DeviceInfo, board: QemuBoard) -> ! {
+    let mut ctl = Controller::new(EmbassyClock, board, info, RTO_TICKS);
     let mut rx = [0u8; 256];
     let mut out0 = Pending::new();
     let mut out1 = Pending::new();
@@ -208,6 +268,13 @@ async fn run(boot_id: u32) -> ! {
                     break;
                 }
             }
+        }
+        if ctl.wants_reset() && out0.len == 0 {
+            // An update is marked (the host has the answer), or a swapped-in firmware was not
+            // confirmed in time: reset into the boot step's swap.
+            defmt::info!("resetting for the bootloader");
+            while UART0.writable() < uart::RING {}
+            cortex_m::peripheral::SCB::sys_reset();
         }
         let spent = time::cycles() - t0;
         busy += spent;

@@ -11,6 +11,10 @@ pub struct Args {
     pub bench: bool,
     /// `idle=spin`: idle by spinning instead of WFI (see main.rs).
     pub spin: bool,
+    /// `flash=PATH`: the flash file (`flash.rs`); none: no update slots.
+    pub flash: heapless::Vec<u8, 127>,
+    /// `cut=N`: cut the power at the Nth flash operation of the boot step.
+    pub cut: Option<u32>,
 }
 
 /// Reads and parses the command line.
@@ -20,13 +24,17 @@ pub fn args() -> Args {
     // SAFETY: SYS_GET_CMDLINE writes at most `block[1]` bytes into `buf` and the length back.
     let ok = unsafe { syscall1(nr::GET_CMDLINE, block.as_mut_ptr() as usize) } == 0;
     let line = if ok { buf.get(..block[1]).unwrap_or(&[]) } else { &[] };
-    let mut args = Args { boot_id: 0, bench: false, spin: false };
+    let mut args = Args { boot_id: 0, bench: false, spin: false, flash: heapless::Vec::new(), cut: None };
     let mut have_boot = false;
     for word in line.split(|&b| b == b' ') {
         if word == b"bench" {
             args.bench = true;
         } else if word == b"idle=spin" {
             args.spin = true;
+        } else if let Some(path) = word.strip_prefix(b"flash=") {
+            args.flash = heapless::Vec::from_slice(path).unwrap_or_default();
+        } else if let Some(n) = word.strip_prefix(b"cut=").and_then(parse_u32) {
+            args.cut = Some(n);
         } else if let Some(v) = word.strip_prefix(b"boot=").and_then(parse_u32) {
             args.boot_id = v;
             have_boot = true;
