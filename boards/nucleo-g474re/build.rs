@@ -32,7 +32,10 @@ fn update_key() -> Option<[u8; 32]> {
     let text = std::fs::read_to_string(&v).unwrap_or_else(|e| {
         panic!("LIGHTRIG_UPDATE_KEY: {v}: {e} (give NAME.pub from `lightrig flash keygen`, or its 64 hex digits)")
     });
-    Some(parse_hex(&text).unwrap_or_else(|| panic!("LIGHTRIG_UPDATE_KEY: {v}: not 64 hex digits (a NAME.pub file)")))
+    Some(
+        parse_hex(&text)
+            .unwrap_or_else(|| panic!("LIGHTRIG_UPDATE_KEY: {v}: not 64 hex digits (a NAME.pub file)")),
+    )
 }
 
 fn main() {
@@ -46,7 +49,9 @@ fn main() {
     let key = match update_key() {
         Some(k) => format!("Some({k:?})"),
         None => {
-            println!("cargo:warning=LIGHTRIG_UPDATE_KEY not set: this firmware refuses updates over the link");
+            println!(
+                "cargo:warning=LIGHTRIG_UPDATE_KEY not set: this firmware refuses updates over the link"
+            );
             "None".into()
         }
     };

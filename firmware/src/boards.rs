@@ -41,16 +41,20 @@ pub const DEVELOPMENT_PUBLIC_KEY: [u8; 32] = [
 
 /// The emulated board's flash file (QEMU `mps2-an386`, `flash=PATH`): embassy-boot's state,
 /// active and update partitions as (offset, length), 4 KiB pages. The harness programs a new
-/// file as a factory would (an image in the active partition, the rest erased).
+/// file as a factory would (an image in the active partition, the rest erased); the board's
+/// bootloader copies the active partition to `APP_BASE` and starts it.
 pub mod qemu_flash {
     /// Erase page.
     pub const PAGE: u32 = 4096;
     /// embassy-boot's state partition.
     pub const STATE: (u32, u32) = (0, 2 * PAGE);
-    /// The active partition: 64 KiB, for the images the tests send.
-    pub const ACTIVE: (u32, u32) = (STATE.1, 16 * PAGE);
+    /// The active partition: 320 KiB, the firmware built for it (feature `slot`).
+    pub const ACTIVE: (u32, u32) = (STATE.1, 80 * PAGE);
     /// The update partition: one page larger than the active one.
-    pub const DFU: (u32, u32) = (ACTIVE.0 + ACTIVE.1, 17 * PAGE);
+    pub const DFU: (u32, u32) = (ACTIVE.0 + ACTIVE.1, 81 * PAGE);
     /// The file's length.
     pub const FILE_LEN: u32 = DFU.0 + DFU.1;
+    /// Where the bootloader puts the active partition in the code RAM (SSRAM1) and jumps: the
+    /// address the firmware is linked at with feature `slot`.
+    pub const APP_BASE: u32 = 0x0010_0000;
 }

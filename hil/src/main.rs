@@ -6,7 +6,7 @@
 //! lightrig-hil suite --port /dev/ttyACM0 [--baud B]               a real board, serial
 //! lightrig-hil suite --usb 1209:4c52[:SERIAL]                     a real board, USB
 //! lightrig-hil figures [--elf ELF] [--shift N]                    instruction counts and UART throughput
-//! lightrig-hil update [--elf ELF] [--shift N]                     firmware updates, resets and power cuts (QEMU)
+//! lightrig-hil update [--shift N]                               firmware updates, resets and power cuts (QEMU)
 //! lightrig-hil pins --port /dev/pts/N                             the emulated board's recorded outputs
 //! ```
 
@@ -125,12 +125,8 @@ fn run(a: Args) -> Result<bool, String> {
         return Ok(true);
     }
     if a.command == "update" {
-        let elf = match a.elf {
-            Some(e) => e,
-            None => qemu::build_firmware()?,
-        };
         println!("lightrig-hil: firmware updates of the emulated board (QEMU mps2-an386)");
-        return Ok(update::run(&elf, a.shift, &a.logs.join("update"))? == 0);
+        return Ok(update::run(a.shift, &a.logs.join("update"))? == 0);
     }
     if let Some(path) = a.port.clone() {
         println!("lightrig-hil: suite against serial {path}");

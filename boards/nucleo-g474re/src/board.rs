@@ -19,7 +19,9 @@ use lightrig_firmware::galvo::GalvoOutput;
 use lightrig_firmware::galvo::SpiDacGalvo;
 #[cfg(feature = "xy2-100")]
 use lightrig_firmware::galvo::Xy2Gpio;
-use lightrig_firmware::hal::{Cameras, Capture, FirmwareSlots, Galvos, HwError, Lasers, Motors, SlotError, VoiceCoils};
+use lightrig_firmware::hal::{
+    Cameras, Capture, FirmwareSlots, Galvos, HwError, Lasers, Motors, SlotError, VoiceCoils,
+};
 use lightrig_firmware::timer_schedule::{must_wait, Counter};
 use lightrig_protocol::config::Xy;
 use lightrig_protocol::event::Switch;

@@ -46,6 +46,7 @@ use embassy_usb::{Builder, UsbDevice};
 use embedded_hal::spi::SpiDevice;
 #[cfg(not(feature = "xy2-100"))]
 use embedded_hal_bus::spi::ExclusiveDevice;
+use lightrig_firmware::boards::{NUCLEO_G474RE, NUCLEO_G474RE_TICK_HZ};
 use lightrig_firmware::controller::EmbassyClock;
 #[cfg(feature = "xy2-100")]
 use lightrig_firmware::galvo::Xy2Gpio;
@@ -53,7 +54,6 @@ use lightrig_firmware::galvo::Xy2Gpio;
 use lightrig_firmware::galvo::{SpiDacGalvo, SpiDacKind};
 use lightrig_firmware::timer_schedule::{lookahead_tick, wake_tick};
 use lightrig_firmware::Controller;
-use lightrig_firmware::boards::{NUCLEO_G474RE, NUCLEO_G474RE_TICK_HZ};
 use lightrig_protocol::session::{BoardId, DeviceInfo, Version};
 use lightrig_protocol::{MAX_FRAME, PROTOCOL_VERSION, SCHEMA_HASH};
 use static_cell::StaticCell;
@@ -202,8 +202,10 @@ async fn main(spawner: Spawner) {
 
     // Voice coils: DAC1 channel 1 (PA4) and DAC2 channel 1 (PA6), both paced by TIM6, which is
     // stopped until a stream starts: both DMAs begin at their rings' first slot in lockstep.
-    let coil0 = DacChannel::new_triggered(p.DAC1, p.DMA1_CH1, embassy_stm32::triggers::TIM6_TRGO, Irqs, p.PA4);
-    let coil1 = DacChannel::new_triggered(p.DAC2, p.DMA1_CH2, embassy_stm32::triggers::TIM6_TRGO, Irqs, p.PA6);
+    let coil0 =
+        DacChannel::new_triggered(p.DAC1, p.DMA1_CH1, embassy_stm32::triggers::TIM6_TRGO, Irqs, p.PA4);
+    let coil1 =
+        DacChannel::new_triggered(p.DAC2, p.DMA1_CH2, embassy_stm32::triggers::TIM6_TRGO, Irqs, p.PA6);
     spawner.spawn(voice_coil_dma(coil0, 0).expect("spawn voice-coil task 0: pool size 2"));
     spawner.spawn(voice_coil_dma(coil1, 1).expect("spawn voice-coil task 1: pool size 2"));
 

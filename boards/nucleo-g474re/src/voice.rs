@@ -86,7 +86,8 @@ impl VoiceStream {
         if !self.running || first != self.next {
             self.park();
             // The next ring slot the DMA fetches, plus one block of silence.
-            self.base = (self.read_position() + VOICE_COIL_BLOCK + RING - (first % RING as u64) as usize) % RING;
+            self.base =
+                (self.read_position() + VOICE_COIL_BLOCK + RING - (first % RING as u64) as usize) % RING;
         }
         for (i, &s) in samples.iter().enumerate() {
             let n = first.wrapping_add(i as u64);

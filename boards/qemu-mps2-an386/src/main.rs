@@ -85,20 +85,18 @@ fn starts_since_power_on() -> u32 {
     }
 }
 
-/// The bootloader's part, run before the firmware at every start: with a flash file, embassy-boot
-/// swaps a marked image in (or an unconfirmed one back), power-fail safe; the version reported
-/// is the one the active slot's signed image carries. QEMU runs this ELF whatever the slot
-/// holds: the slot's code is not executed (see docs/flashing.md).
-fn boot_step(args: &semi::Args) -> (Option<flash::Slots>, Version) {
-    const BUILT: Version = Version { major: 0, minor: 1, patch: 0 };
+include!(concat!(env!("OUT_DIR"), "/version.rs"));
+
+/// The update slots in the flash file the command line names (`flash.rs`), if any. The swap
+/// itself is the bootloader's (boards/qemu-mps2-an386-bootloader), before this firmware starts.
+fn open_slots(args: &semi::Args) -> Option<flash::Slots> {
     if args.flash.is_empty() {
-        return (None, BUILT);
+        return None;
     }
-    let Some(mut file) = flash::FileFlash::open(&args.flash) else {
-        defmt::error!("flash file: cannot open it; no update slots");
-        return (None, BUILT);
+    let Some(file) = flash::FileFlash::open(&args.flash) else {
+        defmt::error!("flash file: cannot open it (or too short); no update slots");
+        return None;
     };
-    file.cut = args.cut;
     static FLASH: static_cell::StaticCell<
         embassy_sync::blocking_mutex::Mutex<
             embassy_sync::blocking_mutex::raw::NoopRawMutex,
@@ -106,19 +104,7 @@ fn boot_step(args: &semi::Args) -> (Option<flash::Slots>, Version) {
         >,
     > = static_cell::StaticCell::new();
     let shared = FLASH.init(embassy_sync::blocking_mutex::Mutex::new(core::cell::RefCell::new(file)));
-    let mut slots = flash::slots(shared);
-    match slots.boot() {
-        Ok(state) => defmt::info!("boot step: {}", defmt::Debug2Format(&state)),
-        Err(_) => defmt::error!("boot step: flash error; starting the active slot as it is"),
-    }
-    // The cut is for the boot step only.
-    shared.lock(|f| f.borrow_mut().cut = None);
-    use lightrig_firmware::hal::FirmwareSlots;
-    let len = slots.active_len();
-    let version =
-        lightrig_protocol::update::ImageInfo::find(len, |at, buf| slots.read_active(at, buf).is_ok())
-            .map_or(BUILT, |i| i.version);
-    (Some(slots), version)
+    Some(flash::slots(shared))
 }
 
 /// Set by the executor's pender (a task was woken); the idle loop sleeps only while it is clear.
@@ -148,14 +134,13 @@ fn main() -> ! {
     let boot_id = args.boot_id ^ starts.wrapping_mul(0x9E37_79B9);
     let reset_cause = if starts == 0 { ResetCause::PowerOn } else { ResetCause::Software };
     defmt::info!("lightrig-qemu: boot id {=u32:#010x}, start {=u32} since power-on", boot_id, starts);
-    let (slots, firmware) = boot_step(&args);
-    let board = QemuBoard { slots };
+    let board = QemuBoard { slots: open_slots(&args) };
 
     static mut EXECUTOR: MaybeUninit<Executor> = MaybeUninit::uninit();
     // SAFETY: `main` runs once and never returns, so this is the only reference ever made.
     let executor: &'static Executor =
         unsafe { (*core::ptr::addr_of_mut!(EXECUTOR)).write(Executor::new(core::ptr::null_mut())) };
-    match run(device_info(boot_id, firmware, reset_cause), board) {
+    match run(device_info(boot_id, FIRMWARE, reset_cause), board) {
         Ok(task) => executor.spawner().spawn(task),
         Err(_) => semi::exit(false),
     }
@@ -271,7 +256,7 @@ async fn run(info: DeviceInfo, board: QemuBoard) -> ! {
         }
         if ctl.wants_reset() && out0.len == 0 {
             // An update is marked (the host has the answer), or a swapped-in firmware was not
-            // confirmed in time: reset into the boot step's swap.
+            // confirmed in time: reset into the bootloader's swap.
             defmt::info!("resetting for the bootloader");
             while UART0.writable() < uart::RING {}
             cortex_m::peripheral::SCB::sys_reset();
