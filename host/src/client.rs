@@ -447,6 +447,12 @@ impl<T: Transport> Client<T> {
         self.request_timeout(command, 2_000_000)
     }
 
+    /// [`Self::request`] with its own deadline, for commands the device takes long over (a
+    /// flash erase).
+    pub fn request_within(&mut self, command: Command, timeout_us: u64) -> Result<Reply, ClientError> {
+        self.request_timeout(command, timeout_us)
+    }
+
     fn request_timeout(&mut self, command: Command, timeout_us: u64) -> Result<Reply, ClientError> {
         let what = command_name(&command);
         let id = self.send(command, timeout_us)?;

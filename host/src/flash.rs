@@ -160,9 +160,21 @@ impl From<ClientError> for FlashError {
     }
 }
 
+/// How long a device may take to answer `cmd`: `Begin` erases the whole update slot (a
+/// NUCLEO-G474RE's 118 pages take 2.6-4.7 s), `Finish` hashes the image and writes the marks,
+/// `Cancel` and `Confirm` write marks; the rest answer at once.
+pub fn answer_within_us(cmd: &UpdateCommand) -> u64 {
+    match cmd {
+        UpdateCommand::Begin(_) => 30_000_000,
+        UpdateCommand::Finish(_) | UpdateCommand::Cancel | UpdateCommand::Confirm => 10_000_000,
+        UpdateCommand::Status | UpdateCommand::Write { .. } => 2_000_000,
+    }
+}
+
 /// One update command, answered with where the update stands.
 pub fn update<T: Transport>(client: &mut Client<T>, cmd: UpdateCommand) -> Result<UpdateStatus, FlashError> {
-    match client.request(Command::Update(cmd))? {
+    let within = answer_within_us(&cmd);
+    match client.request_within(Command::Update(cmd), within)? {
         Reply::Update(s) => Ok(s),
         other => Err(FlashError::Unexpected(format!("an update command answered with {other:?}"))),
     }
