@@ -124,19 +124,26 @@ impl Board {
         })
     }
 
+    /// Says Hello, again until the board answers: after a start its bootloader may still be
+    /// swapping (seconds in QEMU on a loaded machine).
     fn connect(&mut self, q: &Qemu) -> Result<Client<Dyn>, String> {
-        self.nonce = self.nonce.wrapping_add(0x10);
-        let t: Dyn = Box::new(SerialTransport::open(&q.uart0, 115_200).map_err(|e| e.to_string())?);
-        Client::connect(t, self.nonce).map_err(|e| format!("Hello: {e}"))
+        let deadline = std::time::Instant::now() + Duration::from_secs(120);
+        loop {
+            self.nonce = self.nonce.wrapping_add(0x10);
+            let t: Dyn = Box::new(SerialTransport::open(&q.uart0, 115_200).map_err(|e| e.to_string())?);
+            match Client::connect(t, self.nonce) {
+                Ok(c) => return Ok(c),
+                Err(e) if std::time::Instant::now() >= deadline => return Err(format!("Hello: {e}")),
+                Err(_) => {}
+            }
+        }
     }
 
     /// Waits for the board to reset after marking an image and says Hello to the new start.
-    fn after_reset(&mut self, c: Client<Dyn>) -> Result<Client<Dyn>, String> {
-        let t = flash::await_reset(c, 30_000_000).map_err(|e| e.to_string())?;
-        self.nonce = self.nonce.wrapping_add(0x10);
+    fn after_reset(&mut self, c: Client<Dyn>, q: &Qemu) -> Result<Client<Dyn>, String> {
+        drop(flash::await_reset(c, 30_000_000).map_err(|e| e.to_string())?);
         // The same pty: the emulated MCU reset, QEMU and its UART stayed.
-        std::thread::sleep(Duration::from_millis(200));
-        Client::connect(t, self.nonce).map_err(|e| format!("Hello after the reset: {e}"))
+        self.connect(q)
     }
 }
 
@@ -170,7 +177,7 @@ fn good_and_bad_updates(b: &mut Board) -> Result<(), String> {
     expect("factory version", c.info().firmware == v(1), c.info().firmware)?;
     let st = flash::send(&mut c, &b.builds.image(v(2)), |_, _| {}).map_err(|e| e.to_string())?;
     expect("marked", matches!(st.phase, UpdatePhase::Ready { .. }), st.phase)?;
-    let mut c = b.after_reset(c)?;
+    let mut c = b.after_reset(c, &q)?;
     expect("new version after the swap", c.info().firmware == v(2), c.info().firmware)?;
     expect("software reset", c.info().reset_cause == ResetCause::Software, c.info().reset_cause)?;
     let st = status(&mut c)?;
