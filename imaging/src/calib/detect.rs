@@ -16,6 +16,9 @@
 //!    are taken at whole pixels, not resampled around the estimate: resampling every window
 //!    sample at the estimate's sub-pixel phase biases the result by a few hundredths of a pixel.
 //!    On the outer ring the window stops short of the board's outline, measured per corner.
+//!    Windows grow with the squares (and are retried larger where a small one fails): on a
+//!    blurred board a window much smaller than the blur leaves the weak gradients at the corner's
+//!    centre to decide, and the estimate slides along an edge.
 
 use std::collections::{HashMap, HashSet, VecDeque};
 
@@ -364,10 +367,11 @@ const MIN_CONTRAST: f64 = 12.0;
 impl Scene<'_> {
     /// Verifies `p` as an X-junction at the scale of steps `ei`, `ej`, and returns its polarity.
     /// Tries a ring of 0.3 steps, then one of 0.15: printed boards often cut their outermost
-    /// squares short, and a ring reaching past them into the margin is not an X-junction.
+    /// squares short, and a ring reaching past them into the margin is not an X-junction; then
+    /// one of 0.45, for a blurred board whose short squares leave too little contrast close in.
     fn verify(&self, p: [f64; 2], ei: [f64; 2], ej: [f64; 2], min_contrast: f64) -> Option<i32> {
         let len = norm(ei).min(norm(ej));
-        [0.3, 0.15].into_iter().map(|f| (f * len).clamp(2.5, 12.0)).find_map(|r| {
+        [0.3, 0.15, 0.45].into_iter().map(|f| (f * len).clamp(2.5, 12.0)).find_map(|r| {
             let ring = x_junction(self.smooth, p, r, min_contrast)?;
             if !ring.edges_along(ei, ej) {
                 return None;
@@ -418,11 +422,12 @@ impl Scene<'_> {
                     .map(|(c, _)| (Some(c), self.pts[c]))
                     .collect();
                 tries.push((None, pred));
+                let wide = ((0.4 * len).round() as usize).clamp(win, 12);
                 for (cand, start) in tries {
-                    let Some(q) = refine_corner(self.grad, start, win, tol) else { continue };
-                    if norm(sub(q, pred)) > tol {
-                        continue;
-                    }
+                    let refined = [win, wide].into_iter().find_map(|w| {
+                        refine_corner(self.grad, start, w, tol).filter(|q| norm(sub(*q, pred)) <= tol)
+                    });
+                    let Some(q) = refined else { continue };
                     // Steps measured at the new node from the grid nodes around it.
                     let mut ni = if di != 0 { sub(q, node.p).map(|x| x * di as f64) } else { node.ei };
                     let mut nj = if dj != 0 { sub(q, node.p).map(|x| x * dj as f64) } else { node.ej };
@@ -473,43 +478,58 @@ impl Scene<'_> {
         if !((ni, nj) == (cols, rows) || (ni, nj) == (rows, cols)) || grid.len() + 3 < cols * rows {
             return;
         }
-        let holes: Vec<(i32, i32)> = (i0..=i1)
-            .flat_map(|i| (j0..=j1).map(move |j| (i, j)))
-            .filter(|t| !grid.contains_key(t))
-            .collect();
-        for t in holes {
-            let mut preds = Vec::new();
-            for (si, sj) in [(1, 1), (1, -1), (-1, 1), (-1, -1)] {
-                if let (Some(a), Some(b), Some(c)) =
-                    (grid.get(&(t.0 + si, t.1)), grid.get(&(t.0, t.1 + sj)), grid.get(&(t.0 + si, t.1 + sj)))
-                {
-                    preds.push([a.p[0] + b.p[0] - c.p[0], a.p[1] + b.p[1] - c.p[1]]);
+        // A hole next to another is predicted once its neighbour is in: a second pass.
+        for _ in 0..2 {
+            let holes: Vec<(i32, i32)> = (i0..=i1)
+                .flat_map(|i| (j0..=j1).map(move |j| (i, j)))
+                .filter(|t| !grid.contains_key(t))
+                .collect();
+            for t in holes {
+                self.fill_hole(grid, t);
+            }
+        }
+    }
+
+    /// One hole of [`Self::fill_holes`].
+    fn fill_hole(&self, grid: &mut Grid, t: (i32, i32)) {
+        let mut preds = Vec::new();
+        for (si, sj) in [(1, 1), (1, -1), (-1, 1), (-1, -1)] {
+            if let (Some(a), Some(b), Some(c)) =
+                (grid.get(&(t.0 + si, t.1)), grid.get(&(t.0, t.1 + sj)), grid.get(&(t.0 + si, t.1 + sj)))
+            {
+                preds.push([a.p[0] + b.p[0] - c.p[0], a.p[1] + b.p[1] - c.p[1]]);
+            }
+        }
+        let Some(near) =
+            [(1, 0), (-1, 0), (0, 1), (0, -1)].iter().find_map(|d| grid.get(&(t.0 + d.0, t.1 + d.1)))
+        else {
+            return;
+        };
+        if preds.is_empty() {
+            return;
+        }
+        let n = preds.len() as f64;
+        let pred = [preds.iter().map(|p| p[0]).sum::<f64>() / n, preds.iter().map(|p| p[1]).sum::<f64>() / n];
+        let (ei, ej) = (near.ei, near.ej);
+        let len = norm(ei).min(norm(ej));
+        let win = ((0.2 * len).round() as usize).clamp(2, 6);
+        let wide = ((0.4 * len).round() as usize).clamp(win, 12);
+        let q = [wide, win].into_iter().find_map(|w| refine_corner(self.grad, pred, w, 0.3 * len));
+        // The diagonal squares a fifth of a step out; on a blurred board, further out. On a
+        // blurred board's outline the refinement can fail or be pulled off the corner: then the
+        // prediction itself is checked, and the final refinement (which keeps its window inside
+        // the outline) places it.
+        let opposite = |p: [f64; 2]| {
+            [0.2, 0.3, 0.4].into_iter().any(|f| {
+                let r = (f * len).max(2.0);
+                match (x_polarity(self.smooth, p, ei, ej, r), x_polarity(self.smooth, near.p, ei, ej, r)) {
+                    (Some(here), Some(there)) => here == -there,
+                    _ => false,
                 }
-            }
-            let Some(near) =
-                [(1, 0), (-1, 0), (0, 1), (0, -1)].iter().find_map(|d| grid.get(&(t.0 + d.0, t.1 + d.1)))
-            else {
-                continue;
-            };
-            if preds.is_empty() {
-                continue;
-            }
-            let n = preds.len() as f64;
-            let pred =
-                [preds.iter().map(|p| p[0]).sum::<f64>() / n, preds.iter().map(|p| p[1]).sum::<f64>() / n];
-            let (ei, ej) = (near.ei, near.ej);
-            let len = norm(ei).min(norm(ej));
-            let win = ((0.2 * len).round() as usize).clamp(2, 6);
-            let Some(q) = refine_corner(self.grad, pred, win, 0.3 * len) else { continue };
-            let r = (0.2 * len).max(2.0);
-            let (Some(here), Some(there)) =
-                (x_polarity(self.smooth, q, ei, ej, r), x_polarity(self.smooth, near.p, ei, ej, r))
-            else {
-                continue;
-            };
-            if here == -there {
-                grid.insert(t, Node { p: q, ei, ej });
-            }
+            })
+        };
+        if let Some(p) = q.into_iter().chain([pred]).find(|&p| opposite(p)) {
+            grid.insert(t, Node { p, ei, ej });
         }
     }
 }
@@ -569,7 +589,11 @@ pub fn find_chessboard(
                 continue;
             }
             tried += 1;
-            let Some(start) = refine_corner(&grad, sp, 3, 3.0) else { continue };
+            // A small window first (small squares); a blurred corner needs a larger one, or the
+            // weak gradients at its centre let the estimate slide along an edge.
+            let Some(start) = [3, 5, 8].into_iter().find_map(|win| refine_corner(&grad, sp, win, 3.0)) else {
+                continue;
+            };
             // Basis candidates: the nearest verified candidates around the seed.
             let near: Vec<[f64; 2]> = scene
                 .buckets
@@ -633,10 +657,12 @@ fn final_refinement(
         for col in 0..cols as i64 {
             let p = c[(r * cols as i64 + col) as usize];
             let mut d = f64::INFINITY;
+            let mut d_far: f64 = 0.0;
             let mut limit = f64::INFINITY;
             for (dr, dc) in [(0, 1), (0, -1), (1, 0), (-1, 0)] {
                 if let Some(q) = at(r + dr, col + dc) {
                     d = d.min(norm(sub(q, p)));
+                    d_far = d_far.max(norm(sub(q, p)));
                 } else if let Some(q) = at(r - dr, col - dc) {
                     // No neighbour this way: the board's outline is out there, as close as the
                     // outermost squares are wide.
@@ -649,7 +675,11 @@ fn final_refinement(
                     limit = limit.min(outer_extent(smooth, p, out_dir, across));
                 }
             }
-            let win = ((0.35 * d).round().min((limit - 2.0).floor()) as usize).clamp(2, 11);
+            // A third of the nearest neighbour's distance; on a foreshortened board at least a
+            // quarter of the farthest's, or a blurred corner's weak centre lets the estimate
+            // slide along an edge of the short squares.
+            let base = (0.35 * d).max(0.25 * d_far);
+            let win = (base.round().min((limit - 2.0).floor()) as usize).clamp(2, 11);
             let q = refine_corner(grad, p, win, 0.25 * d).unwrap_or(p);
             out.push((q[0], q[1]));
         }
