@@ -446,7 +446,8 @@ fn finds_heavily_blurred_boards_as_opencv_does() {
 /// Boards pushed against each edge of the frame, so that the image cuts their outer squares
 /// and the outermost corners lie 3-9 px from the edge, sharp and blurred (σ 1.5), 10 and 14
 /// squares away: every one found, corners within 0.1 px. (OpenCV 5.0.0's
-/// `findChessboardCorners` on the same images, written to `$LIGHTRIG_DUMP_BOARDS` when set,
+/// `findChessboardCorners` on the same images, written to `$LIGHTRIG_DUMP_BOARDS` when set
+/// (`imaging/benches/opencv_chessboards.py DIR`),
 /// finds none of these 24; with the corners 15-25 px from the edge it finds 43 of 48
 /// where this detector finds all.)
 #[test]
