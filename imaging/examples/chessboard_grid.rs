@@ -9,7 +9,7 @@
 
 use std::io::Write;
 
-use lightrig_imaging::calib::{find_chessboard, project, Board, Intrinsics, Pose};
+use lightrig_imaging::calib::{find_chessboard, project, Board, Intrinsics};
 use lightrig_imaging::synth::{render_chessboard, ChessboardScene};
 
 const W: usize = 640;
@@ -29,14 +29,7 @@ fn main() -> std::io::Result<()> {
         for dist in [14.0, 22.0, 30.0] {
             for tilt_deg in [0.0f64, 45.0, 60.0] {
                 for axis in 0..2 {
-                    let t = tilt_deg.to_radians();
-                    // The board's centre (4, 2.5) on the optical axis, `dist` squares away.
-                    let (rvec, rc) = if axis == 0 {
-                        ([t, 0.0, 0.0], [4.0, 2.5 * t.cos(), 2.5 * t.sin()])
-                    } else {
-                        ([0.0, t, 0.0], [4.0 * t.cos(), 2.5, -4.0 * t.sin()])
-                    };
-                    let pose = Pose { rvec, tvec: [-rc[0], -rc[1], dist - rc[2]] };
+                    let pose = base.tilted_pose(tilt_deg, axis, dist);
                     for shading in [0.0, 0.6] {
                         let name = format!("b{blur}_d{dist}_t{tilt_deg}_a{axis}_s{shading}");
                         let scene = ChessboardScene { blur, shading, ..base.clone() };

@@ -57,6 +57,21 @@ impl ChessboardScene {
             shading: 0.0,
         }
     }
+
+    /// The board turned `tilt_deg` about its own x (`axis` 0) or y (`axis` 1) axis through its
+    /// centre, which lies on the optical axis `dist` world units in front of the camera.
+    pub fn tilted_pose(&self, tilt_deg: f64, axis: usize, dist: f64) -> Pose {
+        let t = tilt_deg.to_radians();
+        let (cx, cy) =
+            ((self.cols - 1) as f64 * self.square / 2.0, (self.rows - 1) as f64 * self.square / 2.0);
+        // Where the rotation moves the centre; the translation brings it back onto the axis.
+        let (rvec, rc) = if axis == 0 {
+            ([t, 0.0, 0.0], [cx, cy * t.cos(), cy * t.sin()])
+        } else {
+            ([0.0, t, 0.0], [cx * t.cos(), cy, -cx * t.sin()])
+        };
+        Pose { rvec, tvec: [-rc[0], -rc[1], dist - rc[2]] }
+    }
 }
 
 /// Renders `scene` as seen by a camera with intrinsics `k` at board → camera pose `pose`, as an

@@ -381,14 +381,7 @@ fn finds_boards_tilted_to_60_degrees_under_uneven_light_and_blur() {
     for dist in [14.0, 22.0] {
         for tilt_deg in [45.0f64, 60.0] {
             for axis in 0..2 {
-                let t = tilt_deg.to_radians();
-                // The board's centre (4, 2.5) on the optical axis, `dist` squares away.
-                let (rvec, rc) = if axis == 0 {
-                    ([t, 0.0, 0.0], [4.0, 2.5 * t.cos(), 2.5 * t.sin()])
-                } else {
-                    ([0.0, t, 0.0], [4.0 * t.cos(), 2.5, -4.0 * t.sin()])
-                };
-                let pose = Pose { rvec, tvec: [-rc[0], -rc[1], dist - rc[2]] };
+                let pose = base.tilted_pose(tilt_deg, axis, dist);
                 for (name, scene) in &scenes {
                     let (img, truth) = rendered(scene, &k, &pose);
                     let what =
@@ -418,13 +411,7 @@ fn finds_heavily_blurred_boards_as_opencv_does() {
         for dist in [14.0, 22.0] {
             for tilt_deg in [0.0f64, 45.0, 60.0] {
                 for axis in 0..2 {
-                    let t = tilt_deg.to_radians();
-                    let (rvec, rc) = if axis == 0 {
-                        ([t, 0.0, 0.0], [4.0, 2.5 * t.cos(), 2.5 * t.sin()])
-                    } else {
-                        ([0.0, t, 0.0], [4.0 * t.cos(), 2.5, -4.0 * t.sin()])
-                    };
-                    let pose = Pose { rvec, tvec: [-rc[0], -rc[1], dist - rc[2]] };
+                    let pose = base.tilted_pose(tilt_deg, axis, dist);
                     for shading in [0.0, 0.6] {
                         let scene = ChessboardScene { blur, shading, ..base.clone() };
                         let (img, truth) = rendered(&scene, &k, &pose);
