@@ -3,7 +3,8 @@
 //! `F`'s file read back, and the fit's errors on bad input.
 
 use lightrig_cli::demo::disco::{
-    run_disco, DiscoDemoOptions, INTERPOLATED_TOLERANCE, KERNEL_TOLERANCE, OBSERVED_TOLERANCE,
+    run_disco, DiscoDemoOptions, DETAIL_TOLERANCE, INTERPOLATED_TOLERANCE, KERNEL_TOLERANCE,
+    OBSERVED_TOLERANCE,
 };
 use lightrig_host::fit::disco::{fit_session, read_matrix, ATLAS_FORMAT, F_FORMAT};
 
@@ -20,7 +21,10 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
         assert!(a.interpolated[c] <= INTERPOLATED_TOLERANCE, "channel {c}: {:?}", a.interpolated);
     }
     assert!(a.symmetric);
-    assert!(a.entries[0] > 10_000 && a.entries[1] > 5_000, "{:?}", a.entries);
+    assert!(a.entries[0] > 8_000 && a.entries[1] > 5_000 && a.entries[4] > 5_000, "{:?}", a.entries);
+    // Where the skin's lines cross a vertex's fan, F holds the skin as the few spots there
+    // entered it (6.4 % in blue at this seed): reported, bounded here against regressions.
+    assert!(a.observed_lines.iter().all(|&e| e < 0.08), "{:?}", a.observed_lines);
     // 4 turntable views × 2 camera positions; 16 × 16 spots × 3 lasers each.
     assert_eq!((f.views, f.frames), (8, 8 * 256 * 3));
     assert_eq!(f.used + f.missed + f.held_out_frames, f.frames);
@@ -38,18 +42,32 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     // Held-out spots: predicted from F beyond the near field (15 % at this seed).
     assert!(f.held_out.frames > 300 && f.held_out.median_rel_rms < 0.2, "{:?}", f.held_out);
     // Relit by a light no frame used, against the dipole integrated over the surface: the local
-    // kernels carrying each vertex's one-ring do better than F's near entries (13 % against
-    // 19 % at this seed).
+    // kernels carrying each vertex's one-ring do better than F's near entries (17 % against
+    // 20 % at this seed), and the detail texture better than without it (17.2 %).
     assert!(
-        r.relit_error < 0.2 && r.relit_error < 0.85 * r.relit_global_error,
-        "{} {}",
+        r.relit_error < 0.2
+            && r.relit_error < 0.9 * r.relit_global_error
+            && r.relit_error < r.relit_plain_error,
+        "{} {} {}",
         r.relit_error,
-        r.relit_global_error
+        r.relit_global_error,
+        r.relit_plain_error
     );
+    // The detail texture (section 6.3) against the skin: T(x)/Π T(v_i)^b_i, everywhere observed
+    // within one medium and on the lines; most of the lines' depth recovered (the camera's
+    // 0.67 mm pixels blur the 0.8 mm lines).
+    let d = r.detail;
+    assert!(d.texels > 10_000 && d.lines > 400, "{d:?}");
+    assert!(d.error.iter().all(|&e| e < 0.03), "{d:?}");
+    assert!(d.lines_error.iter().all(|&e| e <= DETAIL_TOLERANCE), "{d:?}");
+    assert!(d.depth.iter().all(|&x| x > 0.7 && x < 1.1), "{d:?}");
+    assert_eq!(f.detail_vertices.len(), f.mesh.vertices.len());
     // The local term: the kernels' rates and totals on homogeneous marble against the dipole's
-    // (also a target above), and a correction near 1 where the scene has no surface detail.
+    // (also a target above), and a correction within 10 % of 1 for 80 % of the texels (it holds
+    // the skin's lines, a few percent of the surface).
     let k = r.kernels.expect("local kernels");
-    assert!(k.spots[0] > 50 && f.spots.len() > 80, "{:?} {}", k.spots, f.spots.len());
+    // The skin's lines raise many spots' misfit over the limit: 54 kept at this seed.
+    assert!(k.spots[0] > 40 && f.spots.len() > 45, "{:?} {}", k.spots, f.spots.len());
     assert!(k.worst() <= KERNEL_TOLERANCE, "{k:?}");
     assert!(k.total.iter().all(|&t| t < 0.05), "{k:?}");
     let mut corr: Vec<f32> = f.local.correction.iter().flatten().flat_map(|c| *c).collect();
@@ -76,6 +94,11 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     assert_eq!(atlas["triangle_chart"].as_array().unwrap().len(), f.mesh.triangles.len());
     let rates = lightrig_imaging::io::read(fit_dir.join("kernel-rates.exr")).unwrap();
     assert_eq!((rates.width, rates.height), (f.atlas.width, f.atlas.height));
+    // The detail texture's file holds T_ρ at the atlas's texels.
+    let detail = lightrig_imaging::io::read(fit_dir.join("detail.exr")).unwrap();
+    assert_eq!((detail.width, detail.height), (f.atlas.width, f.atlas.height));
+    let t = (0..f.atlas.texels.len()).find(|&i| f.detail.observed[i]).unwrap();
+    assert_eq!(detail.data[3 * t..3 * t + 3], f.detail.values[t]);
     for file in [
         "object.ply",
         "relit.exr",
@@ -86,6 +109,7 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
         "kernel-c1.exr",
         "kernel-c2.exr",
         "kernel-correction.exr",
+        "detail.exr",
     ] {
         assert!(fit_dir.join(file).is_file(), "{file}");
     }

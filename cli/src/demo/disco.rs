@@ -39,8 +39,13 @@ pub const INTERPOLATED_TOLERANCE: f64 = 0.20;
 /// `F` against the truth.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct Accuracy {
-    /// Median relative error of the measured entries beyond the near field, per channel.
+    /// Median relative error of the measured entries beyond the near field whose vertices'
+    /// fans the skin's lines do not cross ([`DiscoScene::skin_clear`]), per channel.
     pub observed: [f64; 3],
+    /// Of the measured entries a line crosses (reported: a vertex's `F` holds the skin as the
+    /// few spots in its fan entered it, the truth its exact mean over the fan; `T_ρ` models the
+    /// lines).
+    pub observed_lines: [f64; 3],
     /// Of the interpolated ones whose true value the camera could measure (at least the
     /// dimmest measured entry's, in every channel).
     pub interpolated: [f64; 3],
@@ -48,14 +53,17 @@ pub struct Accuracy {
     pub extrapolated: [f64; 3],
     /// The diagonal and one-ring entries, measured or not (reported, no target).
     pub near: [f64; 3],
-    /// Entries compared (measured, interpolated, extrapolated, near field).
-    pub entries: [usize; 4],
+    /// Entries compared (measured, interpolated, extrapolated, near field, measured on the
+    /// lines).
+    pub entries: [usize; 5],
     /// `F(r, k) == F(k, r)` bit for bit everywhere.
     pub symmetric: bool,
 }
 
 /// Local kernels' rates on homogeneous regions against the dipole's.
 pub const KERNEL_TOLERANCE: f64 = 0.10;
+/// The detail texture on the skin's lines against its truth: median relative error, per colour.
+pub const DETAIL_TOLERANCE: f64 = 0.10;
 
 /// The local kernels (section 7) against the scene's media.
 #[derive(Debug, Clone, Copy)]
@@ -64,7 +72,7 @@ pub struct KernelCheck {
     /// at a spot's sample distances, no beam.
     pub reference: [Profile; 2],
     /// Spots fitted wholly inside each medium (every data point farther than the data radius
-    /// plus 1 mm from the other).
+    /// plus 1 mm from the other; the skin's lines may cross their data).
     pub spots: [usize; 2],
     /// Median σ1, σ2 of those spots' fits, per medium.
     pub sigma: [[f64; 2]; 2],
@@ -127,6 +135,67 @@ pub fn kernel_check(scene: &DiscoScene, f: &DiscoFit) -> Option<KernelCheck> {
     })
 }
 
+/// The detail texture `T_ρ` (section 6.3) against the scene's skin.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct DetailCheck {
+    /// Texels compared: observed in every colour, on a triangle wholly in one medium (across the
+    /// vein's boundary `T_ρ` also holds the change of medium, which the skin's truth does not).
+    pub texels: usize,
+    /// Of them, on the skin's dark lines (the truth below 0.9 in some colour).
+    pub lines: usize,
+    /// Median relative error of `T_ρ` against the truth, per colour: all compared texels.
+    pub error: [f64; 3],
+    /// The same on the lines.
+    pub lines_error: [f64; 3],
+    /// On the lines: median of `(1 − T_ρ)/(1 − truth)`, the share of the lines' depth recovered
+    /// (the rest blurred away by the camera's pixels), per colour.
+    pub depth: [f64; 3],
+}
+
+/// `T_ρ` against its truth: the skin's transmittance at the texel over its vertices' (in log,
+/// as the fit interpolates them), `T(x) / Π T(v_i)^{b_i}`.
+pub fn detail_check(scene: &DiscoScene, f: &DiscoFit) -> DetailCheck {
+    let mesh = &f.mesh;
+    let rows: Vec<([f64; 3], [f64; 3])> = f
+        .atlas
+        .texels
+        .iter()
+        .enumerate()
+        .filter_map(|(i, t)| {
+            let t = (*t)?;
+            if !f.detail.observed[i] {
+                return None;
+            }
+            let tri = mesh.triangles[t.triangle as usize].map(|v| mesh.vertices[v as usize]);
+            let m = scene.material_at(t.point);
+            if tri.iter().any(|&v| scene.material_at(v) != m) {
+                return None;
+            }
+            let at = scene.detail(t.point);
+            let vs = tri.map(|v| scene.detail(v));
+            let truth = [0, 1, 2]
+                .map(|c| at[c] / (0..3).map(|k| f64::from(t.bary[k]) * vs[k][c].ln()).sum::<f64>().exp());
+            Some((truth, f.detail.values[i].map(f64::from)))
+        })
+        .collect();
+    let lines: Vec<&([f64; 3], [f64; 3])> = rows.iter().filter(|(t, _)| t.iter().any(|&x| x < 0.9)).collect();
+    let err = |v: &[&([f64; 3], [f64; 3])], c: usize| {
+        median(v.iter().map(|(t, g)| (g[c] / t[c] - 1.0).abs()).collect())
+    };
+    let all: Vec<&([f64; 3], [f64; 3])> = rows.iter().collect();
+    DetailCheck {
+        texels: rows.len(),
+        lines: lines.len(),
+        error: [0, 1, 2].map(|c| err(&all, c)),
+        lines_error: [0, 1, 2].map(|c| err(&lines, c)),
+        depth: [0, 1, 2].map(|c| {
+            median(
+                lines.iter().filter(|(t, _)| t[c] < 0.97).map(|(t, g)| (1.0 - g[c]) / (1.0 - t[c])).collect(),
+            )
+        }),
+    }
+}
+
 /// The distances of a spot's data: texels of `texel` mm within `radius` mm of an entry point
 /// off the texel grid.
 fn local_distances(texel: f64, radius: f64) -> Vec<f64> {
@@ -145,6 +214,10 @@ pub struct DiscoDemoResult {
     pub relit_error: f64,
     /// The same with the global term alone (`F`'s near entries in the near field).
     pub relit_global_error: f64,
+    /// The full model without the detail texture.
+    pub relit_plain_error: f64,
+    /// The detail texture against the scene's skin.
+    pub detail: DetailCheck,
     /// The local kernels against the media (none: no spot fitted).
     pub kernels: Option<KernelCheck>,
     pub frames: u64,
@@ -159,7 +232,7 @@ impl DiscoDemoResult {
         let (o, i) = (worst(a.observed), worst(a.interpolated));
         vec![
             (
-                "measured entries of F (beyond the one-ring) against the truth, median relative error (worst channel)",
+                "measured entries of F (beyond the one-ring, clear of the skin's lines) against the truth, median relative error (worst channel)",
                 o,
                 OBSERVED_TOLERANCE,
                 o <= OBSERVED_TOLERANCE,
@@ -178,6 +251,16 @@ impl DiscoDemoResult {
                     k,
                     KERNEL_TOLERANCE,
                     k <= KERNEL_TOLERANCE,
+                )
+            },
+            {
+                let d = &self.detail;
+                let e = if d.lines > 0 { worst(d.lines_error) } else { f64::INFINITY };
+                (
+                    "detail texture T_ρ on the skin's lines against its truth, median relative error (worst colour)",
+                    e,
+                    DETAIL_TOLERANCE,
+                    e <= DETAIL_TOLERANCE,
                 )
             },
         ]
@@ -213,7 +296,8 @@ fn median(mut v: Vec<f64>) -> f64 {
 /// mean of the truth; the local kernels' domain, reported, no target), measured, interpolated
 /// within the camera's range (the true value at least the dimmest measured entry's, the 1st
 /// percentile, in every channel), and below the camera's floor (extrapolated by the fall-off;
-/// reported, no target). Beyond the near field the truth is `Rd` between the two vertices.
+/// reported, no target). Beyond the near field the truth is [`DiscoScene::truth`]: `Rd` between
+/// the two vertices, with the skin's detail as `F` holds it.
 pub fn accuracy(scene: &DiscoScene, f: &DiscoFit, stride: usize) -> Accuracy {
     let n = f.matrix.n;
     let entries: Vec<(usize, usize)> =
@@ -242,7 +326,11 @@ pub fn accuracy(scene: &DiscoScene, f: &DiscoFit, stride: usize) -> Accuracy {
         if near(e.0, e.1) {
             3
         } else if measured(e) {
-            0
+            if scene.skin_clear(e.0) && scene.skin_clear(e.1) {
+                0
+            } else {
+                4
+            }
         } else if (0..3).all(|c| t[c] >= floor[c]) {
             1
         } else {
@@ -251,7 +339,7 @@ pub fn accuracy(scene: &DiscoScene, f: &DiscoFit, stride: usize) -> Accuracy {
     };
     let classes: Vec<usize> = entries.iter().zip(&rows).map(|(e, (t, _))| class(e, t)).collect();
     let mut acc = Accuracy::default();
-    for slot in 0..4 {
+    for slot in 0..5 {
         let sel: Vec<&[f64; 3]> =
             rows.iter().zip(&classes).filter(|(_, &c)| c == slot).map(|(e, _)| &e.1).collect();
         acc.entries[slot] = sel.len();
@@ -260,7 +348,8 @@ pub fn accuracy(scene: &DiscoScene, f: &DiscoFit, stride: usize) -> Accuracy {
             0 => acc.observed = m,
             1 => acc.interpolated = m,
             2 => acc.extrapolated = m,
-            _ => acc.near = m,
+            3 => acc.near = m,
+            _ => acc.observed_lines = m,
         }
     }
     acc.symmetric = (0..n).all(|k| (k..n).all(|r| f.matrix.values[k * n + r] == f.matrix.values[r * n + k]));
@@ -356,8 +445,28 @@ pub fn run_disco(opts: &DiscoDemoOptions) -> Result<DiscoDemoResult, CliError> {
     let n = fitted.matrix.n;
     let global = fit::relit(&fitted, &|r, k| fitted.matrix.values[k * n + r].map(f64::from));
     let mine = fit::relit_full(&fitted);
+    let plain = fit::relit_model(&fitted, true, false);
     let light = relight::side_light(&fitted.camera, 0.0);
-    let truth = relight::render(&fitted.mesh, &scene.exitance(&light), &fitted.camera, 0.0, fitted.eta);
+    // The exitance under the skin is smooth under a broad light: interpolated between the
+    // vertices, times the skin's transmittance at each pixel's surface point.
+    let mesh = &fitted.mesh;
+    let skin = |t: u32, b: [f64; 3]| {
+        let tri = mesh.triangles[t as usize];
+        scene.detail((0..3).fold([0.0; 3], |p, k| {
+            lightrig_pipelines::vec3::add(
+                p,
+                lightrig_pipelines::vec3::scale(mesh.vertices[tri[k] as usize], b[k]),
+            )
+        }))
+    };
+    let truth = relight::render_detailed(
+        mesh,
+        &scene.exitance_below_skin(&light),
+        &fitted.camera,
+        0.0,
+        fitted.eta,
+        &skin,
+    );
     let mut files = files;
     files.extend(
         fit::write_relit(&truth, &fitted.camera, fit::exposure_of(&mine), &out.join("fit"), "relit-truth")
@@ -370,12 +479,17 @@ pub fn run_disco(opts: &DiscoDemoOptions) -> Result<DiscoDemoResult, CliError> {
     let relit_error = if st > 0.0 { (se / st).sqrt() } else { f64::NAN };
     let sg: f64 = global.iter().zip(&truth).map(|(&a, &b)| f64::from(a - b).powi(2)).sum();
     let relit_global_error = if st > 0.0 { (sg / st).sqrt() } else { f64::NAN };
+    let sp: f64 = plain.iter().zip(&truth).map(|(&a, &b)| f64::from(a - b).powi(2)).sum();
+    let relit_plain_error = if st > 0.0 { (sp / st).sqrt() } else { f64::NAN };
+    let detail = detail_check(scene, &fitted);
     let kernels = kernel_check(scene, &fitted);
     let result = DiscoDemoResult {
         fit: fitted,
         accuracy,
         relit_error,
         relit_global_error,
+        relit_plain_error,
+        detail,
         kernels,
         frames,
         report: out.join("report.md"),
@@ -398,8 +512,10 @@ fn write_report(
     rep.line(format!(
         "The shipped `docs/rigs/disco.toml`{} on the virtual controller and the translucent pebble \
          (`sim/src/scenes/disco.rs`: {} with a vein of {}, Jensen et al. 2001's measured σs′, σa; η = 1.3; \
-         dipole `Rd` made symmetric; a 2 mm beam): {} frames, {} views (turntable × camera position), fitted as \
-         `lightrig fit disco` does. Truth: each entry is `Rd` between its two vertices.",
+         dipole `Rd` made symmetric; dark lines in its skin finer than the mesh, the surface detail; a 2 mm beam): \
+         {} frames, {} views (turntable × camera position), fitted as `lightrig fit disco` does. Truth: each entry \
+         is `Rd` between its two vertices times the skin where the light leaves (the vertex) and enters (the hat \
+         function's mean), made symmetric.",
         if opts.quick {
             " (quick: 4 turntable views, 16 × 16 spots, 192 × 124 px, 642 vertices)"
         } else {
@@ -417,11 +533,18 @@ fn write_report(
     rep.line("| entries | compared | median relative error R / G / B |");
     rep.line("|---|---|---|");
     rep.line(format!(
-        "| measured, beyond the one-ring | {} | {:.2} % / {:.2} % / {:.2} % |",
+        "| measured, beyond the one-ring, clear of the skin's lines | {} | {:.2} % / {:.2} % / {:.2} % |",
         a.entries[0],
         100.0 * a.observed[0],
         100.0 * a.observed[1],
         100.0 * a.observed[2]
+    ));
+    rep.line(format!(
+        "| measured, beyond the one-ring, a vertex's fan crossed by a line | {} | {:.2} % / {:.2} % / {:.2} % |",
+        a.entries[4],
+        100.0 * a.observed_lines[0],
+        100.0 * a.observed_lines[1],
+        100.0 * a.observed_lines[2]
     ));
     rep.line(format!(
         "| interpolated, within the camera's range | {} | {:.2} % / {:.2} % / {:.2} % |",
@@ -495,9 +618,31 @@ fn write_report(
         "Relit (`fit/relit.png`: a distant light from the side and above, which no frame used) against the \
          object's physics under that light (`fit/relit-truth.png`: the dipole integrated over the surface, no F \
          involved), both rendered alike from the vertices: relative RMS error {:.1} % over the object's pixels \
-         with the local kernels carrying each vertex's one-ring; {:.1} % from F alone (`fit/relit-global.png`).",
+         with the local kernels carrying each vertex's one-ring and the detail texture; {:.1} % without the detail \
+         texture; {:.1} % from F alone (`fit/relit-global.png`). The truth is the exitance under the skin interpolated \
+         between the vertices (smooth under a broad light) times the skin's transmittance at each pixel.",
         100.0 * r.relit_error,
+        100.0 * r.relit_plain_error,
         100.0 * r.relit_global_error
+    ));
+    let d = &r.detail;
+    rep.line("");
+    rep.line(format!(
+        "Detail texture (section 6.3, `fit/detail.exr`): {} texels observed in every colour on triangles within one \
+         medium, against the skin's transmittance at the texel over its vertices' (`T(x)/Π T(v_i)^b_i`): median \
+         relative error {:.1} / {:.1} / {:.1} % (R / G / B); on the dark lines ({} texels) {:.1} / {:.1} / {:.1} %, \
+         their depth recovered {:.0} / {:.0} / {:.0} % (median; the camera's pixels blur the rest).",
+        d.texels,
+        100.0 * d.error[0],
+        100.0 * d.error[1],
+        100.0 * d.error[2],
+        d.lines,
+        100.0 * d.lines_error[0],
+        100.0 * d.lines_error[1],
+        100.0 * d.lines_error[2],
+        100.0 * d.depth[0],
+        100.0 * d.depth[1],
+        100.0 * d.depth[2]
     ));
     rep.line("");
     rep.line(format!(
@@ -517,7 +662,7 @@ fn write_report(
         rep.line(format!(
             "Local kernels (section 7; `m(d) = c1·e^(−σ1·d) + c2·e^(−σ2·d)` per spot in the paper's stages, through \
              the beam's blur, from the texels within {:.1} mm of the entry point, {:.2} mm texels on a {} × {} atlas): \
-             {} spots kept, {} not seen by the camera, {} with too few data (at the silhouette), {} fitted but rejected (misfit over {:.0} %, or no fast term: near the vein's boundary, or noisy). On homogeneous {} ({} spots): median σ1 {:.3}, σ2 {:.3} mm⁻¹ \
+             {} spots kept, {} not seen by the camera, {} with too few data (at the silhouette), {} fitted but rejected (misfit over {:.0} %, or no fast term: near the vein's boundary or the skin's lines, or noisy). On homogeneous {} ({} spots): median σ1 {:.3}, σ2 {:.3} mm⁻¹ \
              against the dipole's {:.3}, {:.3} (the same fit to its `Rd`, misfit {:.1} %); {:.0} % of those spots \
              within {:.0} % on both rates; the kernels' total (2π∫m) within {:.1} / {:.1} / {:.1} % (median, R / G / B). \
              {}",

@@ -15,7 +15,8 @@
 //!    weight ([`Accumulator`]), lasers into R, G, B by wavelength, views combined by
 //!    confidence. Frames are streamed a chunk at a time: memory is `F` plus one chunk.
 //! 4. **Interpolation** (section 6.2, [`interpolate`]): missing entries and never-lit columns
-//!    filled on the mesh, `F` made symmetric.
+//!    filled on the mesh, `F` made symmetric. The local term (section 7) and the detail texture
+//!    `T_ρ` (section 6.3, [`frame_ratios`]) are gathered from the same frames in step 3.
 //! 5. **Held out**: with `[plan.fit] held_out = N`, every N-th spot of the grid is left out of
 //!    1–4 and its frames predicted from `F` afterwards ([`HeldOut`]).
 
@@ -24,6 +25,9 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use lightrig_pipelines::disco::atlas::Atlas;
+use lightrig_pipelines::disco::detail::{
+    frame_ratios, vertex_detail, DetailAccumulator, DetailParams, DetailTexture, DetailView,
+};
 use lightrig_pipelines::disco::falloff;
 use lightrig_pipelines::disco::interpolate::{interpolate, FillParams, FillReport, Matrix};
 use lightrig_pipelines::disco::kernel::{self, Sample};
@@ -114,6 +118,11 @@ pub struct DiscoFit {
     pub atlas: Atlas,
     pub spots: Vec<SpotKernel>,
     pub local: LocalTextures,
+    /// The detail texture `T_ρ` on the atlas (section 6.3).
+    pub detail: DetailTexture,
+    /// Each vertex's skin relative to its ring ([`vertex_detail`]): the local term's light
+    /// leaves through it.
+    pub detail_vertices: Vec<[f32; 3]>,
     pub local_hidden: usize,
     pub local_failed: usize,
     /// Spots fitted but not kept ([`LocalParams::accepts`]: misfit, or no fast term).
@@ -140,6 +149,8 @@ struct Done {
     peak_offset: Option<f64>,
     /// The frame's data near its spot, for the local term.
     local: Vec<(u32, Sample)>,
+    /// The detail texture's ratios ([`frame_ratios`]).
+    ratios: Vec<(u32, f32, f32)>,
 }
 
 /// A spot's local data while its three lasers' frames come in.
@@ -333,6 +344,9 @@ pub fn fit_session(
     let atlas = Atlas::build(&mesh, local_params.texel_mm, 3);
     let blurs = Blurs::new(local_params.radius_mm + 1.0);
     let mut local = LocalAccumulator::new(&atlas);
+    let detail_params = DetailParams { eta: setup.eta, ..DetailParams::default() };
+    let mut detail_views: Vec<DetailView> = Vec::new();
+    let mut detail_acc = DetailAccumulator::new(&atlas);
     let mut pending: HashMap<(usize, [u16; 2]), Pending> = HashMap::new();
     let mut spots: Vec<SpotKernel> = Vec::new();
     let (mut local_hidden, mut local_failed, mut local_rejected) = (0usize, 0usize, 0usize);
@@ -362,7 +376,9 @@ pub fn fit_session(
                 Some(v) => v,
                 None => {
                     views.push((pos, deg));
-                    maps.push(ViewMap::new(&mesh, &setup.cameras[pos].1, deg, &limits));
+                    let map = ViewMap::new(&mesh, &setup.cameras[pos].1, deg, &limits);
+                    detail_views.push(DetailView::new(&mesh, &atlas, &map, &detail_params));
+                    maps.push(map);
                     views.len() - 1
                 }
             };
@@ -400,7 +416,19 @@ pub fn fit_session(
                         }
                         _ => Vec::new(),
                     };
-                    Ok(Done { inc, img, floor, peak_offset, local })
+                    let ratios = match &inc {
+                        Some(inc) if !j.held_out => frame_ratios(
+                            &atlas,
+                            &detail_views[j.view],
+                            map,
+                            &img,
+                            inc.object,
+                            floor,
+                            &detail_params,
+                        ),
+                        _ => Vec::new(),
+                    };
+                    Ok(Done { inc, img, floor, peak_offset, local, ratios })
                 })
                 .collect();
             for (j, r) in chunk.iter().zip(results) {
@@ -426,6 +454,7 @@ pub fn fit_session(
                     continue;
                 }
                 acc.add(&mesh, &maps[j.view], &inc, &d.img, j.channel, flux[j.channel], d.floor);
+                detail_acc.add(j.channel, &d.ratios);
                 used += 1;
                 if inc.angle_deg > local_params.max_incidence_deg {
                     continue;
@@ -494,6 +523,9 @@ pub fn fit_session(
     }
     drop(first);
     drop(acc);
+    let detail = detail_acc.finish();
+    drop(detail_acc);
+    drop(detail_views);
     local_hidden += pending.len();
     let local_textures = local.finish(&atlas);
     let observed: Vec<bool> = weights.iter().map(|&w| w > 0.0).collect();
@@ -505,6 +537,11 @@ pub fn fit_session(
     // dynamic range cannot reach continues the measured decay.
     let d_min = 0.5 * mesh.mean_edge();
     let rates = falloff::fit(&mesh, &matrix, 2.0 * mesh.mean_edge());
+    // Before `F` is made symmetric: its rows are the light leaving at each vertex.
+    let detail_vertices = match rates {
+        Some(f) => vertex_detail(&mesh, &matrix.values, &observed, &f, detail_params.min_distance_mm),
+        None => vec![[1.0; 3]; n],
+    };
     if let Some(s) = rates {
         falloff::apply(&mesh, &mut matrix, s, d_min, true);
     }
@@ -548,6 +585,8 @@ pub fn fit_session(
         atlas,
         spots,
         local: local_textures,
+        detail,
+        detail_vertices,
         local_hidden,
         local_failed,
         local_rejected,
@@ -767,18 +806,41 @@ pub fn relit(fit: &DiscoFit, f: &(dyn Fn(usize, usize) -> [f64; 3] + Sync)) -> V
 }
 
 /// The model — `F` beyond each vertex's one-ring, the local kernels within it
-/// ([`relight::exitance_local`]) — under [`relight::side_light`], rendered as [`relit`] is.
+/// ([`relight::exitance_local`]), each pixel times the detail texture `T_ρ` — under
+/// [`relight::side_light`], rendered as [`relit`] is.
 pub fn relit_full(fit: &DiscoFit) -> Vec<f32> {
+    relit_model(fit, true, true)
+}
+
+/// The model under [`relight::side_light`] with or without the local kernels (without: `F`'s
+/// near entries) and the detail texture.
+pub fn relit_model(fit: &DiscoFit, with_local: bool, with_detail: bool) -> Vec<f32> {
     let n = fit.matrix.n;
     let light = relight::side_light(&fit.camera, 0.0);
     let f = |r: usize, k: usize| fit.matrix.values[k * n + r].map(f64::from);
     let local = |r: usize| {
+        if !with_local {
+            return None;
+        }
         let t = vertex_texel(fit, r)?;
-        let corr = fit.local.correction[t as usize].map_or([1.0; 3], |c| c.map(f64::from));
+        // The light the kernel brings leaves through the skin at the vertex, which `T_ρ` is
+        // relative to (the correction `C` holds it only near kept spots).
+        let corr = if with_detail {
+            fit.detail_vertices[r].map(f64::from)
+        } else {
+            fit.local.correction[t as usize].map_or([1.0; 3], |c| c.map(f64::from))
+        };
         Some((fit.local.profile(t)?, corr))
     };
     let m = relight::exitance_local(&fit.mesh, &f, &local, &light, fit.eta);
-    relight::render(&fit.mesh, &m, &fit.camera, 0.0, fit.eta)
+    let detail = |t: u32, b: [f64; 3]| {
+        if with_detail {
+            fit.detail.at(&fit.atlas, &fit.mesh, t, b)
+        } else {
+            [1.0; 3]
+        }
+    };
+    relight::render_detailed(&fit.mesh, &m, &fit.camera, 0.0, fit.eta, &detail)
 }
 
 /// The atlas texel nearest vertex `r`.
@@ -825,14 +887,15 @@ pub const ATLAS_FORMAT: &str = "lightrig-disco-atlas 1";
 /// four atlas textures, linear float EXR, one texel per pixel, zero off the charts:
 /// `kernel-rates.exr` (R σ1, G σ2 in mm⁻¹, B 1 where a spot gave the parameters, 0 where they
 /// were filled), `kernel-c1.exr`, `kernel-c2.exr` (the two terms' weights per colour, mm⁻²),
-/// `kernel-correction.exr` (the multiplicative correction `C` per colour).
+/// `kernel-correction.exr` (the multiplicative correction `C` per colour), and the detail
+/// texture `detail.exr` (`T_ρ` per colour; 1 where no frame showed the texel).
 pub fn write_local(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitError> {
     use lightrig_imaging::io::{write_exr, Encoding, ExrPrecision, Image};
     let a = &fit.atlas;
     let io = |p: &Path, e: std::io::Error| fail(format!("{}: {e}", p.display()));
     let mut files = Vec::new();
     type Texel<'a> = &'a dyn Fn(usize) -> Option<[f32; 3]>;
-    let textures: [(&str, Texel); 4] = [
+    let textures: [(&str, Texel); 5] = [
         ("kernel-rates", &|i| {
             fit.local.params[i]
                 .map(|p| [p[0].exp(), p[1].exp(), if fit.local.observed[i] { 1.0 } else { 0.0 }])
@@ -840,6 +903,7 @@ pub fn write_local(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitError>
         ("kernel-c1", &|i| fit.local.profile(i as u32).map(|p| p.c1.map(|x| x as f32))),
         ("kernel-c2", &|i| fit.local.profile(i as u32).map(|p| p.c2.map(|x| x as f32))),
         ("kernel-correction", &|i| fit.local.correction[i]),
+        ("detail", &|i| a.texels[i].and(fit.detail.values.get(i).copied())),
     ];
     for (name, value) in textures {
         let mut im = Image::new(a.width.max(1), a.height.max(1), 3);
@@ -859,6 +923,7 @@ pub fn write_local(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitError>
         "format": ATLAS_FORMAT,
         "width": a.width, "height": a.height, "texel_mm": a.texel_mm, "border": a.border,
         "mapping": "triangle t of object.ply lies in chart triangle_chart[t] (4294967295: none); a point p (mm, object frame) of it is at atlas pixel (x, y) = (u / texel_mm + shift[0], v / texel_mm + shift[1]), texel centres at +0.5, where for axis a (0 +x, 1 -x, 2 +y, 3 -y, 4 +z, 5 -z) and k = a / 2: u = p[(k+1) % 3] (negated for odd a), v = p[(k+2) % 3]",
+        "detail": "detail.exr holds T_rho (section 6.3): the global response interpolated over a triangle (in log between its vertices) is multiplied by the texel's value",
         "kernel": "m(d) = c1 e^(-sigma1 d) + c2 e^(-sigma2 d) per colour, d the 3D distance (mm) from the texel's point; a texel's 7x7 kernel is m at each neighbour's distance times that neighbour's correction times texel_mm^2",
         "charts": charts,
         "triangle_chart": a.triangle_chart,
@@ -905,6 +970,7 @@ pub fn write_outputs(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitErro
         "local": { "spots_fitted": fit.spots.len(), "spots_unseen": fit.local_hidden, "spots_failed": fit.local_failed, "spots_rejected": fit.local_rejected,
                    "texel_mm": fit.atlas.texel_mm, "atlas": [fit.atlas.width, fit.atlas.height],
                    "observed_texels": fit.local.observed.iter().filter(|&&o| o).count() },
+        "detail": { "observed_texels": fit.detail.observed.iter().filter(|&&o| o).count() },
         "held_out": { "frames": fit.held_out.frames, "pixels": fit.held_out.pixels,
                       "median_relative_rms": fit.held_out.median_rel_rms, "near_field_excluded_mm": fit.held_out.near_mm,
                       "near_field_by_local_term": { "frames": fit.held_out.near_frames, "pixels": fit.held_out.near_pixels,

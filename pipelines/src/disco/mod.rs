@@ -11,6 +11,8 @@
 //!   distance taken out while it does.
 //! - [`atlas`]: the texture atlas the local term's 7×7 kernels live on (section 7): axis-projected
 //!   charts with stretch ≤ √3, a gutter, and boundary texels linked across charts.
+//! - [`detail`]: the detail texture `T_ρ` (section 6.3): surface detail finer than the mesh,
+//!   from frames where a texel is smoothly lit, relative to its triangle's vertices.
 //! - [`kernel`]: the local term's `m(d)` fitted per spot in section 7.1's stages, through the
 //!   beam's blur.
 //! - [`local`]: section 7 on the atlas: per-spot data and fits, the parameter and correction
@@ -18,6 +20,7 @@
 //! - [`relight`]: the model under a light no frame used (the global term rendered).
 
 pub mod atlas;
+pub mod detail;
 pub mod dipole;
 pub mod falloff;
 pub mod interpolate;

@@ -164,6 +164,19 @@ pub fn sub_centroids(split: u32) -> Vec<(f64, f64)> {
 /// The object turned to `deg` seen by `cam` with per-vertex exitance `m`: linear RGB radiance
 /// per pixel (row-major, 3 per pixel; the background 0).
 pub fn render(mesh: &SurfaceMesh, m: &[[f64; 3]], cam: &Pinhole, deg: f64, eta: f64) -> Vec<f32> {
+    render_detailed(mesh, m, cam, deg, eta, &|_, _| [1.0; 3])
+}
+
+/// [`render`] with each pixel's response multiplied by a detail texture at the surface point it
+/// sees, `detail(triangle, barycentrics)` (section 6.3's `T_ρ`).
+pub fn render_detailed(
+    mesh: &SurfaceMesh,
+    m: &[[f64; 3]],
+    cam: &Pinhole,
+    deg: f64,
+    eta: f64,
+    detail: &(dyn Fn(u32, [f64; 3]) -> [f64; 3] + Sync),
+) -> Vec<f32> {
     let world = turned(mesh, deg);
     let map = surface_map(mesh, &world, cam);
     let mut out = vec![0.0f32; map.len() * 3];
@@ -172,6 +185,7 @@ pub fn render(mesh: &SurfaceMesh, m: &[[f64; 3]], cam: &Pinhole, deg: f64, eta: 
         let (p, n) = point_of(mesh, &world, deg, hit);
         let ft = fresnel_transmittance(eta, dot(n, normalize(sub(cam.eye, p))));
         let t = mesh.triangles[hit.triangle as usize];
+        let skin = detail(hit.triangle, hit.bary.map(f64::from));
         for c in 0..3 {
             let vals = t.map(|v| m[v as usize][c]);
             let v = if vals.iter().all(|&x| x > 0.0) {
@@ -179,7 +193,7 @@ pub fn render(mesh: &SurfaceMesh, m: &[[f64; 3]], cam: &Pinhole, deg: f64, eta: 
             } else {
                 (0..3).map(|j| f64::from(hit.bary[j]) * vals[j].max(0.0)).sum::<f64>()
             };
-            px[c] = (ft / std::f64::consts::PI * v) as f32;
+            px[c] = (ft / std::f64::consts::PI * v * skin[c]) as f32;
         }
     });
     out
@@ -218,6 +232,11 @@ mod tests {
         let img = render(&mesh, &m, &cam, 0.0, 1.3);
         assert_eq!(img[0], 0.0);
         assert!(img.iter().copied().fold(0.0f32, f32::max) > 0.1);
+        // A detail texture multiplies each pixel by its value at the point the pixel sees.
+        let half = render_detailed(&mesh, &m, &cam, 0.0, 1.3, &|_, _| [0.5, 1.0, 2.0]);
+        for (a, b) in img.chunks(3).zip(half.chunks(3)) {
+            assert_eq!([b[0], b[1], b[2]], [a[0] * 0.5, a[1], a[2] * 2.0]);
+        }
     }
 
     #[test]

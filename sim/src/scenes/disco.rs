@@ -12,10 +12,16 @@
 //! the dipole's red, green or blue channel; the grey camera sees it with its own sensitivity
 //! times the laser's power (`flux`, unknown to the fit: the white balance measures it).
 //!
+//!
+//! Surface detail ([`Veining`]): thin dark lines in the marble's skin, finer than the mesh. The
+//! skin's transmittance `T(x)` (per colour) takes its share of the light where it enters and
+//! where it leaves, so `Rd` seen through the skin is `T(xi)·Rd(xi, xo)·T(xo)`, symmetric as
+//! before. This is what the paper's detail texture `T_ρ` (section 6.3) models: a modulation of
+//! the response that no illumination changes.
+//!
 //! The white balance step (`meta.kind = "white"`) shows the white target instead: a Lambertian
 //! plane of the rig file's albedo, lit by the beam (`E = I(s)·cos θ`).
-//! Not modelled: surface (specular) reflection at the spot, the registration spotlights, a
-//! surface detail texture.
+//! Not modelled: surface (specular) reflection at the spot, the registration spotlights.
 
 use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
@@ -40,13 +46,39 @@ pub struct Vein {
     pub half_width_mm: f64,
 }
 
+/// Surface detail: dark lines where warped planes cut the surface. Line `i` is the level set
+/// `dot(p, n) − offset + A·sin(2π·dot(p, w)/λ) = 0` with a Gaussian cross-section of
+/// `sigma_mm`; the skin's transmittance is `1 − depth_c·Σ_i g_i` (brownish: it takes more blue).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Veining {
+    /// `(n, offset_mm, w, amplitude_mm, wavelength_mm)` per line.
+    pub lines: Vec<(V3, f64, V3, f64, f64)>,
+    pub sigma_mm: f64,
+    pub depth: [f64; 3],
+}
+
+impl Veining {
+    /// The skin's transmittance at object-frame point `p`, per colour.
+    pub fn at(&self, p: V3) -> [f64; 3] {
+        let g: f64 = self
+            .lines
+            .iter()
+            .map(|&(n, o, w, a, l)| {
+                let s = dot(p, n) - o + a * (std::f64::consts::TAU * dot(p, w) / l).sin();
+                (-s * s / (2.0 * self.sigma_mm * self.sigma_mm)).exp()
+            })
+            .sum();
+        self.depth.map(|d| (1.0 - d * g).max(0.2))
+    }
+}
+
 /// A pixel's surface point in a view.
 #[derive(Debug, Clone, Copy)]
 struct Seen {
     point: V3,
     material: u8,
-    /// `Ft(η, ωo)/π`.
-    out: f64,
+    /// `Ft(η, ωo)/π` times the skin's transmittance, per colour.
+    out: [f64; 3],
 }
 
 /// One beam ray inside the object.
@@ -54,8 +86,8 @@ struct Seen {
 struct Entry {
     point: V3,
     material: u8,
-    /// Share of the flux times `Ft(η, ωi)`.
-    weight: f64,
+    /// Share of the flux times `Ft(η, ωi)` times the skin's transmittance, per colour.
+    weight: [f64; 3],
 }
 
 /// The beam at one spot: its rays by two quadratures. Within [`FINE_MM`] of the centre's entry
@@ -84,11 +116,14 @@ pub struct DiscoScene {
     /// Body, vein.
     pub media: [Medium; 2],
     pub vein: Vein,
+    pub veining: Veining,
     pub beam_sigma_mm: f64,
     /// Per laser channel: the dipole channel it drives and its flux as the camera sees it.
     pub lasers: Vec<(u8, usize, f64)>,
     turntable: Option<u8>,
     dipoles: [[Dipole; 3]; 2],
+    /// Per vertex: the skin's transmittance averaged over its hat function.
+    hat_skin: Vec<[f64; 3]>,
     views: RwLock<HashMap<ViewKey, Arc<Vec<Option<Seen>>>>>,
     beams: RwLock<HashMap<BeamKey, Arc<Beam>>>,
 }
@@ -122,18 +157,54 @@ impl DiscoScene {
             })
             .collect();
         let media = [MARBLE, SKIN1];
-        Ok(DiscoScene {
+        let mut scene = DiscoScene {
             setup,
             mesh,
             media,
             vein: Vein { normal: normalize([1.0, 0.4, 0.8]), offset_mm: 24.0, half_width_mm: 3.0 },
+            veining: Veining {
+                lines: vec![
+                    (normalize([0.3, 1.0, 0.2]), 2.0, normalize([1.0, -0.3, 0.0]), 3.0, 23.0),
+                    (normalize([-0.7, 0.2, 1.0]), -12.0, normalize([0.0, 1.0, -0.2]), 2.5, 17.0),
+                    (normalize([1.0, -0.5, -0.3]), -6.0, normalize([0.0, 0.5, 1.0]), 3.5, 29.0),
+                ],
+                sigma_mm: 0.8,
+                depth: [0.3, 0.36, 0.42],
+            },
             beam_sigma_mm: 0.85,
             lasers,
             turntable: rig.steppers.iter().find(|s| s.kind == AxisKind::Rotary).map(|s| s.axis),
             dipoles: [media[0].dipoles(), media[1].dipoles()],
             views: RwLock::new(HashMap::new()),
             beams: RwLock::new(HashMap::new()),
-        })
+            hat_skin: Vec::new(),
+        };
+        scene.hat_skin =
+            (0..scene.mesh.vertices.len()).map(|k| scene.hat_mean(k, &|x| scene.detail(x))).collect();
+        Ok(scene)
+    }
+
+    /// `∫ φk(x)·g(x) dx / ∫ φk` over vertex `k`'s hat function (per colour): each
+    /// triangle of `k`'s fan split 12 × 12, evaluated at the sub-triangles' centroids.
+    fn hat_mean(&self, k: usize, g: &dyn Fn(V3) -> [f64; 3]) -> [f64; 3] {
+        let (mut sum, mut wsum) = ([0.0; 3], 0.0);
+        let split = 12u32;
+        for t in self.mesh.triangles.iter().filter(|t| t.contains(&(k as u32))) {
+            let rot = t.iter().position(|&i| i as usize == k).unwrap_or(0);
+            let [a, b, c] = [0, 1, 2].map(|j| self.mesh.vertices[t[(rot + j) % 3] as usize]);
+            let area = 0.5 * norm(cross(sub(b, a), sub(c, a)));
+            for (u, v) in sub_centroids(split) {
+                let wa = 1.0 - u - v;
+                let x = add(add(scale(a, wa), scale(b, u)), scale(c, v));
+                let w = wa * area;
+                let gx = g(x);
+                for (ch, s) in sum.iter_mut().enumerate() {
+                    *s += w * gx[ch];
+                }
+                wsum += w;
+            }
+        }
+        sum.map(|s| if wsum > 0.0 { s / wsum } else { 0.0 })
     }
 
     /// The medium at object-frame point `p`: 0 body, 1 vein.
@@ -146,17 +217,41 @@ impl DiscoScene {
         self.mesh.vertices.iter().map(|&p| self.material_at(p)).collect()
     }
 
-    /// The true `Rd` between object-frame points `a` and `b`, channel `c`, mm⁻².
+    /// The skin's transmittance at object-frame point `p` ([`Veining`]), per colour.
+    pub fn detail(&self, p: V3) -> [f64; 3] {
+        self.veining.at(p)
+    }
+
+    /// The true `Rd` between object-frame points `a` and `b` seen through the skin, channel `c`,
+    /// mm⁻²: the dipole, times the skin's transmittance at both ends.
     pub fn rd(&self, a: V3, b: V3, c: usize) -> f64 {
+        self.rd_below(a, b, c) * self.detail(a)[c] * self.detail(b)[c]
+    }
+
+    /// `Rd` under the skin (the dipole alone).
+    fn rd_below(&self, a: V3, b: V3, c: usize) -> f64 {
         let (ma, mb) = (self.material_at(a), self.material_at(b));
         rd_between(&self.dipoles[usize::from(ma)][c], &self.dipoles[usize::from(mb)][c], norm(sub(a, b)))
     }
 
-    /// The true throughput factor `F(r, k)`: `Rd` between the two vertices, per channel
-    /// (symmetric).
+    /// Whether vertex `r`'s fan is clear of the skin's lines: its skin and its hat function's
+    /// mean both within 2 % of 1 in every colour.
+    pub fn skin_clear(&self, r: usize) -> bool {
+        let (t, h) = (self.detail(self.mesh.vertices[r]), self.hat_skin[r]);
+        (0..3).all(|c| t[c] >= 0.98 && h[c] >= 0.98)
+    }
+
+    /// The true throughput factor `F(r, k)` (beyond the near field), per channel, symmetric:
+    /// `Rd` under the skin between the two vertices, times the skin at both ends as `F` holds
+    /// it — light leaves through the skin at vertex `r` and enters through vertex `k`'s hat
+    /// function (the spots split over its fan), so the entry's skin is its hat mean `T̄k` —
+    /// made symmetric as the fit's `F` is: `Rd·½(T_r·T̄k + T_k·T̄r)`. Under a broad light this
+    /// `F` gives each vertex its exitance (the entering light is integrated over the hats).
     pub fn truth(&self, r: usize, k: usize) -> [f64; 3] {
         let (a, b) = (self.mesh.vertices[r], self.mesh.vertices[k]);
-        [0, 1, 2].map(|c| self.rd(a, b, c))
+        let (ta, tb) = (self.detail(a), self.detail(b));
+        let (ha, hb) = (self.hat_skin[r], self.hat_skin[k]);
+        [0, 1, 2].map(|c| self.rd_below(a, b, c) * 0.5 * (ta[c] * hb[c] + tb[c] * ha[c]))
     }
 
     /// What the near field's entries of `F` estimate (the diagonal and one-ring: the paper's
@@ -172,23 +267,7 @@ impl DiscoScene {
     /// sub-triangles' centroids.
     pub fn hat_response(&self, r: usize, k: usize) -> [f64; 3] {
         let xr = self.mesh.vertices[r];
-        let (mut sum, mut wsum) = ([0.0; 3], 0.0);
-        let split = 12u32;
-        for t in self.mesh.triangles.iter().filter(|t| t.contains(&(k as u32))) {
-            let rot = t.iter().position(|&i| i as usize == k).unwrap_or(0);
-            let [a, b, c] = [0, 1, 2].map(|j| self.mesh.vertices[t[(rot + j) % 3] as usize]);
-            let area = 0.5 * norm(cross(sub(b, a), sub(c, a)));
-            for (u, v) in sub_centroids(split) {
-                let wa = 1.0 - u - v;
-                let x = add(add(scale(a, wa), scale(b, u)), scale(c, v));
-                let w = wa * area;
-                for (ch, s) in sum.iter_mut().enumerate() {
-                    *s += w * self.rd(x, xr, ch);
-                }
-                wsum += w;
-            }
-        }
-        sum.map(|s| if wsum > 0.0 { s / wsum } else { 0.0 })
+        self.hat_mean(k, &|x| [0, 1, 2].map(|c| self.rd(x, xr, c)))
     }
 
     /// Each vertex's radiant exitance under `light` (object frame) computed from the object's
@@ -196,6 +275,21 @@ impl DiscoScene {
     /// over the whole surface, each triangle split into sub-triangles (3 × 3; 24 × 24 within
     /// 8 mm of `xr`, where `Rd` peaks within a millimetre) evaluated at their centroids.
     pub fn exitance(&self, light: &DistantLight) -> Vec<[f64; 3]> {
+        let below = self.exitance_below_skin(light);
+        below
+            .iter()
+            .zip(&self.mesh.vertices)
+            .map(|(m, &p)| {
+                let t = self.detail(p);
+                [0, 1, 2].map(|c| m[c] * t[c])
+            })
+            .collect()
+    }
+
+    /// [`DiscoScene::exitance`] before the skin at the vertex lets it out: smooth under a broad
+    /// light, so interpolating it between vertices and multiplying by the skin's transmittance
+    /// at a surface point gives that point's exitance ([`DiscoScene::detail`]).
+    pub fn exitance_below_skin(&self, light: &DistantLight) -> Vec<[f64; 3]> {
         use rayon::prelude::*;
         let l = normalize(light.towards);
         let eta = self.setup.eta;
@@ -223,8 +317,9 @@ impl DiscoScene {
                         let e = light.irradiance * cos * fresnel_transmittance(eta, cos) * w;
                         let mx = usize::from(self.material_at(x));
                         let d = norm(sub(x, xr));
+                        let skin = self.detail(x);
                         for (ch, mc) in m.iter_mut().enumerate() {
-                            *mc += e * rd_between(&self.dipoles[mr][ch], &self.dipoles[mx][ch], d);
+                            *mc += e * skin[ch] * rd_between(&self.dipoles[mr][ch], &self.dipoles[mx][ch], d);
                         }
                     }
                 }
@@ -251,10 +346,11 @@ impl DiscoScene {
                     let (p, n) = point_of(&self.mesh, &world, deg, &hit);
                     let obj = self.object_point(&hit);
                     let cos_o = dot(n, normalize(sub(cam.eye, p)));
+                    let out = fresnel_transmittance(self.setup.eta, cos_o) / std::f64::consts::PI;
                     Seen {
                         point: obj,
                         material: self.material_at(obj),
-                        out: fresnel_transmittance(self.setup.eta, cos_o) / std::f64::consts::PI,
+                        out: self.detail(obj).map(|t| out * t),
                     }
                 })
             })
@@ -288,10 +384,11 @@ impl DiscoScene {
                 return None;
             }
             let obj = self.object_point(hit);
+            let w = weight * fresnel_transmittance(self.setup.eta, cos_i);
             Some(Entry {
                 point: obj,
                 material: self.material_at(obj),
-                weight: weight * fresnel_transmittance(self.setup.eta, cos_i),
+                weight: self.detail(obj).map(|t| w * t),
             })
         };
         let origin = |a: f64, b: f64| add(proj.eye, add(scale(u, a * sigma), scale(v, b * sigma)));
@@ -411,16 +508,16 @@ impl Scene for DiscoScene {
             let mo = &self.dipoles[usize::from(seen.material)][c];
             let mut s = 0.0;
             for e in rays.iter() {
-                s += e.weight
+                s += e.weight[c]
                     * rd_between(
                         mo,
                         &self.dipoles[usize::from(e.material)][c],
                         norm(sub(e.point, seen.point)),
                     );
             }
-            l += flux * s;
+            l += flux * s * seen.out[c];
         }
-        [seen.out * l; 3]
+        [l; 3]
     }
 }
 
@@ -472,7 +569,7 @@ mod tests {
         let m = scene.exitance(&light);
         let mats = scene.vertex_materials();
         let r = (0..scene.mesh.vertices.len())
-            .filter(|&v| mats[v] == 0)
+            .filter(|&v| mats[v] == 0 && scene.detail(scene.mesh.vertices[v])[2] > 0.999)
             .max_by(|&a, &b| scene.mesh.normals[a][0].total_cmp(&scene.mesh.normals[b][0]))
             .unwrap();
         let fdr = lightrig_pipelines::disco::dipole::fresnel_diffuse(1.3);
@@ -499,8 +596,10 @@ mod tests {
             .flat_map(|i| (0..mats.len()).map(move |j| (i, j)))
             .find(|&(i, j)| i != j && mats[i] == 0 && mats[j] == 0)
             .unwrap();
-        let d = norm(sub(scene.mesh.vertices[i], scene.mesh.vertices[j]));
-        assert_eq!(scene.truth(i, j)[1], MARBLE.dipoles()[1].rd(d));
+        let (a, b) = (scene.mesh.vertices[i], scene.mesh.vertices[j]);
+        let skin =
+            0.5 * (scene.detail(a)[1] * scene.hat_skin[j][1] + scene.detail(b)[1] * scene.hat_skin[i][1]);
+        assert_eq!(scene.truth(i, j)[1], MARBLE.dipoles()[1].rd(norm(sub(a, b))) * skin);
     }
 
     #[test]
@@ -513,8 +612,9 @@ mod tests {
         let c = beam.centre.unwrap();
         assert!(beam.fine.len() > 200 && beam.coarse.len() == 9);
         let d = MARBLE.dipoles()[0];
-        let sum =
-            |rays: &[Entry], p: V3| rays.iter().map(|e| e.weight * d.rd(norm(sub(e.point, p)))).sum::<f64>();
+        let sum = |rays: &[Entry], p: V3| {
+            rays.iter().map(|e| e.weight[0] * d.rd(norm(sub(e.point, p)))).sum::<f64>()
+        };
         let t = normalize(cross(
             scene.setup.projector.ray([f64::from(code[0]), f64::from(code[1])]),
             [0.0, 0.0, 1.0],
