@@ -598,7 +598,7 @@ fn write_report(
         rep.line("");
         rep.line(format!(
             "Held out: {} frames of spots left out of the fit, predicted from F (Gouraud over the mesh, as the global term \
-             renders) against the frames themselves: relative RMS error {:.1} % (median over frames, {} pixels, beyond \
+             renders, times the detail texture) against the frames themselves: relative RMS error {:.1} % (median over frames, {} pixels, beyond \
              {:.1} mm of the spot: nearer is the local kernels' domain). Their near field (within {:.1} mm) predicted by \
              the local term — the kernel of the spot's texel, filled from its neighbours as the spot was left out, \
              through the beam's blur, times the correction: {:.1} % ({} frames entering within {:.0}°, {} pixels).",

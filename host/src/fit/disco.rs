@@ -551,7 +551,8 @@ pub fn fit_session(
     }
     lap("F interpolated on the mesh");
     // 5.
-    let mut held_out = predict_held_out(&mesh, &matrix, &maps, &held, &flux, near_mm, setup.eta, (w, h))?;
+    let mut held_out =
+        predict_held_out(&mesh, &matrix, (&atlas, &detail), &maps, &held, &flux, near_mm, setup.eta, (w, h))?;
     let near = predict_held_out_near(
         &mesh,
         &atlas,
@@ -641,6 +642,7 @@ fn spot_offset(mesh: &SurfaceMesh, map: &ViewMap, inc: &Incidence, img: &[f32], 
 fn predict_held_out(
     mesh: &SurfaceMesh,
     f: &Matrix,
+    (atlas, detail): (&Atlas, &DetailTexture),
     maps: &[ViewMap],
     held: &[Held],
     flux: &[f64; 3],
@@ -701,7 +703,9 @@ fn predict_held_out(
                 let cos_o =
                     lightrig_pipelines::vec3::dot(nrm, lightrig_pipelines::vec3::normalize(sub(cam.eye, p)));
                 let ft_o = lightrig_pipelines::disco::dipole::fresnel_transmittance(eta, cos_o);
-                let predicted = rd * ft_o * inc.fresnel * flux[d.channel] / std::f64::consts::PI;
+                // The model's detail between the vertices (section 6.3).
+                let skin = detail.at(atlas, mesh, hit.triangle, hit.bary.map(f64::from))[d.channel];
+                let predicted = skin * rd * ft_o * inc.fresnel * flux[d.channel] / std::f64::consts::PI;
                 se += (predicted - measured).powi(2);
                 sm += measured * measured;
                 count += 1;

@@ -71,24 +71,11 @@ impl ViewMap {
         let world = turned(mesh, deg);
         let surface = surface_map(mesh, &world, camera);
         let tol = 0.2 * mesh.mean_edge();
-        let (w, h) = (camera.width as usize, camera.height as usize);
         let cos_max = limits.max_view_deg.to_radians().cos();
         let mut vertices = Vec::new();
         for (v, &p) in world.iter().enumerate() {
             let Some((px, _)) = camera.project(p) else { continue };
-            let (x0, y0) = ((px[0] - 0.5).floor(), (px[1] - 0.5).floor());
-            if x0 < 0.0 || y0 < 0.0 || x0 + 1.0 >= w as f64 || y0 + 1.0 >= h as f64 {
-                continue;
-            }
-            let dist = norm(sub(p, camera.eye));
-            let seen = [(0, 0), (1, 0), (0, 1), (1, 1)].iter().all(|&(dx, dy)| {
-                let (x, y) = (x0 as usize + dx, y0 as usize + dy);
-                surface[y * w + x].is_some_and(|hit| {
-                    // Compare along the vertex's own ray: the pixel's hit distance scaled to it.
-                    (f64::from(hit.t) - dist).abs() < tol + dist * 1e-3
-                })
-            });
-            if !seen {
+            if !seen_at(&surface, camera, px, p, tol) {
                 continue;
             }
             let n = super::optics::turn(mesh.normals[v], deg);
@@ -106,6 +93,23 @@ impl ViewMap {
         }
         ViewMap { camera: *camera, turntable_deg: deg, world, surface, vertices }
     }
+}
+
+/// Whether the camera sees world point `p` at its projection `px`: the four pixels of its
+/// bilinear look-up all see the surface within `tol` (plus 0.1 % of the distance) of `p`'s
+/// distance; `false` where they leave the image.
+pub fn seen_at(surface: &[Option<Hit>], camera: &Pinhole, px: [f64; 2], p: V3, tol: f64) -> bool {
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let (x0, y0) = ((px[0] - 0.5).floor(), (px[1] - 0.5).floor());
+    if x0 < 0.0 || y0 < 0.0 || x0 + 1.0 >= w as f64 || y0 + 1.0 >= h as f64 {
+        return false;
+    }
+    let dist = norm(sub(p, camera.eye));
+    [(0, 0), (1, 0), (0, 1), (1, 1)].iter().all(|&(dx, dy)| {
+        let (x, y) = (x0 as usize + dx, y0 as usize + dy);
+        // Compare along the point's own ray: the pixel's hit distance scaled to it.
+        surface[y * w + x].is_some_and(|hit| (f64::from(hit.t) - dist).abs() < tol + dist * 1e-3)
+    })
 }
 
 /// Bilinear look-up of a one-channel image at continuous position `(x, y)` (pixel centres at

@@ -603,6 +603,37 @@ mod tests {
     }
 
     #[test]
+    fn the_skins_lines_are_finer_than_the_mesh_and_take_light_at_both_ends() {
+        let scene = DiscoScene::new(&rig(), 3).unwrap();
+        let (v, t) = (&scene.mesh.vertices, &scene.mesh.triangles);
+        let dark = v.iter().filter(|&&p| scene.detail(p)[2] < 0.9).count() as f64 / v.len() as f64;
+        assert!(dark > 0.03 && dark < 0.35, "{dark}");
+        // Lines pass between vertices: triangles dark inside with bright corners.
+        let between = t
+            .iter()
+            .filter(|tri| {
+                let c = tri.iter().fold([0.0; 3], |c, &i| add(c, scale(v[i as usize], 1.0 / 3.0)));
+                scene.detail(c)[1] < 0.8 && tri.iter().all(|&i| scene.detail(v[i as usize])[1] > 0.95)
+            })
+            .count();
+        assert!(between >= 2, "{between}");
+        // Rd through the skin: the dipole times the skin at both ends, either way round.
+        let (a, b) = (v[10], v[200]);
+        for c in 0..3 {
+            let want = scene.rd_below(a, b, c) * scene.detail(a)[c] * scene.detail(b)[c];
+            assert_eq!(scene.rd(a, b, c), want);
+            assert_eq!(scene.rd(b, a, c), scene.rd(a, b, c));
+        }
+        // A vertex's exitance leaves through its skin.
+        let light = DistantLight { towards: [1.0, 0.0, 0.3], irradiance: 1.0 };
+        let (m, below) = (scene.exitance(&light), scene.exitance_below_skin(&light));
+        for r in [0, 50, 300] {
+            let skin = scene.detail(v[r]);
+            assert_eq!(m[r], [0, 1, 2].map(|c| below[r][c] * skin[c]));
+        }
+    }
+
+    #[test]
     fn the_fine_beam_agrees_with_the_coarse_one_where_pixels_switch_between_them() {
         // At FINE_MM from the centre the two quadratures of the beam agree (no seam in the
         // frames); at 0.5 mm the 3 × 3 rays, 1.5 mm apart, are off by far more.
