@@ -220,7 +220,7 @@ fn disco_frames_show_the_spot_where_each_trigger_pointed_the_galvos() {
     let session = dir.join("session");
     let s = acquire(&rig, &session);
     let triggers = trigger_events(&session).unwrap();
-    let (mut seen, mut missed, mut white) = (0, 0, 0);
+    let (mut seen, mut missed, mut white, mut registration) = (0, 0, 0, 0);
     for f in s.frame_index() {
         let t = &triggers[&(f.sequence, f.item)];
         let img = lightrig_imaging::io::read(session.join(&f.file)).unwrap();
@@ -240,6 +240,13 @@ fn disco_frames_show_the_spot_where_each_trigger_pointed_the_galvos() {
             assert!(best > 1.0, "{best}");
             continue;
         }
+        if t.snapshot.lasers == 1 << 3 {
+            // The registration frame: the spotlights light the whole pebble, the room is dark.
+            registration += 1;
+            let lit = img.data.iter().filter(|&&v| v > 1.0).count();
+            assert!(lit > img.data.len() / 20 && img.data[0] < 0.01, "{lit} pixels lit");
+            continue;
+        }
         let position = meta["camera_position"].as_u64().unwrap() as usize;
         match disco_spot(&rig, [g.x, g.y], position, 0.0) {
             None => {
@@ -257,6 +264,7 @@ fn disco_frames_show_the_spot_where_each_trigger_pointed_the_galvos() {
         }
     }
     assert_eq!(white, 3, "a white-balance frame per laser");
+    assert_eq!(registration, 2, "a registration frame per view and camera position");
     // 15 spots × 3 lasers at each of 2 camera positions: some hit and are seen, the grid's
     // corners miss the pebble.
     assert!(seen >= 6 && missed >= 6, "seen {seen}, missed {missed}");
@@ -332,9 +340,10 @@ fn every_camera_of_the_rig_fires_at_every_spot_unless_the_plan_picks_some() {
     );
     let session = dir.join("session");
     let s = acquire(&rig, &session);
-    // 4 spots × 3 lasers, on each camera (at each of the two camera positions).
+    // The registration frame and 4 spots × 3 lasers, on each camera (at each of the two camera
+    // positions).
     let step = &s.manifest().plan.steps[0];
-    assert_eq!((step.expected(0), step.expected(1)), (12, 12));
+    assert_eq!((step.expected(0), step.expected(1)), (13, 13));
     let triggers = trigger_events(&session).unwrap();
     let mut by_camera: [Vec<(u64, [u16; 2], u8)>; 2] = [Vec::new(), Vec::new()];
     for f in s.frame_index() {
@@ -342,6 +351,9 @@ fn every_camera_of_the_rig_fires_at_every_spot_unless_the_plan_picks_some() {
         assert_eq!(t.camera, f.camera);
         let g = t.snapshot.galvos[0];
         by_camera[usize::from(f.camera)].push((t.tick, [g.x, g.y], t.snapshot.lasers));
+        if t.snapshot.lasers == 1 << 3 {
+            continue; // the registration frame: no spot
+        }
         // Both cameras render the spot where the trigger pointed the galvos.
         let img = lightrig_imaging::io::read(session.join(&f.file)).unwrap();
         let w = img.width as usize;
@@ -358,7 +370,7 @@ fn every_camera_of_the_rig_fires_at_every_spot_unless_the_plan_picks_some() {
         list.sort();
     }
     // The same instants, the same spots, the same lasers: one exposure seen by two cameras.
-    assert_eq!(by_camera[0].len(), 24);
+    assert_eq!(by_camera[0].len(), 26);
     assert_eq!(by_camera[0], by_camera[1]);
     // The side camera's 60 ms minimum interval sets the spacing of both.
     let ticks: Vec<u64> = by_camera[0].iter().map(|t| t.0).collect();
@@ -381,7 +393,7 @@ fn every_camera_of_the_rig_fires_at_every_spot_unless_the_plan_picks_some() {
     );
     let s = acquire(&rig, &dir.join("session"));
     let step = &s.manifest().plan.steps[0];
-    assert_eq!((step.expected(0), step.expected(1)), (0, 12));
+    assert_eq!((step.expected(0), step.expected(1)), (0, 13));
     assert!(s.frame_index().iter().all(|f| f.camera == 1));
 }
 

@@ -4,7 +4,7 @@
 
 use lightrig_cli::demo::disco::{
     run_disco, DiscoDemoOptions, DETAIL_TOLERANCE, INTERPOLATED_TOLERANCE, KERNEL_TOLERANCE,
-    OBSERVED_TOLERANCE,
+    OBSERVED_TOLERANCE, REGISTRATION_TOLERANCE_MM,
 };
 use lightrig_host::fit::disco::{fit_session, read_matrix, ATLAS_FORMAT, F_FORMAT};
 
@@ -23,10 +23,16 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     assert!(a.symmetric);
     assert!(a.entries[0] > 8_000 && a.entries[1] > 5_000 && a.entries[4] > 5_000, "{:?}", a.entries);
     // Where the skin's lines cross a vertex's fan, F holds the skin as the few spots there
-    // entered it (6.4 % in blue at this seed): reported, bounded here against regressions.
+    // entered it (6.1 % in blue at this seed): reported, bounded here against regressions.
     assert!(a.observed_lines.iter().all(|&e| e < 0.08), "{:?}", a.observed_lines);
     // 4 turntable views × 2 camera positions; 16 × 16 spots × 3 lasers each.
     assert_eq!((f.views, f.frames), (8, 8 * 256 * 3));
+    // The scanned mesh (12° and 6 mm off) placed by the spotlit silhouettes of all 8 views.
+    let g = f.registration.as_ref().expect("registered");
+    assert_eq!((g.views_used, g.agreement.len()), (8, 8));
+    assert!(g.min_iou() > 0.995, "{g:?}");
+    let e = r.registration_error_mm.unwrap();
+    assert!(e <= REGISTRATION_TOLERANCE_MM, "{e} mm");
     assert_eq!(f.used + f.missed + f.held_out_frames, f.frames);
     assert!(f.used > 2000 && f.lit_columns > 400, "{} frames used, {} columns lit", f.used, f.lit_columns);
     // The white balance recovers the lasers' fluxes as the camera sees them (the scene's
@@ -39,11 +45,11 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     assert!((f.beam_sigma_mm - 0.85).abs() < 0.05, "{}", f.beam_sigma_mm);
     // The spot's peak on the mesh lies within a fraction of a millimetre of the entry point.
     assert!(f.spots_seen > 1000 && f.peak_offset_mm < 0.5, "{} {}", f.spots_seen, f.peak_offset_mm);
-    // Held-out spots: predicted from F beyond the near field (15 % at this seed).
+    // Held-out spots: predicted from F beyond the near field (14.9 % at this seed).
     assert!(f.held_out.frames > 300 && f.held_out.median_rel_rms < 0.2, "{:?}", f.held_out);
     // Relit by a light no frame used, against the dipole integrated over the surface: the local
-    // kernels carrying each vertex's one-ring do better than F's near entries (17 % against
-    // 20 % at this seed), and the detail texture better than without it (17.2 %).
+    // kernels carrying each vertex's one-ring do better than F's near entries (17.6 % against
+    // 20.1 % at this seed), and the detail texture better than without it (19.7 %).
     assert!(
         r.relit_error < 0.2
             && r.relit_error < 0.9 * r.relit_global_error
@@ -55,7 +61,7 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     );
     // The detail texture (section 6.3) against the skin: T(x)/Π T(v_i)^b_i, everywhere observed
     // within one medium and on the lines; most of the lines' depth recovered (the camera's
-    // 0.67 mm pixels blur the 0.8 mm lines).
+    // 0.44 mm pixels blur the 0.8 mm lines).
     let d = r.detail;
     assert!(d.texels > 10_000 && d.lines > 400, "{d:?}");
     assert!(d.error.iter().all(|&e| e < 0.03), "{d:?}");
@@ -66,8 +72,9 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     // (also a target above), and a correction within 10 % of 1 for 80 % of the texels (it holds
     // the skin's lines, a few percent of the surface).
     let k = r.kernels.expect("local kernels");
-    // The skin's lines raise many spots' misfit over the limit: 54 kept at this seed.
-    assert!(k.spots[0] > 40 && f.spots.len() > 45, "{:?} {}", k.spots, f.spots.len());
+    // The skin's lines raise many spots' misfit over the limit: 75 kept at this seed, 38 on
+    // marble clear of the lines, 31 whose data a line crosses.
+    assert!(k.spots[0] > 25 && k.lined.0 > 20 && f.spots.len() > 60, "{:?} {}", k.spots, f.spots.len());
     assert!(k.worst() <= KERNEL_TOLERANCE, "{k:?}");
     assert!(k.total.iter().all(|&t| t < 0.05), "{k:?}");
     let mut corr: Vec<f32> = f.local.correction.iter().flatten().flat_map(|c| *c).collect();
@@ -127,8 +134,29 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     assert!(e.contains("nowhere.ply") && e.contains("--mesh"), "{e}");
     let e = fit_session(&out, None, &none).unwrap_err().0;
     assert!(e.contains("manifest") || e.contains("session"), "not a session: {e}");
-    // A frame of the wrong size (a camera ROI changed mid-run): named, with the sizes.
+    // Another object's mesh (the pebble a third larger): no pose matches its silhouettes.
+    let scan =
+        lightrig_pipelines::firs::mesh::read_ply(&mut std::fs::File::open(out.join("object.ply")).unwrap())
+            .unwrap();
+    let big = lightrig_pipelines::firs::mesh::Mesh {
+        vertices: scan.vertices.iter().map(|v| v.map(|x| 1.3 * x)).collect(),
+        triangles: scan.triangles.clone(),
+    };
+    let big_ply = out.join("big.ply");
+    lightrig_pipelines::firs::mesh::write_ply(&big, &mut std::fs::File::create(&big_ply).unwrap()).unwrap();
+    let e = fit_session(&session, Some(&big_ply), &none).unwrap_err().0;
+    assert!(e.contains("big.ply") && e.contains("does not match") && e.contains("in mm"), "{e}");
+    // A registration frame with nothing in it (the spotlights failed): named, with what to check.
     let (s, _) = lightrig_host::session::Session::read(&session).unwrap();
+    let first_view = s.frame_index().into_iter().nth(3).unwrap();
+    let path = session.join(&first_view.file);
+    let kept = std::fs::read(&path).unwrap();
+    let dark = lightrig_imaging::io::Image::new(288, 186, 1);
+    lightrig_imaging::io::write_exr(&path, &dark, lightrig_imaging::io::ExrPrecision::Float).unwrap();
+    let e = fit_session(&session, None, &none).unwrap_err().0;
+    assert!(e.contains(&first_view.file) && e.contains("registration frame shows no object"), "{e}");
+    std::fs::write(&path, kept).unwrap();
+    // A frame of the wrong size (a camera ROI changed mid-run): named, with the sizes.
     let frame = s.frame_index().into_iter().nth(10).unwrap();
     let small = lightrig_imaging::io::Image::new(64, 32, 1);
     lightrig_imaging::io::write_exr(
@@ -138,7 +166,7 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     )
     .unwrap();
     let e = fit_session(&session, None, &none).unwrap_err().0;
-    assert!(e.contains(&frame.file) && e.contains("64 × 32") && e.contains("192 × 124"), "{e}");
+    assert!(e.contains(&frame.file) && e.contains("64 × 32") && e.contains("288 × 186"), "{e}");
     std::fs::remove_dir_all(&out).ok();
 }
 

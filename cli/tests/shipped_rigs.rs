@@ -212,9 +212,10 @@ fn disco_acquires_and_fits_as_shipped() {
     let rig = lightrig_host::rigfile::RigFile::load(&shipped("disco.toml")).unwrap();
     let scene = lightrig_sim::scenes::disco::DiscoScene::new(&rig, 3).unwrap();
     let mut f = std::fs::File::create(dir.join("object.ply")).unwrap();
-    lightrig_pipelines::firs::mesh::write_ply(&scene.mesh.mesh(), &mut f).unwrap();
+    lightrig_pipelines::firs::mesh::write_ply(&scene.scanned_mesh(), &mut f).unwrap();
     let said = ok(&lightrig(&args), "lightrig fit disco");
     assert!(said.contains("F: 642 vertices"), "{said}");
+    assert!(said.contains("registered the mesh by its silhouette"), "{said}");
     for file in ["object.ply", "F.f32", "F.json", "F-observed.bits", "fit.json"] {
         assert!(out.join(file).is_file(), "{file}");
     }

@@ -39,7 +39,7 @@ pub fn virtual_device_info() -> DeviceInfo {
         boot_id: 0,
         capabilities: Capabilities {
             galvos: 1,
-            lasers: 3,
+            lasers: 4,
             steppers: 2,
             filter_wheels: 1,
             voice_coils: 2,

@@ -50,9 +50,10 @@ fn a_small_disco_rig_plans_views_lasers_and_spots() {
     let text = text.replace("views = 72", "views = 4").replace("spot_grid = [64, 64]", "spot_grid = [3, 2]");
     let rig = RigFile::parse(&text, &example("disco.toml")).unwrap();
     let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
-    // The white balance, then 4 views at each of the 2 camera positions.
+    // The white balance, then 4 views at each of the 2 camera positions: a registration frame
+    // and 6 spots × 3 lasers each.
     assert_eq!(plan.summary().steps, 1 + 2 * 4);
-    assert_eq!(plan.summary().triggers, 3 + 2 * 4 * 3 * 6);
+    assert_eq!(plan.summary().triggers, 3 + 2 * 4 * (1 + 3 * 6));
     // The spots span `spot_window_deg` (±5.5° × ±6.5° optical) about the zero codes.
     let g = &plan.meta["grid"];
     let code = |deg: f64| (32768.0 + deg.to_radians() * 1e6 / 10.6526).round() as i64;
@@ -252,9 +253,10 @@ fn plan_cameras_are_picked_by_name_or_index_and_mistakes_name_the_line() {
     };
     // Both cameras by default, fired together with the longer pulse (300 µs) as the exposure.
     let rig = RigFile::parse(&text, &path).unwrap();
-    assert_eq!(triggers_per_camera(&rig), (vec![(0, 12), (2, 12)], vec![(0, 300), (2, 300)]));
-    assert_eq!(triggers_per_camera(&with("cameras = [\"side\"]")).0, [(2, 12)]);
-    assert_eq!(triggers_per_camera(&with("cameras = [2, \"hdr\"]")).0, [(2, 12), (0, 12)]);
+    // A registration frame and 2 × 2 spots × 3 lasers per view.
+    assert_eq!(triggers_per_camera(&rig), (vec![(0, 13), (2, 13)], vec![(0, 300), (2, 300)]));
+    assert_eq!(triggers_per_camera(&with("cameras = [\"side\"]")).0, [(2, 13)]);
+    assert_eq!(triggers_per_camera(&with("cameras = [2, \"hdr\"]")).0, [(2, 13), (0, 13)]);
     for (key, says) in [
         ("cameras = [\"top\"]", "no camera `top` (the rig has: hdr (0), side (2))"),
         ("cameras = [0, \"hdr\"]", "camera `hdr` is listed twice"),

@@ -23,8 +23,9 @@ fn the_full_disco_plan_holds_heads_and_builds_one_step_at_a_time() {
 
     let (plan, peak, kept) = measured(|| from_rig::plan(&rig, &info).unwrap());
     let s = plan.summary();
-    // The white balance (a frame per laser), then 72 views at each of the two camera positions.
-    assert_eq!((s.steps, s.triggers), (1 + 2 * 72, 3 + 2 * 72 * 3 * 64 * 64));
+    // The white balance (a frame per laser), then 72 views at each of the two camera positions:
+    // the registration frame and 3 × 64² spots.
+    assert_eq!((s.steps, s.triggers), (1 + 2 * 72, 3 + 2 * 72 * (1 + 3 * 64 * 64)));
     // One view's sequence: a move, and per laser on/ready/off around
     // 4096 × (jump, trigger); ≈ 50 k items.
     let items_per_view = plan.steps[1].items().len();
@@ -49,7 +50,11 @@ fn the_full_disco_plan_holds_heads_and_builds_one_step_at_a_time() {
         }
         on
     });
-    assert_eq!(lasers, 3 + 2 * 72 * 3, "three lasers per view and for the white balance");
+    assert_eq!(
+        lasers,
+        3 + 2 * 72 * 4,
+        "the spotlights and three lasers per view, three for the white balance"
+    );
     let one_body = {
         let b = plan.steps[1].body();
         b.items.capacity() * std::mem::size_of::<Item>()

@@ -76,12 +76,12 @@ fn the_reference_board_offers_what_each_rig_needs_at_once() {
         ]
     };
     // galvo pairs, lasers, steppers, filter wheels, voice coils
-    assert_eq!(count("disco.toml"), [1, 3, 1, 0, 0]);
+    assert_eq!(count("disco.toml"), [1, 4, 1, 0, 0]);
     assert_eq!(count("bispectral.toml"), [0, 0, 2, 1, 0]);
     assert_eq!(count("lls-gantry.toml"), [0, 2, 1, 0, 0]);
     assert_eq!(count("brdf-display.toml"), [0, 0, 0, 0, 2]);
     assert_eq!(count("fluorescent-immersion.toml"), [1, 1, 1, 0, 0]);
-    // DISCO's registration spotlights are a fourth switched output (`[plan] registration`).
+    // DISCO's registration spotlights are its fourth switched output (`[plan] registration`).
     let c = NUCLEO_G474RE;
     assert_eq!(
         (c.galvos, c.lasers, c.steppers, c.filter_wheels, c.voice_coils, c.cameras),

@@ -100,11 +100,13 @@ fn every_example_parses_and_converts_for_the_virtual_device() {
 fn examples_have_their_methods_and_peripherals() {
     let disco = example("disco.toml");
     assert_eq!(disco.method, Method::Disco);
-    assert_eq!((disco.galvos.len(), disco.lasers.len(), disco.steppers.len()), (1, 3, 1));
+    // Three lasers and the registration spotlights (a fourth switched output, no interlock).
+    assert_eq!((disco.galvos.len(), disco.lasers.len(), disco.steppers.len()), (1, 4, 1));
     let nm: Vec<u16> = disco.lasers.iter().map(|l| l.wavelength_nm).collect();
-    assert_eq!(nm, [635, 532, 476]);
+    assert_eq!(nm, [635, 532, 476, 550]);
     assert_eq!(disco.galvos[0].dac, DacKind::Dac8563);
-    assert!(disco.lasers.iter().all(|l| l.interlock == Input::Wired(Polarity::ActiveLow)));
+    assert!(disco.lasers[..3].iter().all(|l| l.interlock == Input::Wired(Polarity::ActiveLow)));
+    assert_eq!(disco.plan["registration"].as_str(), disco.lasers[3].name.as_deref());
     assert_eq!(example("fluorescent-immersion.toml").method, Method::FluorescentImmersion);
     let bispectral = example("bispectral.toml");
     assert_eq!(bispectral.method, Method::Bispectral);
@@ -552,8 +554,8 @@ fn capabilities_exceeded_name_what_the_device_has() {
         format!("[[laser]]\nchannel = {ch}\nwavelength_nm = 635\nmax_on_s = 60\ninterlock = \"low\"\n")
     };
     assert_eq!(
-        config_err(&(0..4).map(laser).collect::<String>()),
-        "rig.toml:20: laser[3].channel: the device has only 3 lasers (channels 0..=2)"
+        config_err(&(0..5).map(laser).collect::<String>()),
+        "rig.toml:25: laser[4].channel: the device has only 4 lasers (channels 0..=3)"
     );
     let camera = "[[camera]]\ncamera = 1\npulse_us = 100\n";
     let mut info = virtual_device_info();

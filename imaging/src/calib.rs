@@ -241,7 +241,8 @@ pub fn pixel_ray(k: &Intrinsics, pose: &Pose, uv: (f64, f64)) -> Option<([f64; 3
 
 type M3 = [[f64; 3]; 3];
 
-fn rodrigues(r: [f64; 3]) -> M3 {
+/// The rotation matrix of rotation vector `r` (axis × angle, rad).
+pub fn rodrigues(r: [f64; 3]) -> M3 {
     let th = (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).sqrt();
     let (s, c1, k) = if th < 1e-12 {
         (1.0, 0.0, r)
@@ -264,7 +265,8 @@ fn rodrigues(r: [f64; 3]) -> M3 {
     m
 }
 
-fn rodrigues_inv(m: &M3) -> [f64; 3] {
+/// The rotation vector of rotation matrix `m` (angle in 0..=π).
+pub fn rodrigues_inv(m: &M3) -> [f64; 3] {
     let tr = m[0][0] + m[1][1] + m[2][2];
     let c = ((tr - 1.0) / 2.0).clamp(-1.0, 1.0);
     let th = c.acos();

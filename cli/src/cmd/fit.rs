@@ -209,6 +209,15 @@ fn fit_disco(session: &Path, mesh: Option<&Path>, out: &Path) -> ExitCode {
             f.observed.iter().filter(|&&o| o).count(),
             n * n
         );
+        if let Some(g) = &f.registration {
+            println!(
+                "registered the mesh by its silhouette in {} views: turned {:.2}°, moved {:.2} mm; the worst view agrees to {:.2} % (intersection over union)",
+                g.views_used,
+                g.pose.angle_deg(),
+                lightrig_pipelines::vec3::norm(g.pose.translation),
+                100.0 * g.min_iou()
+            );
+        }
         if f.spots_seen > 0 {
             println!(
                 "spot seen in {} frames: its peak {:.2} mm (median) from the projector's entry point",

@@ -5,7 +5,10 @@
 //! 1. **White balance** (section 4.4): the `white` step's frames, one per laser, each summed
 //!    over the white target's area, give the camera's gain times each laser's flux
 //!    ([`flux_scale`]) — absolute, so `F` comes out in mm⁻².
-//! 2. **Per view, once** (section 5): the object turned to the view's turntable angle (from the
+//! 2. **Registration** (section 4.4): where the plan took a registration frame per view (the
+//!    spotlights alone on), the scanned mesh is placed on the turntable by its silhouettes
+//!    ([`register`]); without them, the mesh is taken to be in the turntable's frame already.
+//!    **Per view, once** (section 5): the object turned to the view's turntable angle (from the
 //!    trigger snapshots) and seen from its camera position ([`ViewMap`]): visible vertices,
 //!    their pixels, Fresnel terms and confidences.
 //! 3. **Per frame** (section 6.1): the beam's entry point from the calibrated projector and the
@@ -36,6 +39,7 @@ use lightrig_pipelines::disco::local::{
 };
 use lightrig_pipelines::disco::mesh::SurfaceMesh;
 use lightrig_pipelines::disco::optics::{point_of, Pinhole};
+use lightrig_pipelines::disco::register::{register, silhouette, Pose, SilhouetteView, ViewAgreement};
 use lightrig_pipelines::disco::relight;
 use lightrig_pipelines::disco::resample::{
     background_sigma, beam_sigma, flux_scale, incidence, spot_peak, Accumulator, Incidence, ViewLimits,
@@ -128,6 +132,9 @@ pub struct DiscoFit {
     /// Spots fitted but not kept ([`LocalParams::accepts`]: misfit, or no fast term).
     pub local_rejected: usize,
     pub local_params: LocalParams,
+    /// The mesh's pose on the turntable from the registration frames (none: the plan took
+    /// none, and the mesh is used as placed).
+    pub registration: Option<RegistrationReport>,
     /// Wall time of each phase, s: (name, seconds), in order.
     pub phases: Vec<(&'static str, f64)>,
 }
@@ -234,16 +241,16 @@ pub fn fit_session(
         )))
         }
     };
-    let mesh = {
+    let scan = {
         let mut f = std::fs::File::open(&mesh_path).map_err(|e| {
             fail(format!(
                 "{}: the object's mesh: {e}; give the scanned mesh with --mesh or [plan.fit] mesh",
                 mesh_path.display()
             ))
         })?;
-        SurfaceMesh::new(&read_ply(&mut f).map_err(|e| fail(format!("{}: {e}", mesh_path.display())))?)
+        read_ply(&mut f).map_err(|e| fail(format!("{}: {e}", mesh_path.display())))?
     };
-    if mesh.vertices.len() < 4 || mesh.triangles.is_empty() {
+    if scan.vertices.len() < 4 || scan.triangles.is_empty() {
         return Err(fail(format!("{}: the mesh has no surface", mesh_path.display())));
     }
     let camera = s.pipeline_camera(None).map_err(fail)?;
@@ -326,6 +333,39 @@ pub fn fit_session(
         let before: f64 = phases.iter().map(|p| p.1).sum();
         phases.push((name, t - before));
     };
+    // 2a. The object's pose on the turntable.
+    let spotlights = match rig.plan.get("registration").and_then(|v| v.as_str()) {
+        None => None,
+        Some(name) => {
+            Some(rig.lasers.iter().find(|l| l.name.as_deref() == Some(name)).map(|l| l.channel).ok_or_else(
+                || {
+                    fail(format!(
+                        "[plan] registration = \"{name}\": the rig file has no [[laser]] of that name"
+                    ))
+                },
+            )?)
+        }
+    };
+    let registration = match spotlights {
+        None => None,
+        Some(c) => {
+            let frames = registration_frames(
+                &s,
+                &m.plan.steps,
+                camera,
+                c,
+                &|f| trig(f).map(|t| (*t).clone()),
+                table,
+                dir,
+            )?;
+            Some(register_mesh(&scan, &mesh_path, &setup, &frames, (w, h))?)
+        }
+    };
+    let mesh = SurfaceMesh::new(&match &registration {
+        Some(r) => r.pose.place(&scan),
+        None => scan,
+    });
+    lap("registration");
     // 2–3. Step by step: each new view mapped once, the step's frames streamed a chunk at a
     // time (memory: `F`'s sums, the views, one chunk of frames, the step's job list).
     let grid_index: HashMap<[u16; 2], usize> = grid.iter().enumerate().map(|(i, &g)| (g, i)).collect();
@@ -475,10 +515,20 @@ pub fn fit_session(
                     pending.iter().filter(|(_, p)| p.channels == 7).map(|(k, _)| *k).collect();
                 keys.into_iter().filter_map(|k| pending.remove(&k).map(|p| (k, p))).collect()
             };
+            // The data divided by the detail texture as the frames so far show it (by a spot's
+            // last laser, its view's earlier lasers have shown most texels near it from afar):
+            // a line of the skin's through a spot's data bends its fall-off.
             let fitted: Vec<Option<kernel::Profile>> = ready
                 .par_iter()
                 .map(|(_, p)| {
-                    let data: Vec<Sample> = p.samples.iter().map(|s| s.1).collect();
+                    let data: Vec<Sample> = p
+                        .samples
+                        .iter()
+                        .map(|&(t, s)| {
+                            let skin = detail_acc.current(t, usize::from(s.channel)).filter(|&v| v > 0.05);
+                            Sample { value: s.value / skin.unwrap_or(1.0), ..s }
+                        })
+                        .collect();
                     kernel::fit(&data, &blurs.at(p.sigma_mm), &local_params.stages)
                 })
                 .collect();
@@ -592,6 +642,7 @@ pub fn fit_session(
         local_failed,
         local_rejected,
         local_params,
+        registration,
         phases,
         beam_sigma_mm,
         camera: setup.cameras[0].1,
@@ -599,6 +650,142 @@ pub fn fit_session(
         mesh,
         matrix,
     })
+}
+
+/// The registration's outcome, in the fit's summary.
+#[derive(Debug, Clone)]
+pub struct RegistrationReport {
+    /// The scanned mesh's frame → the turntable's.
+    pub pose: Pose,
+    /// Views registered on (spread over all), and all views' agreement at the pose.
+    pub views_used: usize,
+    pub agreement: Vec<ViewAgreement>,
+    pub evaluations: usize,
+}
+
+impl RegistrationReport {
+    /// The worst view's intersection over union.
+    pub fn min_iou(&self) -> f64 {
+        self.agreement.iter().map(|a| a.iou).fold(f64::INFINITY, f64::min)
+    }
+}
+
+/// The views' silhouettes agree with the mesh at least this well, or the fit is refused.
+pub const MIN_REGISTRATION_IOU: f64 = 0.95;
+/// The registration runs on at most this many views, spread over the session's.
+const REGISTRATION_VIEWS: usize = 12;
+
+/// A registration frame: its step, camera position, turntable angle and file.
+struct RegistrationFrame {
+    step: String,
+    position: usize,
+    turntable_deg: f64,
+    file: PathBuf,
+}
+
+/// Each view step's registration frame (the spotlights on channel `spot` alone); a view without
+/// one is refused.
+fn registration_frames(
+    s: &Session,
+    steps: &[crate::session::PlanStep],
+    camera: u8,
+    spot: u8,
+    trig: &dyn Fn(&FrameRecord) -> Result<TriggerEvent, FitError>,
+    table: &crate::rigfile::Stepper,
+    dir: &Path,
+) -> Result<Vec<RegistrationFrame>, FitError> {
+    let mut out = Vec::new();
+    for p in steps {
+        let meta = p.extra.get("meta").cloned().unwrap_or(Value::Null);
+        if meta.get("kind").and_then(Value::as_str).unwrap_or("view") == "white" {
+            continue;
+        }
+        let mut found = None;
+        for f in &s.camera_frames_of(p.id, camera) {
+            let t = trig(f)?;
+            if t.snapshot.lasers == 1 << spot {
+                let steps = t.snapshot.axes.get(usize::from(table.axis)).copied().unwrap_or(0);
+                found = Some((f.file.clone(), table.units(i64::from(steps)).unwrap_or(0.0)));
+                break;
+            }
+        }
+        let Some((file, deg)) = found else {
+            return Err(fail(format!(
+                "{}: step {} ({}) has no registration frame (the spotlights, output {spot}, alone on), though the rig file's [plan] registration asks for one per view; re-acquire the session, or remove `registration` from the rig file in the session's manifest to fit with the mesh as placed",
+                dir.display(),
+                p.id,
+                p.name
+            )));
+        };
+        out.push(RegistrationFrame {
+            step: format!("step {} ({})", p.id, p.name),
+            position: meta.get("camera_position").and_then(Value::as_u64).unwrap_or(0) as usize,
+            turntable_deg: deg,
+            file: dir.join(file),
+        });
+    }
+    Ok(out)
+}
+
+/// Places the scanned mesh on the turntable by the registration frames' silhouettes, from the
+/// mesh's own frame as the first guess; refused where no pose makes them agree.
+fn register_mesh(
+    scan: &lightrig_pipelines::firs::mesh::Mesh,
+    mesh_path: &Path,
+    setup: &DiscoSetup,
+    frames: &[RegistrationFrame],
+    (w, h): (u32, u32),
+) -> Result<RegistrationReport, FitError> {
+    let views: Vec<SilhouetteView> = frames
+        .par_iter()
+        .map(|f| {
+            let img = read_plane(&f.file, w, h)?;
+            let mask = silhouette(&img, w as usize, 8, 10.0).ok_or_else(|| {
+                fail(format!(
+                    "{}: {}'s registration frame shows no object against a dark border; check the spotlights and that the object stands clear of the frame's edges",
+                    f.file.display(),
+                    f.step
+                ))
+            })?;
+            let cam = setup.cameras.get(f.position).map(|c| c.1).ok_or_else(|| {
+                fail(format!("{}: camera position {}, but [plan] camera_positions has {}", f.step, f.position, setup.cameras.len()))
+            })?;
+            Ok(SilhouetteView::new(cam, f.turntable_deg, mask))
+        })
+        .collect::<Result<_, FitError>>()?;
+    if views.is_empty() {
+        return Err(fail("the session has no views to register the mesh on"));
+    }
+    let stride = views.len().div_ceil(REGISTRATION_VIEWS);
+    let used: Vec<SilhouetteView> = views.iter().step_by(stride).cloned().collect();
+    let r = register(scan, &used, Pose::IDENTITY);
+    let mut buf = Vec::new();
+    let agreement: Vec<ViewAgreement> = views
+        .iter()
+        .map(|v| {
+            v.render(scan, &r.pose, &mut buf);
+            v.agreement(&buf)
+        })
+        .collect();
+    let report =
+        RegistrationReport { pose: r.pose, views_used: used.len(), agreement, evaluations: r.evaluations };
+    let (worst, a) = report
+        .agreement
+        .iter()
+        .enumerate()
+        .min_by(|a, b| a.1.iou.total_cmp(&b.1.iou))
+        .map(|(i, a)| (i, *a))
+        .unwrap_or((0, ViewAgreement { mismatched: 0, iou: 0.0 }));
+    if a.iou < MIN_REGISTRATION_IOU {
+        return Err(fail(format!(
+            "{}: the mesh's silhouette does not match the object's at any pose near the mesh's own frame: {} agrees to {:.1} % (intersection over union; {} pixels differ). Check that it is this object's scan, in mm, roughly upright (z up) and within some 20° and 10 mm of where the object stands (origin on the turntable's axis at its top)",
+            mesh_path.display(),
+            frames[worst].step,
+            100.0 * a.iou,
+            a.mismatched
+        )));
+    }
+    Ok(report)
 }
 
 /// Where the beam at `code` meets the white target's plane.
@@ -970,6 +1157,12 @@ pub fn write_outputs(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitErro
         "lit_columns": fit.lit_columns,
         "observed_entries": fit.observed.iter().filter(|&&o| o).count(),
         "white_balance_gain_flux_rgb": fit.flux,
+        "registration": fit.registration.as_ref().map(|r| json!({
+            "rotation_vector_rad": r.pose.rotation, "translation_mm": r.pose.translation,
+            "views_used": r.views_used, "views": r.agreement.len(), "evaluations": r.evaluations,
+            "min_iou": r.min_iou(),
+            "max_mismatched_pixels": r.agreement.iter().map(|a| a.mismatched).max().unwrap_or(0),
+        })),
         "fill": format!("{:?}", fit.fill),
         "local": { "spots_fitted": fit.spots.len(), "spots_unseen": fit.local_hidden, "spots_failed": fit.local_failed, "spots_rejected": fit.local_rejected,
                    "texel_mm": fit.atlas.texel_mm, "atlas": [fit.atlas.width, fit.atlas.height],

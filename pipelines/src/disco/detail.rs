@@ -174,6 +174,12 @@ impl DetailAccumulator {
         }
     }
 
+    /// `T_ρ` at texel `t` in colour `channel` from the frames added so far (none: no frame yet).
+    pub fn current(&self, t: u32, channel: usize) -> Option<f64> {
+        let (s, w) = (self.sum.get(t as usize)?, self.weight.get(t as usize)?);
+        (w[channel] > 0.0).then(|| s[channel] / w[channel])
+    }
+
     /// `T_ρ`: the weighted mean per texel and colour; 1 where no frame showed the texel.
     pub fn finish(&self) -> DetailTexture {
         let values = self

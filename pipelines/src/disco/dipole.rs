@@ -74,6 +74,14 @@ impl Dipole {
         Dipole { alpha, sigma_tr, z_r, z_v: z_r * (1.0 + 4.0 * a / 3.0) }
     }
 
+    /// `Rd`'s integral over the surface: the total diffuse reflectance of a half-space under a
+    /// broad light (Jensen et al.'s eq. 6 analogue, with `A` from the sources' depths).
+    pub fn total_reflectance(&self) -> f64 {
+        let big_a = 0.75 * (self.z_v / self.z_r - 1.0);
+        let s3 = (3.0 * (1.0 - self.alpha)).sqrt();
+        self.alpha / 2.0 * (1.0 + (-4.0 / 3.0 * big_a * s3).exp()) * (-s3).exp()
+    }
+
     /// `Rd(r)`, mm⁻²: the radiant exitance at distance `r` (mm) per unit incident flux.
     pub fn rd(&self, r: f64) -> f64 {
         let term = |z: f64| {

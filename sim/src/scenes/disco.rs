@@ -21,7 +21,17 @@
 //!
 //! The white balance step (`meta.kind = "white"`) shows the white target instead: a Lambertian
 //! plane of the rig file's albedo, lit by the beam (`E = I(s)·cos θ`).
-//! Not modelled: surface (specular) reflection at the spot, the registration spotlights.
+//!
+//! The registration frame (the `[plan] registration` output on, the paper's section 4): two
+//! spotlights 120 mm either side of the camera light the whole object; a broad light's
+//! response is the total diffuse reflectance (the dipole's integral) entering and leaving
+//! through the Fresnel terms and the skin, `Lo = Ft(ωo)/π·T·Rd_total·T·Σ E_s·Ft(ωi,s)` per
+//! colour, the grey camera taking their mean, with the entering irradiance spread over some
+//! 8 mm of surface (light under a translucent surface travels), so the object glows out to its
+//! outline. Only its silhouette matters to the fit; the room is
+//! dark. The object stands on the turntable where [`DiscoScene::scan_pose`] says the scanned mesh
+//! is *not*: `object.ply` ([`DiscoScene::scanned_mesh`]) is the mesh in the scanner's frame.
+//! Not modelled: surface (specular) reflection at the spot.
 
 use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
@@ -31,8 +41,10 @@ use lightrig_host::rigfile::RigFile;
 use lightrig_pipelines::disco::dipole::{fresnel_transmittance, rd_between, Dipole, Medium, MARBLE, SKIN1};
 
 use lightrig_pipelines::disco::mesh::{pebble, SurfaceMesh};
-use lightrig_pipelines::disco::optics::{cast, point_of, surface_map, turned, Hit};
+use lightrig_pipelines::disco::optics::{cast, point_of, surface_map, turn, turned, Hit};
+use lightrig_pipelines::disco::register::Pose;
 use lightrig_pipelines::disco::relight::{sub_centroids, DistantLight};
+use lightrig_pipelines::firs::mesh::Mesh;
 use lightrig_pipelines::vec3::{add, cross, dot, norm, normalize, scale, sub, V3};
 use lightrig_protocol::config::AxisKind;
 
@@ -79,6 +91,8 @@ struct Seen {
     material: u8,
     /// `Ft(η, ωo)/π` times the skin's transmittance, per colour.
     out: [f64; 3],
+    /// The radiance under the registration spotlights (grey).
+    lit: f64,
 }
 
 /// One beam ray inside the object.
@@ -100,6 +114,11 @@ struct Beam {
     fine: Vec<Entry>,
 }
 
+/// The registration spotlights: this far either side of the camera (mm), each of this intensity
+/// (flux per steradian: about 0.05 of irradiance at 300 mm).
+const SPOTLIGHT_OFFSET_MM: f64 = 120.0;
+const SPOTLIGHT_INTENSITY: f64 = 2_000.0;
+
 /// Pixels within this distance of the beam's centre (mm) use the fine quadrature.
 pub const FINE_MM: f64 = 4.5;
 /// The fine quadrature: a square grid of this pitch (in σ) over the disc of radius 3σ.
@@ -120,6 +139,11 @@ pub struct DiscoScene {
     pub beam_sigma_mm: f64,
     /// Per laser channel: the dipole channel it drives and its flux as the camera sees it.
     pub lasers: Vec<(u8, usize, f64)>,
+    /// The registration spotlights' output channel (`[plan] registration`), if any.
+    pub spotlights: Option<u8>,
+    /// The scanner's frame: `object.ply` is the object's mesh placed by this pose (the
+    /// turntable frame → the scan's); the fit's registration must find its inverse.
+    pub scan_pose: Pose,
     turntable: Option<u8>,
     dipoles: [[Dipole; 3]; 2],
     /// Per vertex: the skin's transmittance averaged over its hat function.
@@ -147,10 +171,17 @@ impl DiscoScene {
     pub fn new(rig: &RigFile, level: u32) -> Result<Self, String> {
         let setup = DiscoSetup::from_rig(rig).map_err(|e| e.to_string())?;
         let mesh = SurfaceMesh::new(&pebble(level, [24.0, 20.0, 30.0]));
+        let spotlights = rig
+            .plan
+            .get("registration")
+            .and_then(|v| v.as_str())
+            .and_then(|n| rig.lasers.iter().find(|l| l.name.as_deref() == Some(n)))
+            .map(|l| l.channel);
         // A grey camera's sensitivity falls towards the blue; the lasers are all 10 mW.
         let lasers = rig
             .lasers
             .iter()
+            .filter(|l| Some(l.channel) != spotlights)
             .map(|l| {
                 let c = channel_of(l.wavelength_nm);
                 (l.channel, c, [1.0, 0.85, 0.6][c])
@@ -173,6 +204,10 @@ impl DiscoScene {
             },
             beam_sigma_mm: 0.85,
             lasers,
+            spotlights,
+            // 12° about the vertical and a few degrees' tilt, 6 mm off: a scan as a lab's
+            // geometry tools leave it, roughly upright.
+            scan_pose: Pose { rotation: [0.04, -0.03, 0.21], translation: [3.0, -4.0, 2.5] },
             turntable: rig.steppers.iter().find(|s| s.kind == AxisKind::Rotary).map(|s| s.axis),
             dipoles: [media[0].dipoles(), media[1].dipoles()],
             views: RwLock::new(HashMap::new()),
@@ -205,6 +240,11 @@ impl DiscoScene {
             }
         }
         sum.map(|s| if wsum > 0.0 { s / wsum } else { 0.0 })
+    }
+
+    /// The mesh as the scanner delivers it (`object.ply`): placed by [`Self::scan_pose`].
+    pub fn scanned_mesh(&self) -> Mesh {
+        self.scan_pose.place(&self.mesh.mesh())
     }
 
     /// The medium at object-frame point `p`: 0 body, 1 vein.
@@ -339,19 +379,68 @@ impl DiscoScene {
         }
         let cam = self.setup.cameras.get(key.0)?.1;
         let world = turned(&self.mesh, deg);
+        // The registration spotlights: the irradiance entering at each vertex, E = I·cos θ / d²
+        // through `Ft`, spread over the surface as light under a translucent surface spreads
+        // (three rounds of one-ring averaging, some 8 mm: marble's diffusion length), so the
+        // object glows out to its outline.
+        let spots = [-1.0, 1.0].map(|s| add(cam.eye, scale(cam.axes[0], s * SPOTLIGHT_OFFSET_MM)));
+        let mut entering: Vec<f64> = world
+            .iter()
+            .zip(&self.mesh.normals)
+            .map(|(&p, &n)| {
+                let n = turn(n, deg);
+                spots
+                    .iter()
+                    .map(|&s| {
+                        let to = sub(s, p);
+                        let cos_i = dot(n, normalize(to));
+                        if cos_i <= 0.0 {
+                            0.0
+                        } else {
+                            SPOTLIGHT_INTENSITY * cos_i / dot(to, to)
+                                * fresnel_transmittance(self.setup.eta, cos_i)
+                        }
+                    })
+                    .sum()
+            })
+            .collect();
+        for _ in 0..3 {
+            entering = self
+                .mesh
+                .rings
+                .iter()
+                .enumerate()
+                .map(|(v, ring)| {
+                    (entering[v] + ring.iter().map(|&(j, _)| entering[j as usize]).sum::<f64>())
+                        / (1 + ring.len()) as f64
+                })
+                .collect();
+        }
         let map: Vec<Option<Seen>> = surface_map(&self.mesh, &world, &cam)
             .iter()
             .map(|h| {
                 h.map(|hit| {
                     let (p, n) = point_of(&self.mesh, &world, deg, &hit);
                     let obj = self.object_point(&hit);
-                    let cos_o = dot(n, normalize(sub(cam.eye, p)));
+                    let to_eye = normalize(sub(cam.eye, p));
+                    let cos_o = dot(n, to_eye);
                     let out = fresnel_transmittance(self.setup.eta, cos_o) / std::f64::consts::PI;
-                    Seen {
-                        point: obj,
-                        material: self.material_at(obj),
-                        out: self.detail(obj).map(|t| out * t),
-                    }
+                    let material = self.material_at(obj);
+                    let skin = self.detail(obj);
+                    let out = skin.map(|t| out * t);
+                    // Under the spotlights: the surface the camera sees faces it (the face's
+                    // own normal; the interpolated one may turn away at the outline).
+                    let tri = self.mesh.triangles[hit.triangle as usize];
+                    let e: f64 = (0..3).map(|k| f64::from(hit.bary[k]) * entering[tri[k] as usize]).sum();
+                    let face = turn(self.mesh.face_normal(hit.triangle as usize), deg);
+                    let leaving =
+                        fresnel_transmittance(self.setup.eta, dot(face, to_eye)) / std::f64::consts::PI;
+                    let d = &self.dipoles[usize::from(material)];
+                    let lit = (0..3)
+                        .map(|c| e * skin[c] * d[c].total_reflectance() * leaving * skin[c])
+                        .sum::<f64>()
+                        / 3.0;
+                    Seen { point: obj, material, out, lit }
                 })
             })
             .collect();
@@ -485,12 +574,18 @@ impl Scene for DiscoScene {
     fn radiance(&self, x: u32, y: u32, state: &RigState) -> [f64; 3] {
         let on: Vec<(usize, f64)> =
             self.lasers.iter().filter(|l| state.lasers & (1 << l.0) != 0).map(|l| (l.1, l.2)).collect();
+        let deg = self.turntable.and_then(|a| state.axes.get(usize::from(a))).copied().unwrap_or(0.0);
+        let key = Self::view_key(state, deg);
+        let spotlit = self.spotlights.is_some_and(|c| state.lasers & (1 << c) != 0);
+        if spotlit && on.is_empty() {
+            let Some(view) = self.view(key, deg) else { return [0.0; 3] };
+            let w = self.size().0;
+            return [view[(y * w + x) as usize].map_or(0.0, |seen| seen.lit); 3];
+        }
         let Some(&code) = state.galvos.first() else { return [0.0; 3] };
         if on.is_empty() {
             return [0.0; 3];
         }
-        let deg = self.turntable.and_then(|a| state.axes.get(usize::from(a))).copied().unwrap_or(0.0);
-        let key = Self::view_key(state, deg);
         if state.meta.get("kind").and_then(|k| k.as_str()) == Some("white") {
             let v: f64 = on.iter().map(|&(_, f)| self.white(key.0, x, y, code, f)).sum();
             return [v; 3];
@@ -528,6 +623,40 @@ mod tests {
     fn rig() -> RigFile {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/rigs/disco.toml");
         RigFile::load(&path).unwrap()
+    }
+
+    #[test]
+    fn the_spotlights_light_the_whole_object_seen_and_nothing_else() {
+        let scene = DiscoScene::new(&rig(), 2).unwrap();
+        // The shipped rig's fourth output is the spotlights, not a laser driving the dipole.
+        assert_eq!((scene.spotlights, scene.lasers.len()), (Some(3), 3));
+        let state = RigState {
+            lasers: 1 << 3,
+            galvos: vec![[8192, 8192]],
+            axes: vec![30.0, 0.0],
+            meta: serde_json::json!({ "kind": "view", "camera_position": 1 }),
+            ..RigState::default()
+        };
+        let (_, cam) = scene.setup.cameras[1];
+        let world = turned(&scene.mesh, 30.0);
+        let seen = surface_map(&scene.mesh, &world, &cam);
+        let (w, _) = scene.size();
+        let (mut lit, mut dark) = (f64::INFINITY, 0.0f64);
+        for (i, s) in seen.iter().enumerate() {
+            let v = scene.radiance(i as u32 % w, i as u32 / w, &state)[0];
+            match s {
+                Some(_) => lit = lit.min(v),
+                None => dark = dark.max(v),
+            }
+        }
+        // Every pixel on the object is lit (to its outline, through the Fresnel terms), none
+        // beside it.
+        assert!(lit > 1e-5 && dark == 0.0, "{lit} {dark}");
+        // The scan is the object moved by the scan pose.
+        let scan = scene.scanned_mesh();
+        let back = scene.scan_pose.inverse().apply(scan.vertices[7]);
+        assert!(norm(sub(back, scene.mesh.vertices[7])) < 1e-9);
+        assert!(norm(sub(scan.vertices[7], scene.mesh.vertices[7])) > 1.0);
     }
 
     #[test]
@@ -572,12 +701,8 @@ mod tests {
             .filter(|&v| mats[v] == 0 && scene.detail(scene.mesh.vertices[v])[2] > 0.999)
             .max_by(|&a, &b| scene.mesh.normals[a][0].total_cmp(&scene.mesh.normals[b][0]))
             .unwrap();
-        let fdr = lightrig_pipelines::disco::dipole::fresnel_diffuse(1.3);
-        let big_a = (1.0 + fdr) / (1.0 - fdr);
         for (c, d) in MARBLE.dipoles().iter().enumerate() {
-            let s3 = (3.0 * (1.0 - d.alpha)).sqrt();
-            let total = d.alpha / 2.0 * (1.0 + (-4.0 / 3.0 * big_a * s3).exp()) * (-s3).exp();
-            let want = total * fresnel_transmittance(1.3, 1.0);
+            let want = d.total_reflectance() * fresnel_transmittance(1.3, 1.0);
             assert!((m[r][c] / want - 1.0).abs() < 0.1, "channel {c}: {} vs {want}", m[r][c]);
         }
     }
