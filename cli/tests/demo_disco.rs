@@ -3,7 +3,7 @@
 //! `F`'s file read back, and the fit's errors on bad input.
 
 use lightrig_cli::demo::disco::{
-    run_disco, DiscoDemoOptions, DETAIL_TOLERANCE, INTERPOLATED_TOLERANCE, KERNEL_TOLERANCE,
+    acquire_disco, run_disco, DiscoDemoOptions, DETAIL_TOLERANCE, INTERPOLATED_TOLERANCE, KERNEL_TOLERANCE,
     OBSERVED_TOLERANCE, REGISTRATION_TOLERANCE_MM,
 };
 use lightrig_host::fit::disco::{fit_session, read_matrix, ATLAS_FORMAT, F_FORMAT};
@@ -187,4 +187,27 @@ fn a_session_of_another_rig_is_refused() {
     let e = fit_session(&dir, None, &|_, _| {}).unwrap_err().0;
     assert!(e.contains("linear-light-source") && e.contains("DISCO sessions"), "{e}");
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A view whose registration frame is missing is refused, naming the step and what to do: here
+/// the session took it under the blue laser and its rig file (as if edited after) now names the
+/// spotlights, so no view has a frame with the spotlights alone on.
+#[test]
+fn a_view_without_its_registration_frame_is_refused() {
+    let out = std::env::temp_dir().join(format!("lightrig-disco-noreg-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let opts = DiscoDemoOptions { quick: true, out: out.clone(), seed: 1, progress: false, real_time: false };
+    let sets = ["plan.views=1", "plan.spot_grid=[2, 2]", "plan.registration=\"blue\""];
+    acquire_disco(&opts, &sets.map(String::from)).unwrap();
+    let manifest = out.join("session").join("manifest.json");
+    let text = std::fs::read_to_string(&manifest).unwrap();
+    let edited = text.replace("registration = \\\"blue\\\"", "registration = \\\"spotlights\\\"");
+    assert_ne!(edited, text, "the manifest holds the rig file's text");
+    std::fs::write(&manifest, edited).unwrap();
+    let e = fit_session(&out.join("session"), None, &|_, _| {}).unwrap_err().0;
+    assert!(
+        e.contains("step 1") && e.contains("has no registration frame") && e.contains("re-acquire"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&out).ok();
 }

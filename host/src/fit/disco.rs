@@ -736,39 +736,46 @@ fn register_mesh(
     frames: &[RegistrationFrame],
     (w, h): (u32, u32),
 ) -> Result<RegistrationReport, FitError> {
-    let views: Vec<SilhouetteView> = frames
-        .par_iter()
-        .map(|f| {
-            let img = read_plane(&f.file, w, h)?;
-            let mask = silhouette(&img, w as usize, 8, 10.0).ok_or_else(|| {
-                fail(format!(
-                    "{}: {}'s registration frame shows no object against a dark border; check the spotlights and that the object stands clear of the frame's edges",
-                    f.file.display(),
-                    f.step
-                ))
-            })?;
-            let cam = setup.cameras.get(f.position).map(|c| c.1).ok_or_else(|| {
-                fail(format!("{}: camera position {}, but [plan] camera_positions has {}", f.step, f.position, setup.cameras.len()))
-            })?;
-            Ok(SilhouetteView::new(cam, f.turntable_deg, mask))
-        })
-        .collect::<Result<_, FitError>>()?;
-    if views.is_empty() {
+    // A view's silhouette is 9 bytes a pixel: only the views searched on are held together;
+    // every view is checked after, one per thread at a time (the shipped plan has 144).
+    let view_of = |f: &RegistrationFrame| -> Result<SilhouetteView, FitError> {
+        let img = read_plane(&f.file, w, h)?;
+        let mask = silhouette(&img, w as usize, 8, 10.0).ok_or_else(|| {
+            fail(format!(
+                "{}: {}'s registration frame shows no object against a dark border; check the spotlights and that the object stands clear of the frame's edges",
+                f.file.display(),
+                f.step
+            ))
+        })?;
+        let cam = setup.cameras.get(f.position).map(|c| c.1).ok_or_else(|| {
+            fail(format!(
+                "{}: camera position {}, but [plan] camera_positions has {}",
+                f.step,
+                f.position,
+                setup.cameras.len()
+            ))
+        })?;
+        Ok(SilhouetteView::new(cam, f.turntable_deg, mask))
+    };
+    if frames.is_empty() {
         return Err(fail("the session has no views to register the mesh on"));
     }
-    let stride = views.len().div_ceil(REGISTRATION_VIEWS);
-    let used: Vec<SilhouetteView> = views.iter().step_by(stride).cloned().collect();
+    let stride = frames.len().div_ceil(REGISTRATION_VIEWS);
+    let picked: Vec<&RegistrationFrame> = frames.iter().step_by(stride).collect();
+    let used: Vec<SilhouetteView> = picked.par_iter().map(|f| view_of(f)).collect::<Result<_, FitError>>()?;
     let r = register(scan, &used, Pose::IDENTITY);
-    let mut buf = Vec::new();
-    let agreement: Vec<ViewAgreement> = views
-        .iter()
-        .map(|v| {
+    drop(used);
+    let agreement: Vec<ViewAgreement> = frames
+        .par_iter()
+        .map(|f| {
+            let v = view_of(f)?;
+            let mut buf = Vec::new();
             v.render(scan, &r.pose, &mut buf);
-            v.agreement(&buf)
+            Ok(v.agreement(&buf))
         })
-        .collect();
+        .collect::<Result<_, FitError>>()?;
     let report =
-        RegistrationReport { pose: r.pose, views_used: used.len(), agreement, evaluations: r.evaluations };
+        RegistrationReport { pose: r.pose, views_used: picked.len(), agreement, evaluations: r.evaluations };
     let (worst, a) = report
         .agreement
         .iter()
