@@ -9,6 +9,15 @@ use std::process::{Command, Output, Stdio};
 
 use lightrig_host::session::{journal_records, trigger_events, Record, Session};
 
+/// Held by the tests that open pseudo-terminals. A controller that dies leaves its host
+/// reopening the terminal's old path (`/dev/pts/N`), which the kernel may hand to another
+/// test's new terminal meanwhile: the host would then hold that one (and its exclusive lock).
+static PTYS: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn ptys() -> std::sync::MutexGuard<'static, ()> {
+    PTYS.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 fn scratch(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("lightrig-acquire-cli-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
@@ -147,6 +156,7 @@ fn bispectral_example_acquires_with_its_filters_set_before_each_step() {
 #[test]
 fn bispectral_filters_on_serial_ports_are_tuned_by_the_host() {
     use lightrig_sim::filter::PtyFilter;
+    let _ptys = ptys();
     let dir = scratch("bispectral-ports");
     let settle = std::time::Duration::from_millis(2);
     let (light, camera) = (
@@ -273,6 +283,7 @@ fn disco_frames_show_the_spot_where_each_trigger_pointed_the_galvos() {
 #[cfg(unix)]
 #[test]
 fn a_step_that_needs_a_person_stops_without_a_terminal_and_runs_with_yes() {
+    let _ptys = ptys();
     let dir = scratch("operator");
     // The board pass asks the operator to place the calibration board. No homing: the device
     // runs in real time behind the pseudo-terminal.
@@ -416,6 +427,7 @@ fn sim_on(rig: &Path, link: &Path) -> std::process::Child {
 #[cfg(unix)]
 #[test]
 fn acquire_rides_out_a_controller_that_dies_and_comes_back() {
+    let _ptys = ptys();
     use std::time::{Duration, Instant};
     let dir = scratch("reconnect");
     // Two passes of 5 positions, 0.3 s apart: long enough to pull the plug mid-pass.
