@@ -97,7 +97,7 @@ fn a_rig_file_needing_more_than_the_board_has_is_refused_where_it_says_so() {
     let extra = "\n[[laser]]\nchannel = 4\nname = \"uv\"\nwavelength_nm = 405\nwarmup_ms = 5\nmax_on_s = 600\nenable = \"high\"\ninterlock = \"unused\"\n";
     let rig = RigFile::parse(&format!("{text}{extra}"), Path::new("disco-plus.toml")).unwrap();
     let e = rig.config_items(&nucleo()).unwrap_err().to_string();
-    assert!(e.contains("disco-plus.toml") && e.contains("laser[3].channel") && e.contains("only 4"), "{e}");
+    assert!(e.contains("disco-plus.toml") && e.contains("laser[4].channel") && e.contains("only 4"), "{e}");
     let line = text.lines().count() + 3;
     assert!(e.contains(&format!(":{line}")), "{e}");
 }
