@@ -3,8 +3,8 @@
 //! `F`'s file read back, and the fit's errors on bad input.
 
 use lightrig_cli::demo::disco::{
-    acquire_disco, run_disco, DiscoDemoOptions, DETAIL_TOLERANCE, INTERPOLATED_TOLERANCE, KERNEL_TOLERANCE,
-    OBSERVED_TOLERANCE, REGISTRATION_TOLERANCE_MM,
+    acquire_disco, projector_error, run_disco, DiscoDemoOptions, DETAIL_TOLERANCE, INTERPOLATED_TOLERANCE,
+    KERNEL_TOLERANCE, OBSERVED_TOLERANCE, PROJECTOR_TOLERANCE_MM, REGISTRATION_TOLERANCE_MM,
 };
 use lightrig_host::fit::disco::{fit_session, read_matrix, ATLAS_FORMAT, F_FORMAT};
 
@@ -33,6 +33,11 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     assert!(g.min_iou() > 0.995, "{g:?}");
     let e = r.registration_error_mm.unwrap();
     assert!(e <= REGISTRATION_TOLERANCE_MM, "{e} mm");
+    // The projector fitted to the spots of every view (the rig file has it right here; below,
+    // the same session with the rig file's projector off).
+    let p = &f.projector;
+    assert!(r.projector_error_mm <= PROJECTOR_TOLERANCE_MM, "{} mm: {p:?}", r.projector_error_mm);
+    assert!(p.used > 150 && p.rms_mm < 0.1 && p.dropped < p.used / 2, "{p:?}");
     assert_eq!(f.used + f.missed + f.held_out_frames, f.frames);
     assert!(f.used > 2000 && f.lit_columns > 400, "{} frames used, {} columns lit", f.used, f.lit_columns);
     // The white balance recovers the lasers' fluxes as the camera sees them (the scene's
@@ -156,6 +161,31 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     let e = fit_session(&session, None, &none).unwrap_err().0;
     assert!(e.contains(&first_view.file) && e.contains("registration frame shows no object"), "{e}");
     std::fs::write(&path, kept).unwrap();
+    // The rig file's projector measured by hand, 5.6 mm and 0.6° from where it stood: entry
+    // points 4 mm off. The fit finds it from the spots, and F is measured as well as before.
+    let manifest = session.join("manifest.json");
+    let text = std::fs::read_to_string(&manifest).unwrap();
+    let (s0, _) = lightrig_host::session::Session::read(&session).unwrap();
+    let rig = lightrig_host::rigfile::RigFile::parse(&s0.manifest().rig, &manifest).unwrap();
+    let truth = lightrig_host::disco::DiscoSetup::from_rig(&rig).unwrap().projector;
+    let aimed = "eye_mm = [260, -150, 60], look_at_mm = [0, 0, 30]";
+    let off = text.replace(aimed, "eye_mm = [263, -152.5, 64], look_at_mm = [0, 3, 27]");
+    assert_ne!(off, text, "the manifest holds the rig file's projector");
+    std::fs::write(&manifest, off).unwrap();
+    let moved = fit_session(&session, None, &none).unwrap();
+    std::fs::write(&manifest, &text).unwrap();
+    let mp = &moved.projector;
+    assert!(mp.shift_mm > 3.0 && mp.moved_mm > 4.0, "{mp:?}");
+    let e = projector_error(&truth, &f.mesh, &mp.projector);
+    assert!(e <= PROJECTOR_TOLERANCE_MM, "{e} mm from the true projector: {mp:?}");
+    assert!(moved.used.abs_diff(f.used) < f.used / 50, "{} frames resampled against {}", moved.used, f.used);
+    // A rig file whose projector is aimed 40 mm beside where it stands: no spot where it says.
+    let edited = text.replace(aimed, "eye_mm = [260, -150, 60], look_at_mm = [0, 40, 30]");
+    assert_ne!(edited, text, "the manifest holds the rig file's projector");
+    std::fs::write(&manifest, edited).unwrap();
+    let e = fit_session(&session, None, &none).unwrap_err().0;
+    assert!(e.contains("laser projector's pose") && e.contains("[plan.fit] projector"), "{e}");
+    std::fs::write(&manifest, text).unwrap();
     // A frame of the wrong size (a camera ROI changed mid-run): named, with the sizes.
     let frame = s.frame_index().into_iter().nth(10).unwrap();
     let small = lightrig_imaging::io::Image::new(64, 32, 1);

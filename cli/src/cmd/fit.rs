@@ -218,6 +218,11 @@ fn fit_disco(session: &Path, mesh: Option<&Path>, out: &Path) -> ExitCode {
                 100.0 * g.min_iou()
             );
         }
+        let pr = &f.projector;
+        println!(
+            "projector placed by {} spots ({} dropped): pivot moved {:.2} mm, turned {:.2}°, entry points moved up to {:.2} mm; its beams miss the spots by {:.3} mm RMS",
+            pr.used, pr.dropped, pr.moved_mm, pr.turned_deg, pr.shift_mm, pr.rms_mm
+        );
         if f.spots_seen > 0 {
             println!(
                 "spot seen in {} frames: its peak {:.2} mm (median) from the projector's entry point",

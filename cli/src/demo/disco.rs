@@ -8,6 +8,8 @@ use std::path::PathBuf;
 use lightrig_host::fit::disco::{self as fit, DiscoFit};
 use lightrig_host::overrides::{apply, Override};
 use lightrig_pipelines::disco::kernel::{self, Profile};
+use lightrig_pipelines::disco::mesh::SurfaceMesh;
+use lightrig_pipelines::disco::optics::Projector;
 use lightrig_pipelines::disco::register::{max_displacement, Pose};
 use lightrig_pipelines::disco::relight;
 use lightrig_pipelines::firs::mesh::write_ply;
@@ -68,6 +70,9 @@ pub const DETAIL_TOLERANCE: f64 = 0.10;
 /// The registration: the scanned mesh placed on the turntable, its farthest vertex from where
 /// the object stands, mm (a tenth of the quick mesh's edge, a sixth of its pixels).
 pub const REGISTRATION_TOLERANCE_MM: f64 = 0.1;
+/// The projector fitted to its spots: the farthest its beams land on the object from the true
+/// projector's, over the spot window, mm (a third of the quick camera's pixels).
+pub const PROJECTOR_TOLERANCE_MM: f64 = 0.15;
 
 /// The local kernels (section 7) against the scene's media.
 #[derive(Debug, Clone, Copy)]
@@ -95,6 +100,25 @@ impl KernelCheck {
     pub fn worst(&self) -> f64 {
         (0..2).map(|k| (self.sigma[0][k] / self.reference[0].sigma[k] - 1.0).abs()).fold(0.0, f64::max)
     }
+}
+
+/// The fitted projector against the scene's: the farthest an entry point moves (mm), over
+/// beams aimed at every vertex with the object turned to 0°, 90°, 180° and 270°, from where the
+/// true beam enters to the fitted beam at that point.
+pub fn projector_error(truth: &Projector, mesh: &SurfaceMesh, fitted: &Projector) -> f64 {
+    use lightrig_pipelines::disco::optics::{cast, point_of, turned};
+    use lightrig_pipelines::disco::projector_pose::{miss, HitPoint};
+    let mut worst = 0.0f64;
+    for deg in [0.0, 90.0, 180.0, 270.0] {
+        let world = turned(mesh, deg);
+        for &v in &world {
+            let code = truth.code_of(v);
+            let Some(hit) = cast(mesh, &world, truth.eye, truth.ray(code)) else { continue };
+            let (point, _) = point_of(mesh, &world, deg, &hit);
+            worst = worst.max(lightrig_pipelines::vec3::norm(miss(fitted, &HitPoint { code, point })));
+        }
+    }
+    worst
 }
 
 /// Fits the dipoles' own profiles and compares the homogeneous spots' fits with them.
@@ -242,6 +266,9 @@ pub struct DiscoDemoResult {
     pub kernels: Option<KernelCheck>,
     /// The registered mesh's farthest vertex from the object's, mm (none: not registered).
     pub registration_error_mm: Option<f64>,
+    /// The fitted projector's beams against the true projector's where they enter the object,
+    /// farthest over the spot window, mm ([`projector_error`]).
+    pub projector_error_mm: f64,
     pub frames: u64,
     pub report: PathBuf,
 }
@@ -284,6 +311,12 @@ impl DiscoDemoResult {
                     e <= REGISTRATION_TOLERANCE_MM,
                 )
             },
+            (
+                "projector: its pivot and aim fitted to the spots, its beams' entry points against the true projector's, farthest over the spot window, mm",
+                self.projector_error_mm,
+                PROJECTOR_TOLERANCE_MM,
+                self.projector_error_mm <= PROJECTOR_TOLERANCE_MM,
+            ),
             {
                 let d = &self.detail;
                 let e = if d.lines > 0 { worst(d.lines_error) } else { f64::INFINITY };
@@ -519,6 +552,8 @@ pub fn run_disco(opts: &DiscoDemoOptions) -> Result<DiscoDemoResult, CliError> {
         .registration
         .as_ref()
         .map(|r| max_displacement(&scene.scan_pose.then(&r.pose), &Pose::IDENTITY, &scene.mesh.vertices));
+    let projector_error_mm =
+        projector_error(&scene.setup.projector, &scene.mesh, &fitted.projector.projector);
     let result = DiscoDemoResult {
         fit: fitted,
         accuracy,
@@ -528,6 +563,7 @@ pub fn run_disco(opts: &DiscoDemoOptions) -> Result<DiscoDemoResult, CliError> {
         detail,
         kernels,
         registration_error_mm,
+        projector_error_mm,
         frames,
         report: out.join("report.md"),
     };
@@ -643,6 +679,14 @@ fn write_report(
         ));
         rep.line("");
     }
+    let pr = &f.projector;
+    rep.line(format!(
+        "Projector (section 4.4): fitted to the spots of {} frames ({} used, {} dropped as outliers; its beams miss \
+         them by {:.3} mm RMS), moved {:.2} mm and turned {:.2}° from the rig file's pose; its entry points are within \
+         {:.3} mm of the true projector's over the spot window.",
+        pr.frames, pr.used, pr.dropped, pr.rms_mm, pr.moved_mm, pr.turned_deg, r.projector_error_mm
+    ));
+    rep.line("");
     rep.line(format!(
         "The spot was seen in {} frames; its sub-pixel peak lies {:.2} mm (median) from the projector's entry point \
          (translucency moves the peak, Godin et al. 2001).",

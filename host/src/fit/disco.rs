@@ -4,14 +4,18 @@
 //!
 //! 1. **White balance** (section 4.4): the `white` step's frames, one per laser, each summed
 //!    over the white target's area, give the camera's gain times each laser's flux
-//!    ([`flux_scale`]) — absolute, so `F` comes out in mm⁻².
+//!    ([`flux_scale`]) — absolute, so `F` comes out in mm⁻². Read after the projector is
+//!    fitted (step 2): the spot on the target is where its beam meets it.
 //! 2. **Registration** (section 4.4): where the plan took a registration frame per view (the
 //!    spotlights alone on), the scanned mesh is placed on the turntable by its silhouettes
 //!    ([`register`]); without them, the mesh is taken to be in the turntable's frame already.
 //!    **Per view, once** (section 5): the object turned to the view's turntable angle (from the
 //!    trigger snapshots) and seen from its camera position ([`ViewMap`]): visible vertices,
 //!    their pixels, Fresnel terms and confidences.
-//! 3. **Per frame** (section 6.1): the beam's entry point from the calibrated projector and the
+//!    **Projector** (section 4.4): the spots of up to 12 views' frames (green), found near where
+//!    the rig file's projector puts them and cast from the camera onto the placed mesh, fix the
+//!    scanner's pivot and aim ([`fit_projector`]); the galvo's own calibration is kept.
+//! 3. **Per frame** (section 6.1): the beam's entry point from the fitted projector and the
 //!    galvo code in the trigger's snapshot ([`incidence`]); whether the camera sees the spot
 //!    and where its sub-pixel peak lies (a check of the calibration, reported); the frame
 //!    resampled at the visible vertices into the entry triangle's three columns by barycentric
@@ -39,6 +43,7 @@ use lightrig_pipelines::disco::local::{
 };
 use lightrig_pipelines::disco::mesh::SurfaceMesh;
 use lightrig_pipelines::disco::optics::{point_of, Pinhole};
+use lightrig_pipelines::disco::projector_pose::{beam_shift, fit_projector, HitPoint};
 use lightrig_pipelines::disco::register::{register, silhouette, Pose, SilhouetteView, ViewAgreement};
 use lightrig_pipelines::disco::relight;
 use lightrig_pipelines::disco::resample::{
@@ -46,7 +51,7 @@ use lightrig_pipelines::disco::resample::{
     ViewMap,
 };
 use lightrig_pipelines::firs::mesh::{read_ply, write_ply};
-use lightrig_pipelines::vec3::{norm, sub, V3};
+use lightrig_pipelines::vec3::{norm, normalize, sub, V3};
 use lightrig_protocol::event::TriggerEvent;
 use rayon::prelude::*;
 use serde_json::{json, Value};
@@ -135,6 +140,8 @@ pub struct DiscoFit {
     /// The mesh's pose on the turntable from the registration frames (none: the plan took
     /// none, and the mesh is used as placed).
     pub registration: Option<RegistrationReport>,
+    /// The projector's pose fitted to the spots seen (section 4.4).
+    pub projector: ProjectorReport,
     /// Wall time of each phase, s: (name, seconds), in order.
     pub phases: Vec<(&'static str, f64)>,
 }
@@ -230,7 +237,7 @@ pub fn fit_session(
     }
     let rig = RigFile::parse(&m.rig, &dir.join("manifest.json"))
         .map_err(|e| fail(format!("{}: the session's rig file: {e}", dir.display())))?;
-    let setup = DiscoSetup::from_rig(&rig).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
+    let mut setup = DiscoSetup::from_rig(&rig).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
     let mesh_path = match (mesh, &setup.mesh) {
         (Some(p), _) => p.to_path_buf(),
         (None, Some(p)) => dir.join(p),
@@ -275,7 +282,8 @@ pub fn fit_session(
         })
     };
 
-    // 1. White balance, from the `white` step wherever the plan has it.
+    // 1. White balance, from the `white` step wherever the plan has it (read once the
+    // projector is fitted, below).
     let mut flux = [f64::NAN; 3];
     let mut beam_sigma_mm = 0.0;
     let lasers_of_plan: Vec<u8> = m
@@ -294,38 +302,6 @@ pub fn fit_session(
     let channel_of = |t: &TriggerEvent| {
         channels.iter().find(|(l, _)| t.snapshot.lasers & (1 << **l) != 0).map(|(_, &c)| c)
     };
-    let mut white_seen = false;
-    for p in m.plan.steps.iter().filter(|p| kind_of(p) == "white") {
-        white_seen = true;
-        let (_, cam) = setup.cameras[0];
-        let mut sums = [(0.0, 0usize); 3];
-        let mut widths = Vec::new();
-        for f in &s.camera_frames_of(p.id, camera) {
-            let t = trig(f)?;
-            let Some(c) = channel_of(t) else { continue };
-            let img = read_plane(&dir.join(&f.file), w, h)?;
-            let code = t.snapshot.galvos.first().map_or([0.0; 2], |g| [f64::from(g.x), f64::from(g.y)]);
-            let centre = beam_on_plane(&setup, code);
-            sums[c].0 += flux_scale(&img, &cam, &setup.white, centre, 25.0);
-            sums[c].1 += 1;
-            widths.extend(beam_sigma(&img, &cam, &setup.white, setup.projector.ray(code), centre, 10.0));
-        }
-        for c in 0..3 {
-            if sums[c].1 > 0 {
-                flux[c] = sums[c].0 / sums[c].1 as f64;
-            }
-        }
-        if !widths.is_empty() {
-            beam_sigma_mm = widths.iter().sum::<f64>() / widths.len() as f64;
-        }
-    }
-    if !white_seen || flux.iter().any(|f| !f.is_finite() || *f <= 0.0) {
-        return Err(fail(format!(
-            "{}: no usable white balance (a `white` step with one frame per laser on the white target); acquire with `white_balance = true` and [plan.fit] white_target",
-            dir.display()
-        )));
-    }
-
     let clock = std::time::Instant::now();
     let mut phases: Vec<(&'static str, f64)> = Vec::new();
     let mut lap = |name: &'static str| {
@@ -366,11 +342,98 @@ pub fn fit_session(
         None => scan,
     });
     lap("registration");
+    // 2b. The projector's pose from the spots on the placed mesh (section 4.4).
+    let distinct = |k: usize| {
+        let mut v: Vec<u16> = grid.iter().map(|g| g[k]).collect();
+        v.sort_unstable();
+        v.dedup();
+        v
+    };
+    let (grid_xs, grid_ys) = (distinct(0), distinct(1));
+    let view_steps: Vec<&crate::session::PlanStep> =
+        m.plan.steps.iter().filter(|p| kind_of(p) != "white").collect();
+    let mut spot_frames: Vec<SpotFrame> = Vec::new();
+    let stride = view_steps.len().div_ceil(PROJECTOR_VIEWS).max(1);
+    for p in view_steps.iter().step_by(stride) {
+        let pos =
+            p.extra.get("meta").and_then(|m| m.get("camera_position")).and_then(Value::as_u64).unwrap_or(0)
+                as usize;
+        if pos >= setup.cameras.len() {
+            continue; // refused, with the step named, below
+        }
+        // The green laser's spots (the brightest in the camera); where a view has too few,
+        // every laser's (a spot's peak is where its beam enters, whatever its colour).
+        let laser: Vec<(FrameRecord, &TriggerEvent, usize)> = s
+            .camera_frames_of(p.id, camera)
+            .into_iter()
+            .filter_map(|f| {
+                let t = triggers.get(&(f.sequence, f.item))?;
+                let c = channel_of(t)?;
+                Some((f, t, c))
+            })
+            .collect();
+        let green = laser.iter().filter(|x| x.2 == 1).count();
+        let lit: Vec<(FrameRecord, &TriggerEvent)> = laser
+            .into_iter()
+            .filter(|x| green < PROJECTOR_SPOTS_PER_VIEW || x.2 == 1)
+            .map(|(f, t, _)| (f, t))
+            .collect();
+        // Every k-th spot along the grid's diagonals: all its rows and columns.
+        let every = lit.len().div_ceil(PROJECTOR_SPOTS_PER_VIEW).max(1);
+        for (f, t) in lit {
+            let steps = t.snapshot.axes.get(usize::from(table.axis)).copied().unwrap_or(0);
+            let code = t.snapshot.galvos.first().map_or([0, 0], |g| [g.x, g.y]);
+            let rank = |v: &[u16], c: u16| v.partition_point(|&x| x < c);
+            if (rank(&grid_xs, code[0]) + rank(&grid_ys, code[1])) % every != 0 {
+                continue;
+            }
+            spot_frames.push(SpotFrame {
+                pos,
+                deg: table.units(i64::from(steps)).unwrap_or(0.0),
+                code: code.map(f64::from),
+                file: dir.join(&f.file),
+            });
+        }
+    }
+    let projector = calibrate_projector(&mesh, &setup, &limits, &spot_frames, (w, h))?;
+    setup.projector = projector.projector;
+    lap("projector");
+    // 1. White balance (after the projector: the spot on the target is where its beam meets it).
+    let mut white_seen = false;
+    for p in m.plan.steps.iter().filter(|p| kind_of(p) == "white") {
+        white_seen = true;
+        let (_, cam) = setup.cameras[0];
+        let mut sums = [(0.0, 0usize); 3];
+        let mut widths = Vec::new();
+        for f in &s.camera_frames_of(p.id, camera) {
+            let t = trig(f)?;
+            let Some(c) = channel_of(t) else { continue };
+            let img = read_plane(&dir.join(&f.file), w, h)?;
+            let code = t.snapshot.galvos.first().map_or([0.0; 2], |g| [f64::from(g.x), f64::from(g.y)]);
+            let centre = beam_on_plane(&setup, code);
+            sums[c].0 += flux_scale(&img, &cam, &setup.white, centre, 25.0);
+            sums[c].1 += 1;
+            widths.extend(beam_sigma(&img, &cam, &setup.white, setup.projector.ray(code), centre, 10.0));
+        }
+        for c in 0..3 {
+            if sums[c].1 > 0 {
+                flux[c] = sums[c].0 / sums[c].1 as f64;
+            }
+        }
+        if !widths.is_empty() {
+            beam_sigma_mm = widths.iter().sum::<f64>() / widths.len() as f64;
+        }
+    }
+    if !white_seen || flux.iter().any(|f| !f.is_finite() || *f <= 0.0) {
+        return Err(fail(format!(
+            "{}: no usable white balance (a `white` step with one frame per laser on the white target); acquire with `white_balance = true` and [plan.fit] white_target",
+            dir.display()
+        )));
+    }
+
     // 2–3. Step by step: each new view mapped once, the step's frames streamed a chunk at a
     // time (memory: `F`'s sums, the views, one chunk of frames, the step's job list).
     let grid_index: HashMap<[u16; 2], usize> = grid.iter().enumerate().map(|(i, &g)| (g, i)).collect();
-    let view_steps: Vec<&crate::session::PlanStep> =
-        m.plan.steps.iter().filter(|p| kind_of(p) != "white").collect();
     let total: u64 = view_steps.iter().map(|p| s.camera_frames_of(p.id, camera).len() as u64).sum();
     let mut views: Vec<(usize, f64)> = Vec::new();
     let mut maps: Vec<ViewMap> = Vec::new();
@@ -643,6 +706,7 @@ pub fn fit_session(
         local_rejected,
         local_params,
         registration,
+        projector,
         phases,
         beam_sigma_mm,
         camera: setup.cameras[0].1,
@@ -793,6 +857,155 @@ fn register_mesh(
         )));
     }
     Ok(report)
+}
+
+/// Views whose spots fix the projector's pose (spread over the session), and spots per view.
+const PROJECTOR_VIEWS: usize = 12;
+const PROJECTOR_SPOTS_PER_VIEW: usize = 256;
+/// Spots are dropped as outliers beyond 3 × the median distance from their fitted beams, but
+/// never nearer than this, mm.
+const PROJECTOR_FLOOR_MM: f64 = 0.1;
+/// Spots used: the rig file's beam enters within this angle of the normal, and the camera
+/// sees the entry point (and the spot's peak) with at least this cosine.
+const PROJECTOR_MAX_ANGLE_DEG: f64 = 45.0;
+const PROJECTOR_MIN_FACING: f64 = 0.5;
+/// How far from the rig file's entry point a spot is looked for, mm.
+pub const PROJECTOR_SEARCH_MM: f64 = 12.0;
+/// A projector fit whose points scatter more than this about their beams (RMS, mm) is refused.
+pub const PROJECTOR_MAX_RMS_MM: f64 = 0.5;
+
+/// A laser frame whose spot places the projector.
+struct SpotFrame {
+    pos: usize,
+    deg: f64,
+    code: [f64; 2],
+    file: PathBuf,
+}
+
+/// The projector's pose, fitted to the spots seen, in the fit's summary.
+#[derive(Debug, Clone)]
+pub struct ProjectorReport {
+    /// The fitted projector (used for every entry point).
+    pub projector: lightrig_pipelines::disco::optics::Projector,
+    /// How far the rig file's pivot moved (mm) and its axes turned (degrees).
+    pub moved_mm: f64,
+    pub turned_deg: f64,
+    /// How far the entry points moved on the object, at most over the spot window, mm.
+    pub shift_mm: f64,
+    /// Frames looked at; spots used and dropped (outliers); the used spots' RMS and largest
+    /// distance from their beams, mm.
+    pub frames: usize,
+    pub used: usize,
+    pub dropped: usize,
+    pub rms_mm: f64,
+    pub max_mm: f64,
+}
+
+/// Each frame's spot: the rig file's projector says roughly where it entered; its sub-pixel
+/// peak within [`PROJECTOR_SEARCH_MM`] of that, cast from the camera onto the mesh, is where it
+/// did. The projector is then fitted to those points.
+fn calibrate_projector(
+    mesh: &SurfaceMesh,
+    setup: &DiscoSetup,
+    limits: &ViewLimits,
+    frames: &[SpotFrame],
+    (w, h): (u32, u32),
+) -> Result<ProjectorReport, FitError> {
+    let mut hits: Vec<HitPoint> = Vec::new();
+    let mut keys: Vec<(usize, i64)> = frames.iter().map(|f| (f.pos, (f.deg * 1e6).round() as i64)).collect();
+    keys.sort_unstable();
+    keys.dedup();
+    for key in keys {
+        let fr: Vec<&SpotFrame> =
+            frames.iter().filter(|f| (f.pos, (f.deg * 1e6).round() as i64) == key).collect();
+        let map = ViewMap::new(mesh, &setup.cameras[key.0].1, fr[0].deg, limits);
+        let found: Vec<Result<Option<HitPoint>, FitError>> = fr
+            .par_iter()
+            .map(|f| {
+                let img = read_plane(&f.file, w, h)?;
+                let p = &setup.projector;
+                let Some(inc) = incidence(mesh, &map.world, map.turntable_deg, p.eye, p.ray(f.code), limits)
+                else {
+                    return Ok(None);
+                };
+                // Only spots well inside the object's outline, for beam and camera alike: near
+                // it the spot may be hidden and glow taken for it, and a grazing camera ray
+                // turns a pixel's error into millimetres on the surface.
+                let cam = &map.camera;
+                let (_, n) = point_of(mesh, &map.world, map.turntable_deg, &inc.hit);
+                let facing = |q: V3, n: V3| lightrig_pipelines::vec3::dot(n, normalize(sub(cam.eye, q)));
+                if inc.angle_deg > PROJECTOR_MAX_ANGLE_DEG || facing(inc.point, n) < PROJECTOR_MIN_FACING {
+                    return Ok(None);
+                }
+                let Some((px, _)) = cam.project(inc.point) else { return Ok(None) };
+                let pixel_mm = norm(sub(inc.point, cam.eye)) / cam.focal_px;
+                let radius = (PROJECTOR_SEARCH_MM / pixel_mm).ceil() as usize;
+                let floor = FLOOR_SIGMAS * background_sigma(&img, &map.surface, 7);
+                let Some(peak) = spot_peak(&img, w as usize, h as usize, px, radius, floor) else {
+                    return Ok(None);
+                };
+                let Some(on) = lightrig_pipelines::disco::optics::cast(
+                    mesh,
+                    &map.world,
+                    cam.eye,
+                    cam.ray(peak[0], peak[1]),
+                ) else {
+                    return Ok(None);
+                };
+                let (point, n) = point_of(mesh, &map.world, map.turntable_deg, &on);
+                if facing(point, n) < PROJECTOR_MIN_FACING
+                    || norm(sub(point, inc.point)) > PROJECTOR_SEARCH_MM
+                {
+                    return Ok(None);
+                }
+                Ok(Some(HitPoint { code: f.code, point }))
+            })
+            .collect();
+        for r in found {
+            hits.extend(r?);
+        }
+    }
+    let start = setup.projector;
+    let fit = fit_projector(&start, &hits, PROJECTOR_FLOOR_MM).ok_or_else(|| {
+        fail(format!(
+            "the laser projector's pose: {} spots seen near where [plan.fit] projector puts them, in {} frames looked at; too few to fit it (at least 12). Check [plan.fit] projector (the scanner's pivot and aim, within some 10 mm and 3°) and the galvo's calibration; a plan with more spots per view gives more",
+            hits.len(),
+            frames.len()
+        ))
+    })?;
+    if fit.rms_mm > PROJECTOR_MAX_RMS_MM {
+        return Err(fail(format!(
+            "the laser projector's pose: its beams miss the {} spots seen by {:.2} mm RMS (at most {PROJECTOR_MAX_RMS_MM} mm); check the galvo's calibration ([[galvo]] urad_per_code, zero_code) and [plan.fit] projector",
+            fit.used, fit.rms_mm
+        )));
+    }
+    let codes: Vec<[f64; 2]> = hits.iter().map(|h| h.code).collect();
+    let (centre, radius) = bounding_sphere(&mesh.vertices);
+    Ok(ProjectorReport {
+        projector: fit.projector,
+        moved_mm: norm(fit.correction.translation),
+        turned_deg: fit.correction.angle_deg(),
+        shift_mm: beam_shift(&start, &fit.projector, &codes, centre, radius),
+        frames: frames.len(),
+        used: fit.used,
+        dropped: fit.dropped,
+        rms_mm: fit.rms_mm,
+        max_mm: fit.max_mm,
+    })
+}
+
+/// The centre of `points`' bounding box and the farthest point's distance from it.
+fn bounding_sphere(points: &[V3]) -> (V3, f64) {
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for p in points {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    let c = [0, 1, 2].map(|k| 0.5 * (lo[k] + hi[k]));
+    (c, points.iter().map(|&p| norm(sub(p, c))).fold(0.0, f64::max))
 }
 
 /// Where the beam at `code` meets the white target's plane.
@@ -1170,6 +1383,13 @@ pub fn write_outputs(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitErro
             "min_iou": r.min_iou(),
             "max_mismatched_pixels": r.agreement.iter().map(|a| a.mismatched).max().unwrap_or(0),
         })),
+        "projector": {
+            "eye_mm": fit.projector.projector.eye, "axes": fit.projector.projector.axes,
+            "moved_mm": fit.projector.moved_mm, "turned_deg": fit.projector.turned_deg,
+            "entry_points_moved_mm_max": fit.projector.shift_mm,
+            "frames": fit.projector.frames, "spots_used": fit.projector.used, "spots_dropped": fit.projector.dropped,
+            "rms_mm": fit.projector.rms_mm, "max_mm": fit.projector.max_mm,
+        },
         "fill": format!("{:?}", fit.fill),
         "local": { "spots_fitted": fit.spots.len(), "spots_unseen": fit.local_hidden, "spots_failed": fit.local_failed, "spots_rejected": fit.local_rejected,
                    "texel_mm": fit.atlas.texel_mm, "atlas": [fit.atlas.width, fit.atlas.height],

@@ -17,6 +17,7 @@
 //!   beam's blur.
 //! - [`local`]: section 7 on the atlas: per-spot data and fits, the parameter and correction
 //!   textures filled where no spot fell, a texel's 7 × 7 kernel.
+//! - [`projector_pose`]: the laser projector's pivot and orientation from the spots' hit points.
 //! - [`register`]: the object's pose on the turntable from the registration frames' silhouettes.
 //! - [`relight`]: the model under a light no frame used (the global term rendered).
 
@@ -29,6 +30,7 @@ pub mod kernel;
 pub mod local;
 pub mod mesh;
 pub mod optics;
+pub mod projector_pose;
 pub mod register;
 pub mod relight;
 pub mod resample;
