@@ -71,7 +71,7 @@ pub const DETAIL_TOLERANCE: f64 = 0.10;
 /// the object stands, mm (a tenth of the quick mesh's edge, a sixth of its pixels).
 pub const REGISTRATION_TOLERANCE_MM: f64 = 0.1;
 /// The projector fitted to its spots: the farthest its beams land on the object from the true
-/// projector's, over the spot window, mm (a third of the quick camera's pixels).
+/// projector's, over beams aimed at every vertex, mm (a third of the quick camera's pixels).
 pub const PROJECTOR_TOLERANCE_MM: f64 = 0.15;
 
 /// The local kernels (section 7) against the scene's media.
@@ -106,19 +106,7 @@ impl KernelCheck {
 /// beams aimed at every vertex with the object turned to 0°, 90°, 180° and 270°, from where the
 /// true beam enters to the fitted beam at that point.
 pub fn projector_error(truth: &Projector, mesh: &SurfaceMesh, fitted: &Projector) -> f64 {
-    use lightrig_pipelines::disco::optics::{cast, point_of, turned};
-    use lightrig_pipelines::disco::projector_pose::{miss, HitPoint};
-    let mut worst = 0.0f64;
-    for deg in [0.0, 90.0, 180.0, 270.0] {
-        let world = turned(mesh, deg);
-        for &v in &world {
-            let code = truth.code_of(v);
-            let Some(hit) = cast(mesh, &world, truth.eye, truth.ray(code)) else { continue };
-            let (point, _) = point_of(mesh, &world, deg, &hit);
-            worst = worst.max(lightrig_pipelines::vec3::norm(miss(fitted, &HitPoint { code, point })));
-        }
-    }
-    worst
+    lightrig_pipelines::disco::projector_pose::entry_shift(truth, fitted, mesh, &[0.0, 90.0, 180.0, 270.0])
 }
 
 /// Fits the dipoles' own profiles and compares the homogeneous spots' fits with them.
@@ -267,7 +255,7 @@ pub struct DiscoDemoResult {
     /// The registered mesh's farthest vertex from the object's, mm (none: not registered).
     pub registration_error_mm: Option<f64>,
     /// The fitted projector's beams against the true projector's where they enter the object,
-    /// farthest over the spot window, mm ([`projector_error`]).
+    /// farthest over beams aimed at every vertex, mm ([`projector_error`]).
     pub projector_error_mm: f64,
     pub frames: u64,
     pub report: PathBuf,
@@ -312,7 +300,7 @@ impl DiscoDemoResult {
                 )
             },
             (
-                "projector: its pivot and aim fitted to the spots, its beams' entry points against the true projector's, farthest over the spot window, mm",
+                "projector: its pivot and aim fitted to the spots, its beams' entry points against the true projector's, farthest over beams aimed at every vertex, mm",
                 self.projector_error_mm,
                 PROJECTOR_TOLERANCE_MM,
                 self.projector_error_mm <= PROJECTOR_TOLERANCE_MM,
@@ -683,7 +671,7 @@ fn write_report(
     rep.line(format!(
         "Projector (section 4.4): fitted to the spots of {} frames ({} used, {} dropped as outliers; its beams miss \
          them by {:.3} mm RMS), moved {:.2} mm and turned {:.2}° from the rig file's pose; its entry points are within \
-         {:.3} mm of the true projector's over the spot window.",
+         {:.3} mm of the true projector's (beams aimed at every vertex, 4 turntable angles).",
         pr.frames, pr.used, pr.dropped, pr.rms_mm, pr.moved_mm, pr.turned_deg, r.projector_error_mm
     ));
     rep.line("");

@@ -43,7 +43,7 @@ use lightrig_pipelines::disco::local::{
 };
 use lightrig_pipelines::disco::mesh::SurfaceMesh;
 use lightrig_pipelines::disco::optics::{point_of, Pinhole};
-use lightrig_pipelines::disco::projector_pose::{beam_shift, fit_projector, HitPoint};
+use lightrig_pipelines::disco::projector_pose::{entry_shift, fit_projector, HitPoint};
 use lightrig_pipelines::disco::register::{register, silhouette, Pose, SilhouetteView, ViewAgreement};
 use lightrig_pipelines::disco::relight;
 use lightrig_pipelines::disco::resample::{
@@ -890,7 +890,8 @@ pub struct ProjectorReport {
     /// How far the rig file's pivot moved (mm) and its axes turned (degrees).
     pub moved_mm: f64,
     pub turned_deg: f64,
-    /// How far the entry points moved on the object, at most over the spot window, mm.
+    /// How far the entry points moved on the object, the farthest over the mesh at the views'
+    /// turntable angles, mm ([`entry_shift`]).
     pub shift_mm: f64,
     /// Frames looked at; spots used and dropped (outliers); the used spots' RMS and largest
     /// distance from their beams, mm.
@@ -979,33 +980,20 @@ fn calibrate_projector(
             fit.used, fit.rms_mm
         )));
     }
-    let codes: Vec<[f64; 2]> = hits.iter().map(|h| h.code).collect();
-    let (centre, radius) = bounding_sphere(&mesh.vertices);
+    let mut angles: Vec<f64> = frames.iter().map(|f| f.deg).collect();
+    angles.sort_by(f64::total_cmp);
+    angles.dedup();
     Ok(ProjectorReport {
         projector: fit.projector,
         moved_mm: norm(fit.correction.translation),
         turned_deg: fit.correction.angle_deg(),
-        shift_mm: beam_shift(&start, &fit.projector, &codes, centre, radius),
+        shift_mm: entry_shift(&start, &fit.projector, mesh, &angles),
         frames: frames.len(),
         used: fit.used,
         dropped: fit.dropped,
         rms_mm: fit.rms_mm,
         max_mm: fit.max_mm,
     })
-}
-
-/// The centre of `points`' bounding box and the farthest point's distance from it.
-fn bounding_sphere(points: &[V3]) -> (V3, f64) {
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for p in points {
-        for k in 0..3 {
-            lo[k] = lo[k].min(p[k]);
-            hi[k] = hi[k].max(p[k]);
-        }
-    }
-    let c = [0, 1, 2].map(|k| 0.5 * (lo[k] + hi[k]));
-    (c, points.iter().map(|&p| norm(sub(p, c))).fold(0.0, f64::max))
 }
 
 /// Where the beam at `code` meets the white target's plane.

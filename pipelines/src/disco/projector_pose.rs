@@ -10,7 +10,8 @@
 //! distances from their beams, with points far off the fit (a spot seen through the object, or
 //! at the silhouette) dropped and the fit repeated.
 
-use super::optics::Projector;
+use super::mesh::SurfaceMesh;
+use super::optics::{cast, point_of, turned, Projector};
 use super::register::Pose;
 use crate::vec3::{add, dot, norm, scale, sub, V3};
 
@@ -193,31 +194,30 @@ fn solve6(mut a: [[f64; 6]; 6], mut b: [f64; 6]) -> Option<[f64; 6]> {
     Some(x)
 }
 
-/// The farthest apart the beams of `a` and `b` are where they cross a sphere of `radius_mm`
-/// about `centre` (the object), over `codes`: how far an entry point moves, mm. Codes whose beam
-/// misses the sphere in `a` are skipped.
-pub fn beam_shift(a: &Projector, b: &Projector, codes: &[[f64; 2]], centre: V3, radius_mm: f64) -> f64 {
-    codes
-        .iter()
-        .filter_map(|&code| {
-            let d = a.ray(code);
-            let o = sub(a.eye, centre);
-            let bq = dot(o, d);
-            let disc = bq * bq - (dot(o, o) - radius_mm * radius_mm);
-            if disc < 0.0 {
-                return None;
-            }
-            let p = add(a.eye, scale(d, -bq - disc.sqrt()));
-            Some(norm(miss(b, &HitPoint { code, point: p })))
-        })
-        .fold(0.0, f64::max)
+/// How far the entry points of `a`'s beams lie from `b`'s beams, the farthest over the mesh:
+/// `a`'s beam aimed at each vertex of `mesh` turned to each of `angles_deg`, cast on the mesh
+/// (the first surface it meets), and that entry point's distance from `b`'s beam of the same
+/// code, mm. With `a` a projector and `b` another estimate of it, how far F's columns would
+/// move between the two.
+pub fn entry_shift(a: &Projector, b: &Projector, mesh: &SurfaceMesh, angles_deg: &[f64]) -> f64 {
+    let mut worst = 0.0f64;
+    for &deg in angles_deg {
+        let world = turned(mesh, deg);
+        for &v in &world {
+            let code = a.code_of(v);
+            let Some(hit) = cast(mesh, &world, a.eye, a.ray(code)) else { continue };
+            let (point, _) = point_of(mesh, &world, deg, &hit);
+            worst = worst.max(norm(miss(b, &HitPoint { code, point })));
+        }
+    }
+    worst
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::disco::mesh::pebble;
-    use crate::disco::optics::{cast, point_of, turn};
+    use crate::disco::optics::turn;
 
     fn truth() -> Projector {
         Projector::aimed([260.0, -150.0, 60.0], [0.0, 0.0, 30.0], [32768.0; 2], [10.65e-6, -10.65e-6])
@@ -225,10 +225,10 @@ mod tests {
 
     /// Hit points of `p`'s beams on the pebble turned to 0°, 90°, 180°, 270°, a grid of codes.
     fn hits(p: &Projector, noise_mm: f64) -> Vec<HitPoint> {
-        let mesh = crate::disco::mesh::SurfaceMesh::new(&pebble(3, [24.0, 20.0, 30.0]));
+        let mesh = mesh();
         let mut out = Vec::new();
         let mut k = 0u32;
-        for deg in [0.0, 90.0, 180.0, 270.0] {
+        for deg in ANGLES {
             let world: Vec<V3> = mesh.vertices.iter().map(|&v| turn(v, deg)).collect();
             for i in -7..=7 {
                 for j in -7..=7 {
@@ -246,13 +246,11 @@ mod tests {
         out
     }
 
-    fn codes() -> Vec<[f64; 2]> {
-        (-7..=7)
-            .flat_map(|i| {
-                (-7..=7).map(move |j| [32768.0 + f64::from(i) * 1000.0, 32768.0 + f64::from(j) * 1000.0])
-            })
-            .collect()
+    fn mesh() -> SurfaceMesh {
+        SurfaceMesh::new(&pebble(3, [24.0, 20.0, 30.0]))
     }
+
+    const ANGLES: [f64; 4] = [0.0, 90.0, 180.0, 270.0];
 
     #[test]
     fn a_projector_placed_by_hand_is_found_from_its_spots() {
@@ -270,10 +268,10 @@ mod tests {
         assert!(wrong > 60, "{wrong}");
         // Measured by hand: 5.8 mm and 1.5° off (entry points 3.7 mm off: the two partly cancel).
         let measured = corrected(&t, &Pose { translation: [4.0, -3.0, 3.0], rotation: [0.012, -0.02, 0.01] });
-        let before = beam_shift(&t, &measured, &codes(), [0.0, 0.0, 30.0], 25.0);
+        let before = entry_shift(&t, &measured, &mesh(), &ANGLES);
         assert!(before > 3.0, "the hand-measured projector is only {before} mm off");
         let fit = fit_projector(&measured, &hits, 0.5).unwrap();
-        let after = beam_shift(&t, &fit.projector, &codes(), [0.0, 0.0, 30.0], 25.0);
+        let after = entry_shift(&t, &fit.projector, &mesh(), &ANGLES);
         assert!(after < 0.05, "{after} mm off after the fit: {fit:?}");
         assert!(fit.dropped >= wrong && fit.dropped < wrong + 5, "{wrong} wrong: {fit:?}");
         assert!(fit.rms_mm < 0.05 && fit.max_mm < 0.1, "{fit:?}");
@@ -286,7 +284,24 @@ mod tests {
         assert!(fit_projector(&t, &hits[..11], 0.5).is_none());
         // An exact start stays put.
         let fit = fit_projector(&t, &hits, 0.5).unwrap();
-        assert!(beam_shift(&t, &fit.projector, &codes(), [0.0, 0.0, 30.0], 25.0) < 1e-6);
+        assert!(entry_shift(&t, &fit.projector, &mesh(), &ANGLES) < 1e-5);
         assert_eq!(fit.dropped, 0);
+    }
+
+    #[test]
+    fn entry_shift_is_the_distance_across_the_beams() {
+        let t = truth();
+        // The same projector: nothing but the hits' f32 barycentric weights (a few nm).
+        assert!(entry_shift(&t, &t, &mesh(), &ANGLES) < 1e-5);
+        // The pivot raised 2 mm: every beam moves 2 mm less the part along itself; the farthest,
+        // a level beam (the pivot is as high as the pebble's top), the whole 2 mm.
+        let raised = corrected(&t, &Pose { translation: [0.0, 0.0, 2.0], rotation: [0.0; 3] });
+        let s = entry_shift(&t, &raised, &mesh(), &ANGLES);
+        assert!((s - 2.0).abs() < 1e-4, "{s}");
+        // Turned 0.5° about the pivot: about 300 mm × 0.0087 at the object.
+        let turned =
+            corrected(&t, &Pose { translation: [0.0; 3], rotation: [0.0, 0.0, 0.5f64.to_radians()] });
+        let s = entry_shift(&t, &turned, &mesh(), &ANGLES);
+        assert!(s > 2.2 && s < 3.0, "{s}");
     }
 }
