@@ -125,6 +125,14 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     ] {
         assert!(fit_dir.join(file).is_file(), "{file}");
     }
+    // Every fitted spot in fit.json, kept or not, with its rates as the fit has them.
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(fit_dir.join("fit.json")).unwrap()).unwrap();
+    let listed = summary["local"]["spots"].as_array().unwrap();
+    assert_eq!(listed.len(), f.spots.len() + f.local_rejected.len());
+    assert_eq!(listed.iter().filter(|s| s["kept"] == true).count(), f.spots.len());
+    assert_eq!(listed[0]["sigma_per_mm"][1].as_f64(), Some(f.spots[0].profile.sigma[1]));
+    assert!(listed.iter().all(|s| s["incidence_deg"].as_f64().unwrap() <= f.local_params.max_incidence_deg));
     let bits = std::fs::read(fit_dir.join("F-observed.bits")).unwrap();
     assert_eq!(bits.len(), (n * (n + 1) / 2).div_ceil(8));
     let set: u32 = bits.iter().map(|b| b.count_ones()).sum();

@@ -295,11 +295,17 @@ pub fn run(shift: u8, logs: &Path) -> Result<usize, String> {
         nonce: crate::boot_nonce(),
     };
     let mut failed = 0;
-    let mut check = |name: String, r: Result<(), String>| match &r {
-        Ok(()) => println!("  ok    {name}"),
-        Err(e) => {
-            println!("  FAIL  {name}: {e}");
-            failed += 1;
+    // Each check's seconds, as the suite prints them: QEMU's share of the hil stage.
+    let mut since = std::time::Instant::now();
+    let mut check = |name: String, r: Result<(), String>| {
+        let s = since.elapsed().as_secs_f64();
+        since = std::time::Instant::now();
+        match &r {
+            Ok(()) => println!("  ok    {name} ({s:.1} s)"),
+            Err(e) => {
+                println!("  FAIL  {name} ({s:.1} s): {e}");
+                failed += 1;
+            }
         }
     };
     let t0 = std::time::Instant::now();

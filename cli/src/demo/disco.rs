@@ -759,7 +759,7 @@ fn write_report(
             f.spots.len(),
             f.local_hidden,
             f.local_failed,
-            f.local_rejected,
+            f.local_rejected.len(),
             100.0 * f.local_params.max_misfit,
             scene.media[0].name,
             k.spots[0],

@@ -134,8 +134,9 @@ pub struct DiscoFit {
     pub detail_vertices: Vec<[f32; 3]>,
     pub local_hidden: usize,
     pub local_failed: usize,
-    /// Spots fitted but not kept ([`LocalParams::accepts`]: misfit, or no fast term).
-    pub local_rejected: usize,
+    /// Spots fitted but not kept ([`LocalParams::accepts`]: misfit, or no fast term), with
+    /// their fits (in `fit.json` beside the kept ones, for a look at why).
+    pub local_rejected: Vec<SpotKernel>,
     pub local_params: LocalParams,
     /// The mesh's pose on the turntable from the registration frames (none: the plan took
     /// none, and the mesh is used as placed).
@@ -452,7 +453,8 @@ pub fn fit_session(
     let mut detail_acc = DetailAccumulator::new(&atlas);
     let mut pending: HashMap<(usize, [u16; 2]), Pending> = HashMap::new();
     let mut spots: Vec<SpotKernel> = Vec::new();
-    let (mut local_hidden, mut local_failed, mut local_rejected) = (0usize, 0usize, 0usize);
+    let (mut local_hidden, mut local_failed) = (0usize, 0usize);
+    let mut local_rejected: Vec<SpotKernel> = Vec::new();
     let mut done_count = 0u64;
     for p in view_steps {
         let meta = p.extra.get("meta").cloned().unwrap_or(Value::Null);
@@ -596,10 +598,19 @@ pub fn fit_session(
                 })
                 .collect();
             for (((view, code), p), f) in ready.into_iter().zip(fitted) {
+                let spot = |profile| SpotKernel {
+                    view,
+                    code,
+                    point: p.point,
+                    angle_deg: p.angle_deg,
+                    sigma_mm: p.sigma_mm,
+                    profile,
+                    samples: p.samples.len(),
+                };
                 let profile = match f {
                     Some(f) if local_params.accepts(&f) => f,
-                    Some(_) => {
-                        local_rejected += 1;
+                    Some(f) => {
+                        local_rejected.push(spot(f));
                         continue;
                     }
                     None if p.samples.iter().any(|s| s.1.d < local_params.stages.delta2) => {
@@ -612,15 +623,7 @@ pub fn fit_session(
                     }
                 };
                 local.record(&atlas, &blurs.at(p.sigma_mm), &p.samples, p.point, &profile);
-                spots.push(SpotKernel {
-                    view,
-                    code,
-                    point: p.point,
-                    angle_deg: p.angle_deg,
-                    sigma_mm: p.sigma_mm,
-                    profile,
-                    samples: p.samples.len(),
-                });
+                spots.push(spot(profile));
             }
             progress(done_count, total);
         }
@@ -993,6 +996,17 @@ fn calibrate_projector(
         dropped: fit.dropped,
         rms_mm: fit.rms_mm,
         max_mm: fit.max_mm,
+    })
+}
+
+/// A spot's local fit in `fit.json`: where and how its beam entered, the blur taken out, `m(d)`
+/// and its misfit, and whether it went into the kernel textures.
+fn spot_json(k: &SpotKernel, kept: bool) -> serde_json::Value {
+    let p = &k.profile;
+    serde_json::json!({
+        "view": k.view, "code": k.code, "point_mm": k.point, "incidence_deg": k.angle_deg,
+        "blur_sigma_mm": k.sigma_mm, "sigma_per_mm": p.sigma, "c1": p.c1, "c2": p.c2,
+        "misfit": p.misfit, "samples": k.samples, "kept": kept,
     })
 }
 
@@ -1379,9 +1393,11 @@ pub fn write_outputs(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitErro
             "rms_mm": fit.projector.rms_mm, "max_mm": fit.projector.max_mm,
         },
         "fill": format!("{:?}", fit.fill),
-        "local": { "spots_fitted": fit.spots.len(), "spots_unseen": fit.local_hidden, "spots_failed": fit.local_failed, "spots_rejected": fit.local_rejected,
+        "local": { "spots_fitted": fit.spots.len(), "spots_unseen": fit.local_hidden, "spots_failed": fit.local_failed, "spots_rejected": fit.local_rejected.len(),
                    "texel_mm": fit.atlas.texel_mm, "atlas": [fit.atlas.width, fit.atlas.height],
-                   "observed_texels": fit.local.observed.iter().filter(|&&o| o).count() },
+                   "observed_texels": fit.local.observed.iter().filter(|&&o| o).count(),
+                   "spots": fit.spots.iter().map(|k| spot_json(k, true))
+                       .chain(fit.local_rejected.iter().map(|k| spot_json(k, false))).collect::<Vec<_>>() },
         "detail": { "observed_texels": fit.detail.observed.iter().filter(|&&o| o).count() },
         "held_out": { "frames": fit.held_out.frames, "pixels": fit.held_out.pixels,
                       "median_relative_rms": fit.held_out.median_rel_rms, "near_field_excluded_mm": fit.held_out.near_mm,
