@@ -9,6 +9,9 @@ use std::process::{Command, Output, Stdio};
 
 use lightrig_host::session::{journal_records, trigger_events, Record, Session};
 
+mod common;
+use common::Scratch;
+
 /// Held by the tests that open pseudo-terminals. A controller that dies leaves its host
 /// reopening the terminal's old path (`/dev/pts/N`), which the kernel may hand to another
 /// test's new terminal meanwhile: the host would then hold that one (and its exclusive lock).
@@ -18,11 +21,8 @@ fn ptys() -> std::sync::MutexGuard<'static, ()> {
     PTYS.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("lightrig-acquire-cli-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+fn scratch(name: &str) -> Scratch {
+    Scratch::new("acquire-cli", name)
 }
 
 fn lightrig(args: &[&str]) -> Output {
