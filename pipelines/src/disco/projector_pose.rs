@@ -217,7 +217,6 @@ pub fn entry_shift(a: &Projector, b: &Projector, mesh: &SurfaceMesh, angles_deg:
 mod tests {
     use super::*;
     use crate::disco::mesh::pebble;
-    use crate::disco::optics::turn;
 
     fn truth() -> Projector {
         Projector::aimed([260.0, -150.0, 60.0], [0.0, 0.0, 30.0], [32768.0; 2], [10.65e-6, -10.65e-6])
@@ -229,7 +228,7 @@ mod tests {
         let mut out = Vec::new();
         let mut k = 0u32;
         for deg in ANGLES {
-            let world: Vec<V3> = mesh.vertices.iter().map(|&v| turn(v, deg)).collect();
+            let world = turned(&mesh, deg);
             for i in -7..=7 {
                 for j in -7..=7 {
                     let code = [32768.0 + f64::from(i) * 1000.0, 32768.0 + f64::from(j) * 1000.0];
