@@ -159,6 +159,36 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     lightrig_pipelines::firs::mesh::write_ply(&big, &mut std::fs::File::create(&big_ply).unwrap()).unwrap();
     let e = fit_session(&session, Some(&big_ply), &none).unwrap_err().0;
     assert!(e.contains("big.ply") && e.contains("does not match") && e.contains("in mm"), "{e}");
+    // The scan in a scanner's frame far from how the object stands (turned 119° about a tilted
+    // axis and 25 mm aside): placed from the views' visual hull, every vertex where the
+    // registration of the near scan put one (the pebble is symmetric under a half turn about its
+    // axis, so the nearest placed vertex is compared), and F measured from as many frames.
+    use lightrig_pipelines::disco::register::Pose;
+    use lightrig_pipelines::vec3::{add, norm, scale, sub};
+    let c = scale(scan.vertices.iter().fold([0.0; 3], |s, &v| add(s, v)), 1.0 / scan.vertices.len() as f64);
+    let turn = Pose { rotation: [1.5, -1.2, 0.8], translation: [0.0; 3] };
+    let far = Pose { translation: add(sub(c, turn.apply(c)), [20.0, -15.0, 0.0]), ..turn }.place(&scan);
+    let far_ply = out.join("far.ply");
+    lightrig_pipelines::firs::mesh::write_ply(&far, &mut std::fs::File::create(&far_ply).unwrap()).unwrap();
+    let placed = fit_session(&session, Some(&far_ply), &none).unwrap();
+    assert!(
+        placed.registration.as_ref().is_some_and(|g| g.from_hull && g.min_iou() > 0.995),
+        "{:?}",
+        placed.registration
+    );
+    let off = placed
+        .mesh
+        .vertices
+        .iter()
+        .map(|&p| f.mesh.vertices.iter().map(|&q| norm(sub(p, q))).fold(f64::MAX, f64::min))
+        .fold(0.0, f64::max);
+    assert!(off < REGISTRATION_TOLERANCE_MM, "a placed vertex {off} mm from the near scan's");
+    assert!(
+        placed.used.abs_diff(f.used) < f.used / 50,
+        "{} frames resampled against {}",
+        placed.used,
+        f.used
+    );
     // A registration frame with nothing in it (the spotlights failed): named, with what to check.
     let (s, _) = lightrig_host::session::Session::read(&session).unwrap();
     let first_view = s.frame_index().into_iter().nth(3).unwrap();

@@ -211,8 +211,9 @@ fn fit_disco(session: &Path, mesh: Option<&Path>, out: &Path) -> ExitCode {
         );
         if let Some(g) = &f.registration {
             println!(
-                "registered the mesh by its silhouette in {} views: turned {:.2}°, moved {:.2} mm; the worst view agrees to {:.2} % (intersection over union)",
+                "registered the mesh by its silhouette in {} views{}: turned {:.2}°, moved {:.2} mm; the worst view agrees to {:.2} % (intersection over union)",
                 g.views_used,
+                if g.from_hull { ", searched from the views' visual hull (the scan's own frame was far off)" } else { "" },
                 g.pose.angle_deg(),
                 lightrig_pipelines::vec3::norm(g.pose.translation),
                 100.0 * g.min_iou()

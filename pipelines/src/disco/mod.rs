@@ -18,13 +18,16 @@
 //! - [`local`]: section 7 on the atlas: per-spot data and fits, the parameter and correction
 //!   textures filled where no spot fell, a texel's 7 × 7 kernel.
 //! - [`projector_pose`]: the laser projector's pivot and orientation from the spots' hit points.
-//! - [`register`]: the object's pose on the turntable from the registration frames' silhouettes.
+//! - [`register`]: the object's pose on the turntable from the registration frames' silhouettes,
+//!   and [`hull`]: coarse guesses for it from the views' visual hull, where the scan's frame is far
+//!   from how the object stands.
 //! - [`relight`]: the model under a light no frame used (the global term rendered).
 
 pub mod atlas;
 pub mod detail;
 pub mod dipole;
 pub mod falloff;
+pub mod hull;
 pub mod interpolate;
 pub mod kernel;
 pub mod local;

@@ -17,6 +17,7 @@
 use lightrig_imaging::calib::{rodrigues, rodrigues_inv};
 use rayon::prelude::*;
 
+use super::hull;
 use super::optics::{turn, Pinhole};
 use crate::firs::mesh::Mesh;
 use crate::vec3::{add, norm, scale, sub, V3};
@@ -320,6 +321,18 @@ pub struct Registration {
     pub evaluations: usize,
 }
 
+impl Registration {
+    /// The worst view's intersection over union (0 without views).
+    pub fn min_iou(&self) -> f64 {
+        self.views.iter().map(|v| v.iou).reduce(f64::min).unwrap_or(0.0)
+    }
+
+    /// Pixels mismatched over all views.
+    pub fn mismatched(&self) -> usize {
+        self.views.iter().map(|v| v.mismatched).sum()
+    }
+}
+
 /// The pose (mesh frame → turntable frame) whose silhouettes best match `views`, searched from
 /// `guess`: a downhill simplex over the rotation (about the mesh's centroid) and the
 /// translation, restarted from its best point with a smaller simplex until a restart gains
@@ -373,6 +386,60 @@ pub fn register(mesh: &Mesh, views: &[SilhouetteView], guess: Pose) -> Registrat
         .collect();
     Registration { pose, views: agreement, evaluations }
 }
+
+/// [`register`] from `guess`; where that leaves some view's silhouettes agreeing below
+/// `accept` (intersection over union) — the scan's frame too far from how the object stands —
+/// again from the visual hull's guesses ([`hull::guesses`]) whose silhouettes disagree least,
+/// in that order until one settles at `accept`, the best kept (fewest pixels mismatched over
+/// the views). The second field says whether the hull's guesses were needed.
+pub fn register_global(
+    mesh: &Mesh,
+    views: &[SilhouetteView],
+    guess: Pose,
+    accept: f64,
+) -> (Registration, bool) {
+    let first = register(mesh, views, guess);
+    if first.min_iou() >= accept {
+        return (first, false);
+    }
+    let hv: Vec<hull::HullView> = views
+        .iter()
+        .map(|v| hull::HullView { camera: &v.camera, turntable_deg: v.turntable_deg, mask: &v.mask })
+        .collect();
+    let mut scored: Vec<(f64, Pose)> = hull::guesses(mesh, &hv)
+        .into_iter()
+        .map(|p| {
+            let mut buf = Vec::new();
+            let cost: f64 = views
+                .iter()
+                .map(|v| {
+                    v.render(mesh, &p, &mut buf);
+                    v.weighted_mismatch(&buf)
+                })
+                .sum();
+            (cost, p)
+        })
+        .collect();
+    scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut best = first;
+    for (_, p) in scored.into_iter().take(HULL_TRIES) {
+        let r = register(mesh, views, p);
+        if r.mismatched() < best.mismatched() {
+            best = Registration { evaluations: best.evaluations + r.evaluations, ..r };
+        } else {
+            best.evaluations += r.evaluations;
+        }
+        if best.min_iou() >= accept {
+            break;
+        }
+    }
+    (best, true)
+}
+
+/// The hull's guesses registered from, best first by their silhouettes' mismatch, until one
+/// settles at `accept` (the egg's first two are the same pose up to its symmetry; a third
+/// covers a close call).
+pub const HULL_TRIES: usize = 3;
 
 /// Downhill simplex from `x0`, restarted from its best point with a third of the steps until a
 /// restart gains nothing once the translation step is below `fine` mm: (best point,
@@ -478,11 +545,11 @@ fn nelder_mead<const D: usize>(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::disco::mesh::pebble;
 
-    fn rig_views(mesh: &Mesh, truth: &Pose) -> Vec<SilhouetteView> {
+    pub(crate) fn rig_views(mesh: &Mesh, truth: &Pose) -> Vec<SilhouetteView> {
         let cams = [
             Pinhole::looking(384, 248, 900.0, [300.0, 0.0, 90.0], [0.0, 0.0, 30.0]),
             Pinhole::looking(384, 248, 900.0, [200.0, 220.0, 150.0], [0.0, 0.0, 30.0]),
@@ -497,6 +564,14 @@ mod tests {
             }
         }
         views
+    }
+
+    /// The egg turned by `rotation` about its middle (30 mm up) and moved by `shift`: it stays
+    /// in the test cameras' frames.
+    pub(crate) fn about_centre(rotation: V3, shift: V3) -> Pose {
+        let c = [0.0, 0.0, 30.0];
+        let turned = Pose { rotation, translation: [0.0; 3] };
+        Pose { rotation, translation: add(sub(c, turned.apply(c)), shift) }
     }
 
     #[test]
@@ -577,5 +652,29 @@ mod tests {
         let mut buf = Vec::new();
         views[0].render(&mesh, &Pose::IDENTITY, &mut buf);
         assert!(views[0].agreement(&buf).mismatched > 2_000);
+    }
+
+    /// A scan far from how the egg stands (turned 119° about a tilted axis, 25 mm aside): the
+    /// descent from its own frame stalls, the visual hull's guesses find it, up to the egg's
+    /// symmetry (a half turn about its own axis).
+    #[test]
+    fn a_scan_far_from_upright_is_placed_from_the_visual_hull() {
+        let mesh = pebble(3, [24.0, 20.0, 30.0]);
+        let truth = about_centre([1.5, -1.2, 0.8], [20.0, -15.0, 0.0]);
+        let views = rig_views(&mesh, &truth);
+        let (plain, used) = register_global(&mesh, &views, Pose::IDENTITY, 0.95);
+        assert!(used, "the descent from the scan's own frame found it");
+        let half_turn = Pose { rotation: [0.0, 0.0, std::f64::consts::PI], translation: [0.0; 3] };
+        let err = max_displacement(&plain.pose, &truth, &mesh.vertices).min(max_displacement(
+            &plain.pose,
+            &half_turn.then(&truth),
+            &mesh.vertices,
+        ));
+        assert!(err < 0.03, "vertices up to {err} mm off; pose {:?}", plain.pose);
+        assert!(plain.min_iou() > 0.995, "{:?}", plain.views);
+        // Near its own frame, the hull is not consulted.
+        let close = Pose { rotation: [0.03, -0.05, 0.21], translation: [3.0, -4.0, 2.5] };
+        let (r, used) = register_global(&mesh, &rig_views(&mesh, &close), Pose::IDENTITY, 0.95);
+        assert!(!used && max_displacement(&r.pose, &close, &mesh.vertices) < 0.03);
     }
 }
