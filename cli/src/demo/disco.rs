@@ -639,12 +639,17 @@ fn write_report(
     );
     rep.line("");
     rep.line(format!(
-        "Frames: {} laser frames, {} resampled into F, {} whose beam missed the object or entered beyond 60°, {} held out. \
+        "Frames: {} laser frames, {} resampled into F, {} whose beam missed the object or entered beyond 60°, {} held out; \
+         in {} the camera saw the spot within {:.0}° of its beam's mirror direction, where the surface's glint may show: \
+         their pixels within {:.0} mm of the spot left out, the spot not fitted by the local term. \
          F: {n} vertices, {} of {n} columns lit, {} of {} entries measured.",
         f.frames,
         f.used,
         f.missed,
         f.held_out_frames,
+        f.glint_frames,
+        lightrig_pipelines::disco::resample::ViewLimits::default().glint_deg,
+        lightrig_pipelines::disco::resample::ViewLimits::default().glint_radius_mm,
         f.lit_columns,
         f.observed.iter().filter(|&&o| o).count(),
         n * n

@@ -44,11 +44,12 @@ use lightrig_pipelines::disco::local::{
 use lightrig_pipelines::disco::mesh::SurfaceMesh;
 use lightrig_pipelines::disco::optics::{point_of, Pinhole};
 use lightrig_pipelines::disco::projector_pose::{entry_shift, fit_projector, HitPoint};
-use lightrig_pipelines::disco::register::{register_global, silhouette, Pose, SilhouetteView, ViewAgreement};
+use lightrig_pipelines::disco::register::{
+    agreement, register_global, render, silhouette, Pose, SilhouetteView, ViewAgreement,
+};
 use lightrig_pipelines::disco::relight;
 use lightrig_pipelines::disco::resample::{
-    background_sigma, beam_sigma, flux_scale, incidence, spot_peak, Accumulator, Incidence, ViewLimits,
-    ViewMap,
+    background_sigma, beam_sigma, flux_scale, spot_peak, Accumulator, Incidence, ViewLimits, ViewMap,
 };
 use lightrig_pipelines::firs::mesh::{read_ply, write_ply};
 use lightrig_pipelines::vec3::{norm, normalize, sub, V3};
@@ -134,6 +135,9 @@ pub struct DiscoFit {
     pub detail_vertices: Vec<[f32; 3]>,
     pub local_hidden: usize,
     pub local_failed: usize,
+    /// Frames whose spot the camera saw near its beam's mirror direction: their pixels near
+    /// the spot left out of `F` and the spot out of the local fit ([`ViewLimits::glint_deg`]).
+    pub glint_frames: usize,
     /// Spots fitted but not kept ([`LocalParams::accepts`]: misfit, or no fast term), with
     /// their fits (in `fit.json` beside the kept ones, for a look at why).
     pub local_rejected: Vec<SpotKernel>,
@@ -453,7 +457,7 @@ pub fn fit_session(
     let mut detail_acc = DetailAccumulator::new(&atlas);
     let mut pending: HashMap<(usize, [u16; 2]), Pending> = HashMap::new();
     let mut spots: Vec<SpotKernel> = Vec::new();
-    let (mut local_hidden, mut local_failed) = (0usize, 0usize);
+    let (mut local_hidden, mut local_failed, mut glint_frames) = (0usize, 0usize, 0usize);
     let mut local_rejected: Vec<SpotKernel> = Vec::new();
     let mut done_count = 0u64;
     for p in view_steps {
@@ -501,11 +505,16 @@ pub fn fit_session(
                     let map = &maps[j.view];
                     let origin = setup.projector.eye;
                     let dir_ = setup.projector.ray([f64::from(j.code[0]), f64::from(j.code[1])]);
-                    let inc = incidence(&mesh, &map.world, map.turntable_deg, origin, dir_, &limits);
+                    let inc = map.incidence(&mesh, origin, dir_, &limits);
                     let floor = FLOOR_SIGMAS * background_sigma(&img, &map.surface, 7);
                     let peak_offset = inc.as_ref().and_then(|inc| spot_offset(&mesh, map, inc, &img, floor));
                     let local = match &inc {
-                        Some(inc) if !j.held_out && inc.angle_deg <= local_params.max_incidence_deg => {
+                        // A glint would be the fast term: such a spot is not fitted.
+                        Some(inc)
+                            if !j.held_out
+                                && inc.angle_deg <= local_params.max_incidence_deg
+                                && inc.glint_mm == 0.0 =>
+                        {
                             spot_samples(
                                 &mesh,
                                 &atlas,
@@ -561,6 +570,10 @@ pub fn fit_session(
                 acc.add(&mesh, &maps[j.view], &inc, &d.img, j.channel, flux[j.channel], d.floor);
                 detail_acc.add(j.channel, &d.ratios);
                 used += 1;
+                if inc.glint_mm > 0.0 {
+                    glint_frames += 1;
+                    continue;
+                }
                 if inc.angle_deg > local_params.max_incidence_deg {
                     continue;
                 }
@@ -706,6 +719,7 @@ pub fn fit_session(
         detail_vertices,
         local_hidden,
         local_failed,
+        glint_frames,
         local_rejected,
         local_params,
         registration,
@@ -810,9 +824,10 @@ fn register_mesh(
     frames: &[RegistrationFrame],
     (w, h): (u32, u32),
 ) -> Result<RegistrationReport, FitError> {
-    // A view's silhouette is 9 bytes a pixel: only the views searched on are held together;
-    // every view is checked after, one per thread at a time (the shipped plan has 144).
-    let view_of = |f: &RegistrationFrame| -> Result<SilhouetteView, FitError> {
+    // A view searched on holds its silhouette and its outline distance (5 bytes a pixel): only
+    // those views are held together; every other view is checked after by its silhouette
+    // alone, one per thread at a time (the shipped plan has 144).
+    let frame_mask = |f: &RegistrationFrame| -> Result<(Pinhole, Vec<bool>), FitError> {
         let img = read_plane(&f.file, w, h)?;
         let mask = silhouette(&img, w as usize, 8, 10.0).ok_or_else(|| {
             fail(format!(
@@ -829,29 +844,37 @@ fn register_mesh(
                 setup.cameras.len()
             ))
         })?;
-        Ok(SilhouetteView::new(cam, f.turntable_deg, mask))
+        Ok((cam, mask))
     };
     if frames.is_empty() {
         return Err(fail("the session has no views to register the mesh on"));
     }
     let stride = frames.len().div_ceil(REGISTRATION_VIEWS);
     let picked: Vec<&RegistrationFrame> = frames.iter().step_by(stride).collect();
-    let used: Vec<SilhouetteView> = picked.par_iter().map(|f| view_of(f)).collect::<Result<_, FitError>>()?;
+    let used: Vec<SilhouetteView> = picked
+        .par_iter()
+        .map(|f| frame_mask(f).map(|(cam, mask)| SilhouetteView::new(cam, f.turntable_deg, mask)))
+        .collect::<Result<_, FitError>>()?;
     let (r, from_hull) = register_global(scan, &used, Pose::IDENTITY, SETTLED_IOU);
     drop(used);
-    let agreement: Vec<ViewAgreement> = frames
+    // The views searched on were checked at the pose by the search.
+    let checked: Vec<ViewAgreement> = frames
         .par_iter()
-        .map(|f| {
-            let v = view_of(f)?;
+        .enumerate()
+        .map(|(i, f)| {
+            if i % stride == 0 {
+                return Ok(r.views[i / stride]);
+            }
+            let (cam, mask) = frame_mask(f)?;
             let mut buf = Vec::new();
-            v.render(scan, &r.pose, &mut buf);
-            Ok(v.agreement(&buf))
+            render(scan, &r.pose, &cam, f.turntable_deg, &mut buf);
+            Ok(agreement(&mask, &buf))
         })
         .collect::<Result<_, FitError>>()?;
     let report = RegistrationReport {
         pose: r.pose,
         views_used: picked.len(),
-        agreement,
+        agreement: checked,
         evaluations: r.evaluations,
         from_hull,
     };
@@ -940,7 +963,10 @@ fn calibrate_projector(
             .map(|f| {
                 let img = read_plane(&f.file, w, h)?;
                 let p = &setup.projector;
-                let Some(inc) = incidence(mesh, &map.world, map.turntable_deg, p.eye, p.ray(f.code), limits)
+                // A glint (the camera near the beam's mirror direction) puts the peak on the
+                // surface's reflection, not on the glow the other spots' peaks sit on: left out.
+                let Some(inc) =
+                    map.incidence(mesh, p.eye, p.ray(f.code), limits).filter(|i| i.glint_mm == 0.0)
                 else {
                     return Ok(None);
                 };
@@ -1169,7 +1195,7 @@ fn predict_held_out_near(
     let nearest = |p: V3| atlas.nearest(p);
     let per_frame: Vec<Option<(f64, usize)>> = held
         .par_iter()
-        .filter(|d| d.inc.angle_deg <= params.max_incidence_deg)
+        .filter(|d| d.inc.angle_deg <= params.max_incidence_deg && d.inc.glint_mm == 0.0)
         .map(|d| {
             let inc = &d.inc;
             let map = &maps[d.view];
@@ -1405,6 +1431,7 @@ pub fn write_outputs(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitErro
             "frames": fit.projector.frames, "spots_used": fit.projector.used, "spots_dropped": fit.projector.dropped,
             "rms_mm": fit.projector.rms_mm, "max_mm": fit.projector.max_mm,
         },
+        "glint_frames": fit.glint_frames,
         "fill": format!("{:?}", fit.fill),
         "local": { "spots_fitted": fit.spots.len(), "spots_unseen": fit.local_hidden, "spots_failed": fit.local_failed, "spots_rejected": fit.local_rejected.len(),
                    "texel_mm": fit.atlas.texel_mm, "atlas": [fit.atlas.width, fit.atlas.height],

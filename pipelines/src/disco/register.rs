@@ -208,9 +208,8 @@ pub struct SilhouetteView {
     pub camera: Pinhole,
     pub turntable_deg: f64,
     pub mask: Vec<bool>,
-    distance: Vec<f32>,
     /// Signed distance to the outline (pixels; positive inside), zero between the last pixel
-    /// in and the first out.
+    /// in and the first out: `|signed| + 0.5` is the distance to the other class.
     signed: Vec<f32>,
 }
 
@@ -218,7 +217,7 @@ impl SilhouetteView {
     pub fn new(camera: Pinhole, turntable_deg: f64, mask: Vec<bool>) -> Self {
         let distance = outline_distance(&mask, camera.width as usize);
         let signed = distance.iter().zip(&mask).map(|(&d, &m)| if m { d - 0.5 } else { 0.5 - d }).collect();
-        SilhouetteView { camera, turntable_deg, mask, distance, signed }
+        SilhouetteView { camera, turntable_deg, mask, signed }
     }
 
     /// The signed outline distance at continuous pixel position `(x, y)`, bilinear between the
@@ -271,8 +270,7 @@ impl SilhouetteView {
 
     /// The mesh's silhouette with the object placed by `pose` (mesh frame → turntable frame).
     pub fn render(&self, mesh: &Mesh, pose: &Pose, out: &mut Vec<bool>) {
-        let world: Vec<V3> = mesh.vertices.iter().map(|&v| turn(pose.apply(v), self.turntable_deg)).collect();
-        mask_of(&world, &mesh.triangles, &self.camera, out);
+        render(mesh, pose, &self.camera, self.turntable_deg, out);
     }
 
     /// Pixels where `rendered` and the frame disagree, each weighted by 1 + its distance to the
@@ -281,23 +279,35 @@ impl SilhouetteView {
         rendered
             .iter()
             .zip(&self.mask)
-            .zip(&self.distance)
+            .zip(&self.signed)
             .filter(|((r, m), _)| r != m)
-            .map(|(_, &d)| 1.0 + f64::from(d))
+            .map(|(_, &d)| 1.5 + f64::from(d.abs()))
             .sum()
     }
 
-    /// How well `rendered` matches: (pixels disagreeing, intersection over union).
+    /// How well `rendered` matches the frame's silhouette ([`agreement`]).
     pub fn agreement(&self, rendered: &[bool]) -> ViewAgreement {
-        let (mut both, mut either) = (0usize, 0usize);
-        for (&r, &m) in rendered.iter().zip(&self.mask) {
-            both += usize::from(r && m);
-            either += usize::from(r || m);
-        }
-        ViewAgreement {
-            mismatched: either - both,
-            iou: if either == 0 { 0.0 } else { both as f64 / either as f64 },
-        }
+        agreement(&self.mask, rendered)
+    }
+}
+
+/// The mesh's silhouette as `camera` sees it with the object placed by `pose` (mesh frame →
+/// turntable frame) and the turntable at `turntable_deg`, into `out`.
+pub fn render(mesh: &Mesh, pose: &Pose, camera: &Pinhole, turntable_deg: f64, out: &mut Vec<bool>) {
+    let world: Vec<V3> = mesh.vertices.iter().map(|&v| turn(pose.apply(v), turntable_deg)).collect();
+    mask_of(&world, &mesh.triangles, camera, out);
+}
+
+/// How well two silhouettes match: (pixels in one but not the other, intersection over union).
+pub fn agreement(mask: &[bool], rendered: &[bool]) -> ViewAgreement {
+    let (mut both, mut either) = (0usize, 0usize);
+    for (&r, &m) in rendered.iter().zip(mask) {
+        both += usize::from(r && m);
+        either += usize::from(r || m);
+    }
+    ViewAgreement {
+        mismatched: either - both,
+        iou: if either == 0 { 0.0 } else { both as f64 / either as f64 },
     }
 }
 

@@ -30,11 +30,24 @@ pub struct ViewLimits {
     pub max_incidence_deg: f64,
     /// Relative index of refraction for the Fresnel terms (the paper follows Jensen et al.: 1.3).
     pub eta: f64,
+    /// A spot the camera sees within this of its beam's mirror direction may show the surface's
+    /// reflection of the beam (a glint, section 5: "we also reject … all pixels that are close
+    /// to a specular highlight"), degrees.
+    pub glint_deg: f64,
+    /// Around such a spot, pixels within this of its entry point are not data, mm (the beam's
+    /// footprint: three of the paper's beam σ).
+    pub glint_radius_mm: f64,
 }
 
 impl Default for ViewLimits {
     fn default() -> Self {
-        ViewLimits { max_view_deg: 70.0, max_incidence_deg: 60.0, eta: 1.3 }
+        ViewLimits {
+            max_view_deg: 70.0,
+            max_incidence_deg: 60.0,
+            eta: 1.3,
+            glint_deg: 20.0,
+            glint_radius_mm: 3.0,
+        }
     }
 }
 
@@ -92,6 +105,23 @@ impl ViewMap {
             });
         }
         ViewMap { camera: *camera, turntable_deg: deg, world, surface, vertices }
+    }
+
+    /// The beam `(origin, dir)` entering the mesh in this view ([`incidence`]), its glint
+    /// radius set where this camera sees the spot within `limits.glint_deg` of the beam's
+    /// mirror direction.
+    pub fn incidence(
+        &self,
+        mesh: &SurfaceMesh,
+        origin: V3,
+        dir: V3,
+        limits: &ViewLimits,
+    ) -> Option<Incidence> {
+        let mut inc = incidence(mesh, &self.world, self.turntable_deg, origin, dir, limits)?;
+        if glint_angle_deg(inc.mirror, normalize(sub(self.camera.eye, inc.point))) < limits.glint_deg {
+            inc.glint_mm = limits.glint_radius_mm;
+        }
+        Some(inc)
     }
 }
 
@@ -157,6 +187,12 @@ pub struct Incidence {
     pub fresnel: f64,
     /// Angle of incidence, degrees.
     pub angle_deg: f64,
+    /// The beam's mirror direction at the entry point (world, unit): where the surface
+    /// reflects it.
+    pub mirror: V3,
+    /// Pixels within this of the entry point may hold the beam's glint and are not data, mm
+    /// (0: no glint; [`ViewMap::incidence`] sets it).
+    pub glint_mm: f64,
 }
 
 /// The beam `(origin, dir)` entering `mesh` turned to `deg`, if it hits within
@@ -183,7 +219,15 @@ pub fn incidence(
         object,
         fresnel: fresnel_transmittance(limits.eta, cos_i),
         angle_deg,
+        mirror: crate::vec3::add(dir, crate::vec3::scale(n, 2.0 * cos_i)),
+        glint_mm: 0.0,
     })
+}
+
+/// The angle between `to_eye` and the `mirror` direction, degrees: how far from the beam's
+/// specular reflection a camera looks.
+pub fn glint_angle_deg(mirror: V3, to_eye: V3) -> f64 {
+    crate::vec3::angle(mirror, to_eye).to_degrees()
 }
 
 /// The spot's sub-pixel peak near `expected` (within `radius` pixels): the brightest pixel, then
@@ -279,8 +323,8 @@ impl Accumulator {
         }
     }
 
-    /// Adds one frame of channel `channel` (the laser's colour): each visible vertex's pixel,
-    /// above `floor` (else it says nothing: the entry stays unobserved rather than zero),
+    /// Adds one frame of channel `channel` (the laser's colour): each visible vertex's pixel
+    /// (not within the spot's glint radius, [`Incidence::glint_mm`]), above `floor` (else it says nothing: the entry stays unobserved rather than zero),
     /// turned into `Rd` with `flux` (gain × the laser's flux) and split over the incident
     /// triangle's vertices by barycentric weight times the view's confidence. Returns the
     /// vertices that took a sample.
@@ -305,6 +349,9 @@ impl Accumulator {
         });
         let mut taken = 0;
         for vv in &view.vertices {
+            if inc.glint_mm > 0.0 && norm(sub(view.world[vv.vertex as usize], inc.point)) < inc.glint_mm {
+                continue;
+            }
             let Some(v) = bilinear(img, w, h, vv.px[0], vv.px[1]) else { continue };
             if v <= floor || floor <= 0.0 && v <= 0.0 {
                 continue;
@@ -670,5 +717,59 @@ mod tests {
             }
         }
         assert!(n > 40);
+    }
+
+    /// A camera near the beam's mirror direction (11° here) may see the surface reflect the
+    /// beam: the vertices within the glint radius of the entry point take no sample from the
+    /// frame, the others do; a camera over 40° off sees no glint.
+    #[test]
+    fn a_spot_seen_near_its_mirror_direction_leaves_its_glint_out() {
+        let mesh = SurfaceMesh::new(&pebble(3, [20.0, 20.0, 30.0]));
+        let limits = ViewLimits::default();
+        let proj = Projector::aimed([220.0, 30.0, 35.0], [0.0, 0.0, 30.0], [32768.0, 32768.0], [1e-5, 1e-5]);
+        let dir = proj.ray([32768.0, 32768.0]);
+        let mirrored = ViewMap::new(
+            &mesh,
+            &Pinhole::looking(320, 240, 500.0, [200.0, 0.0, 30.0], [0.0, 0.0, 30.0]),
+            0.0,
+            &limits,
+        );
+        let inc = mirrored.incidence(&mesh, proj.eye, dir, &limits).unwrap();
+        let to_eye = normalize(sub(mirrored.camera.eye, inc.point));
+        let a = glint_angle_deg(inc.mirror, to_eye);
+        assert!(a > 8.0 && a < 14.0 && inc.glint_mm == limits.glint_radius_mm, "{a}° {}", inc.glint_mm);
+        // The mirror direction is the beam reflected: equal angles either side of the normal.
+        let (_, n) = point_of(&mesh, &mirrored.world, 0.0, &inc.hit);
+        assert!((dot(inc.mirror, n) + dot(dir, n)).abs() < 1e-12 && (norm(inc.mirror) - 1.0).abs() < 1e-12);
+        let plain = incidence(&mesh, &mirrored.world, 0.0, proj.eye, dir, &limits).unwrap();
+        assert_eq!(plain.glint_mm, 0.0);
+        let img = vec![1.0f32; 320 * 240];
+        let taken = |inc: &Incidence| {
+            let mut acc = Accumulator::new(&mesh);
+            acc.add(&mesh, &mirrored, inc, &img, 0, 1.0, 0.5);
+            let k = mesh.triangles[inc.hit.triangle as usize][0] as usize;
+            let n = mesh.vertices.len();
+            (0..n).filter(|&v| acc.sums[k * n + v][0][0] > 0.0).collect::<Vec<usize>>()
+        };
+        let (all, kept) = (taken(&plain), taken(&inc));
+        let near: Vec<usize> =
+            all.iter().copied().filter(|&v| norm(sub(mirrored.world[v], inc.point)) < inc.glint_mm).collect();
+        assert!(
+            near.len() >= 3 && kept.len() + near.len() == all.len(),
+            "{} {} {}",
+            all.len(),
+            kept.len(),
+            near.len()
+        );
+        assert!(kept.iter().all(|v| !near.contains(v)));
+        let aside = ViewMap::new(
+            &mesh,
+            &Pinhole::looking(320, 240, 500.0, [150.0, 150.0, 30.0], [0.0, 0.0, 30.0]),
+            0.0,
+            &limits,
+        );
+        let inc = aside.incidence(&mesh, proj.eye, dir, &limits).unwrap();
+        let a = glint_angle_deg(inc.mirror, normalize(sub(aside.camera.eye, inc.point)));
+        assert!(a > 40.0 && inc.glint_mm == 0.0, "{a}°");
     }
 }

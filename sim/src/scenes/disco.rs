@@ -31,7 +31,11 @@
 //! outline. Only its silhouette matters to the fit; the room is
 //! dark. The object stands on the turntable where [`DiscoScene::scan_pose`] says the scanned mesh
 //! is *not*: `object.ply` ([`DiscoScene::scanned_mesh`]) is the mesh in the scanner's frame.
-//! Not modelled: surface (specular) reflection at the spot.
+//!
+//! The glint: the surface reflects `1 − Ft(η, θi)` of the beam (1.7 % head on) into a
+//! Gaussian lobe of [`GLINT_LOBE_RAD`] about the mirror direction, so a camera near the mirror
+//! direction sees a bright point at the spot's centre, as on polished marble; the fit must
+//! leave those pixels out (the paper's section 5).
 
 use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
@@ -93,6 +97,11 @@ struct Seen {
     out: [f64; 3],
     /// The radiance under the registration spotlights (grey).
     lit: f64,
+    /// World point, its normal, the unit direction to the camera: where the surface's own
+    /// reflection of the beam (the glint) is seen.
+    world: V3,
+    normal: V3,
+    to_eye: V3,
 }
 
 /// One beam ray inside the object.
@@ -440,7 +449,7 @@ impl DiscoScene {
                         .map(|c| e * skin[c] * d[c].total_reflectance() * leaving * skin[c])
                         .sum::<f64>()
                         / 3.0;
-                    Seen { point: obj, material, out, lit }
+                    Seen { point: obj, material, out, lit, world: p, normal: n, to_eye }
                 })
             })
             .collect();
@@ -610,9 +619,37 @@ impl Scene for DiscoScene {
                         norm(sub(e.point, seen.point)),
                     );
             }
-            l += flux * s * seen.out[c];
+            l += flux * s * seen.out[c] + flux * self.glint(&seen, code);
         }
         [l; 3]
+    }
+}
+
+/// The glint's lobe: the surface's reflection spreads about the mirror direction as a Gaussian
+/// of this σ, rad (polished marble).
+pub const GLINT_LOBE_RAD: f64 = 0.1;
+
+impl DiscoScene {
+    /// The surface's own reflection of the beam at galvo code `code` seen at `seen`, per unit
+    /// flux: the beam's irradiance there (its Gaussian profile across the beam) reflected by
+    /// Fresnel's `1 − Ft(η, θi)` into a lobe of [`GLINT_LOBE_RAD`] about the mirror direction
+    /// (normalised over the lobe's solid angle), the radiance the camera sees.
+    fn glint(&self, seen: &Seen, code: [u16; 2]) -> f64 {
+        let proj = &self.setup.projector;
+        let d = proj.ray([f64::from(code[0]), f64::from(code[1])]);
+        let cos_i = -dot(d, seen.normal);
+        if cos_i <= 0.0 {
+            return 0.0;
+        }
+        let v = sub(seen.world, proj.eye);
+        let across = sub(v, scale(d, dot(v, d)));
+        let s2 = self.beam_sigma_mm * self.beam_sigma_mm;
+        let e = (-dot(across, across) / (2.0 * s2)).exp() / (2.0 * std::f64::consts::PI * s2);
+        let mirror = add(d, scale(seen.normal, 2.0 * cos_i));
+        let a = lightrig_pipelines::vec3::angle(mirror, seen.to_eye);
+        let lobe = (-a * a / (2.0 * GLINT_LOBE_RAD * GLINT_LOBE_RAD)).exp()
+            / (2.0 * std::f64::consts::PI * GLINT_LOBE_RAD * GLINT_LOBE_RAD);
+        (1.0 - fresnel_transmittance(self.setup.eta, cos_i)) * e * lobe
     }
 }
 
@@ -686,6 +723,52 @@ mod tests {
         let white = RigState { galvos: vec![zero], ..white };
         let (c, _) = cam.project(scene.setup.white.point).unwrap();
         assert!(scene.radiance(c[0] as u32, c[1] as u32, &white)[0] > 0.01);
+    }
+
+    /// The glint: `(1 − Ft)·E·lobe`, brightest on the beam's axis seen along the mirror
+    /// direction, falling off as Gaussians across the beam and away from the mirror direction;
+    /// none where the beam meets the surface from behind.
+    #[test]
+    fn the_glint_is_the_beam_reflected_into_its_lobe() {
+        let scene = DiscoScene::new(&rig(), 2).unwrap();
+        let code = [30_000u16, 33_000];
+        let p = &scene.setup.projector;
+        let d = p.ray([30_000.0, 33_000.0]);
+        let n = normalize([1.0, -0.3, 0.2]);
+        let cos_i = -dot(d, n);
+        let mirror = add(d, scale(n, 2.0 * cos_i));
+        let on_axis = add(p.eye, scale(d, 250.0));
+        let seen = |world: V3, to_eye: V3| Seen {
+            point: [0.0; 3],
+            material: 0,
+            out: [0.0; 3],
+            lit: 0.0,
+            world,
+            normal: n,
+            to_eye,
+        };
+        let s = scene.beam_sigma_mm;
+        let peak = (1.0 - fresnel_transmittance(1.3, cos_i))
+            / (2.0 * std::f64::consts::PI * s * s)
+            / (2.0 * std::f64::consts::PI * GLINT_LOBE_RAD * GLINT_LOBE_RAD);
+        let g = scene.glint(&seen(on_axis, mirror), code);
+        assert!(cos_i > 0.5 && (g / peak - 1.0).abs() < 1e-12, "{g} {peak}");
+        // Two beam σ across the beam: e^(−2).
+        let across = normalize(cross(d, [0.0, 0.0, 1.0]));
+        let g2 = scene.glint(&seen(add(on_axis, scale(across, 2.0 * s)), mirror), code);
+        assert!((g2 / peak - (-2.0f64).exp()).abs() < 1e-9, "{}", g2 / peak);
+        // Three lobe σ from the mirror direction: e^(−4.5).
+        let off = turned_about(mirror, normalize(cross(mirror, [0.0, 0.0, 1.0])), 3.0 * GLINT_LOBE_RAD);
+        let g3 = scene.glint(&seen(on_axis, off), code);
+        assert!((g3 / peak - (-4.5f64).exp()).abs() < 1e-9, "{}", g3 / peak);
+        // The beam meeting the surface from behind reflects nothing.
+        let back = Seen { normal: scale(n, -1.0), ..seen(on_axis, mirror) };
+        assert_eq!(scene.glint(&back, code), 0.0);
+    }
+
+    /// `v` turned by `angle` rad about the axis `u` (unit, perpendicular to `v`).
+    fn turned_about(v: V3, u: V3, angle: f64) -> V3 {
+        add(scale(v, angle.cos()), scale(cross(u, v), angle.sin()))
     }
 
     #[test]
