@@ -48,3 +48,24 @@ pub fn angle(a: V3, b: V3) -> f64 {
     // atan2 of |a×b| and a·b is accurate at small angles, where acos is not.
     norm(cross(a, b)).atan2(dot(a, b))
 }
+
+/// `m·x = r` by Cramer's rule; `None` where `m` is singular (|det| < 1e-12).
+pub fn solve3(m: [[f64; 3]; 3], r: [f64; 3]) -> Option<[f64; 3]> {
+    let det = |m: &[[f64; 3]; 3]| {
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    };
+    let d = det(&m);
+    if d.abs() < 1e-12 {
+        return None;
+    }
+    let mut out = [0.0; 3];
+    for (k, o) in out.iter_mut().enumerate() {
+        let mut mk = m;
+        for row in 0..3 {
+            mk[row][k] = r[row];
+        }
+        *o = det(&mk) / d;
+    }
+    Some(out)
+}

@@ -1117,7 +1117,8 @@ fn predict_held_out(
             }
             let cam = &map.camera;
             // The near field (the entry triangle's vertices and their rings) is the local
-            // kernels' domain: its triangles are left out, as are pixels within `near_mm`.
+            // kernels' domain: its triangles are left out, as are pixels within `near_mm`
+            // (and within a glint's radius, where the surface may reflect the beam).
             let mut near = vec![false; n];
             for &v in &tri {
                 near[v as usize] = true;
@@ -1133,7 +1134,7 @@ fn predict_held_out(
                     continue;
                 }
                 let (p, nrm) = point_of(mesh, &map.world, map.turntable_deg, hit);
-                if norm(sub(p, inc.point)) < near_mm {
+                if norm(sub(p, inc.point)) < near_mm.max(inc.glint_mm) {
                     continue;
                 }
                 let measured = f64::from(img[i]);

@@ -120,21 +120,7 @@ pub fn silhouette_centre(views: &[HullView]) -> Option<V3> {
             }
         }
     }
-    solve3(a, b)
-}
-
-fn solve3(a: [[f64; 3]; 3], b: V3) -> Option<V3> {
-    let det = dot(column(&a, 0), cross(column(&a, 1), column(&a, 2)));
-    let size = a.iter().flatten().map(|x| x.abs()).fold(0.0, f64::max);
-    if !det.is_finite() || det.abs() <= 1e-9 * size.powi(3) {
-        return None;
-    }
-    // Cramer's rule.
-    let with = |k: usize| -> [[f64; 3]; 3] {
-        std::array::from_fn(|i| std::array::from_fn(|j| if j == k { b[i] } else { a[i][j] }))
-    };
-    let d = |m: [[f64; 3]; 3]| dot(column(&m, 0), cross(column(&m, 1), column(&m, 2)));
-    Some([d(with(0)) / det, d(with(1)) / det, d(with(2)) / det])
+    crate::vec3::solve3(a, b)
 }
 
 /// The visual hull's moments: cells of a cube `2·half` mm across about `centre` (turntable

@@ -67,32 +67,12 @@ pub fn normals_from_points(
                     }
                 }
             }
-            if let Some(s) = solve3(m, r) {
+            if let Some(s) = crate::vec3::solve3(m, r) {
                 out[i] = Some(normalize([-s[1], -s[2], 1.0]));
             }
         }
     }
     out
-}
-
-fn solve3(m: [[f64; 3]; 3], r: [f64; 3]) -> Option<[f64; 3]> {
-    let det = |m: &[[f64; 3]; 3]| {
-        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
-    };
-    let d = det(&m);
-    if d.abs() < 1e-12 {
-        return None;
-    }
-    let mut out = [0.0; 3];
-    for (k, o) in out.iter_mut().enumerate() {
-        let mut mk = m;
-        for row in 0..3 {
-            mk[row][k] = r[row];
-        }
-        *o = det(&mk) / d;
-    }
-    Some(out)
 }
 
 /// One pixel's fitted parameters.
