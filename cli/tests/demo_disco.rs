@@ -77,18 +77,26 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     assert!(d.depth.iter().all(|&x| x > 0.7 && x < 1.1), "{d:?}");
     assert_eq!(f.detail_vertices.len(), f.mesh.vertices.len());
     // The local term: the kernels' rates and totals on homogeneous marble against the dipole's
-    // (also a target above), and a correction within 10 % of 1 for 80 % of the texels (it holds
-    // the skin's lines, a few percent of the surface).
+    // (also a target above), and a correction within 12 % of 1 for 80 % of the texels (it holds
+    // the skin's lines, a few percent of the surface, and what the pooled rates leave of each
+    // spot's own shape: deciles 0.975 and 1.100 at this seed).
     let k = r.kernels.expect("local kernels");
-    // The skin's lines raise many spots' misfit over the limit: 75 kept at this seed, 38 on
-    // marble clear of the lines, 31 whose data a line crosses.
-    assert!(k.spots[0] > 25 && k.lined.0 > 20 && f.spots.len() > 60, "{:?} {}", k.spots, f.spots.len());
+    // The skin's lines raise many spots' misfit over the limit: 64 kept at this seed, 35 on
+    // marble clear of the lines, 23 whose data a line crosses.
+    assert!(k.spots[0] > 25 && k.lined.0 > 15 && f.spots.len() > 50, "{:?} {}", k.spots, f.spots.len());
     assert!(k.worst() <= KERNEL_TOLERANCE, "{k:?}");
+    // Each spot's rates fitted with its neighbours' (6 spots in the median): σ2 scatters by
+    // 4.7 % (median absolute deviation) at this seed; over all kept spots, the coefficient of
+    // variation is 9 % pooled, 22 % with each spot fitted alone.
+    assert!(k.pooled >= 3 && k.spread[1] < 0.08 && k.spread[0] < 0.05, "{k:?}");
+    // The held-out spots' near field predicted by the local term (8.3 % at this seed; 10.5 %
+    // with each spot's rates its own).
+    assert!(f.held_out.near_frames > 80 && f.held_out.near_rel_rms < 0.1, "{:?}", f.held_out);
     assert!(k.total.iter().all(|&t| t < 0.05), "{k:?}");
     let mut corr: Vec<f32> = f.local.correction.iter().flatten().flat_map(|c| *c).collect();
     corr.sort_by(f32::total_cmp);
     let (lo, hi) = (corr[corr.len() / 10], corr[corr.len() * 9 / 10]);
-    assert!(lo > 0.9 && hi < 1.1, "correction deciles {lo} {hi}");
+    assert!(lo > 0.88 && hi < 1.12, "correction deciles {lo} {hi}");
     assert!(
         f.local.params.iter().zip(&f.atlas.texels).all(|(p, t)| p.is_some() == t.is_some()),
         "every texel filled"

@@ -90,6 +90,11 @@ pub struct KernelCheck {
     pub lined: (usize, [f64; 2]),
     /// Of the body's spots: the fraction with both rates within the tolerance of the reference.
     pub within: f64,
+    /// Of the body's spots: each rate's scatter, the median absolute deviation over the median.
+    pub spread: [f64; 2],
+    /// Of the body's spots: the median number of spots whose data fixed a spot's rates
+    /// (`local::pool`).
+    pub pooled: usize,
     /// Median relative error of the kernels' total (`2π∫m`, the medium's diffuse
     /// reflectance) against the reference's, body, per channel.
     pub total: [f64; 3],
@@ -138,6 +143,7 @@ pub fn kernel_check(scene: &DiscoScene, f: &DiscoFit) -> Option<KernelCheck> {
     let mut sig: [Vec<[f64; 2]>; 2] = [Vec::new(), Vec::new()];
     let mut lined: Vec<[f64; 2]> = Vec::new();
     let mut totals: [Vec<f64>; 3] = [Vec::new(), Vec::new(), Vec::new()];
+    let mut pooled: Vec<f64> = Vec::new();
     for s in &f.spots {
         let Some(m) = medium(s.point) else { continue };
         if m == 0 && !clear(s.point) {
@@ -146,6 +152,7 @@ pub fn kernel_check(scene: &DiscoScene, f: &DiscoFit) -> Option<KernelCheck> {
         }
         sig[m].push(s.profile.sigma);
         if m == 0 {
+            pooled.push(s.pooled as f64);
             for (c, t) in totals.iter_mut().enumerate() {
                 t.push((kernel::total(&s.profile, c) / kernel::total(&reference[0], c) - 1.0).abs());
             }
@@ -157,8 +164,14 @@ pub fn kernel_check(scene: &DiscoScene, f: &DiscoFit) -> Option<KernelCheck> {
         .filter(|x| (0..2).all(|k| (x[k] / reference[0].sigma[k] - 1.0).abs() <= KERNEL_TOLERANCE))
         .count() as f64
         / sig[0].len().max(1) as f64;
+    let spread = [0, 1].map(|k| {
+        let m = med(&sig[0], k);
+        median(sig[0].iter().map(|x| (x[k] - m).abs()).collect()) / m
+    });
     Some(KernelCheck {
         reference,
+        spread,
+        pooled: median(pooled) as usize,
         spots: [sig[0].len(), sig[1].len()],
         sigma: [[med(&sig[0], 0), med(&sig[0], 1)], [med(&sig[1], 0), med(&sig[1], 1)]],
         lined: (lined.len(), [med(&lined, 0), med(&lined, 1)]),
@@ -752,15 +765,18 @@ fn write_report(
     if let Some(k) = &r.kernels {
         rep.line(format!(
             "Local kernels (section 7; `m(d) = c1·e^(−σ1·d) + c2·e^(−σ2·d)` per spot in the paper's stages, through \
-             the beam's blur, from the texels within {:.1} mm of the entry point, {:.2} mm texels on a {} × {} atlas): \
+             the beam's blur, from the texels within {:.1} mm of the entry point, {:.2} mm texels on a {} × {} atlas; \
+             each kept spot's rates then fitted together with those of its view's kept spots within {:.0} mm, {} a spot in the median): \
              {} spots kept, {} not seen by the camera, {} with too few data (at the silhouette), {} fitted but rejected (misfit over {:.0} %, or no fast term: near the vein's boundary or the skin's lines, or noisy). On homogeneous {} clear of the skin's lines ({} spots): median σ1 {:.3}, σ2 {:.3} mm⁻¹ \
-             against the dipole's {:.3}, {:.3} (the same fit to its `Rd`, misfit {:.1} %); {:.0} % of those spots \
+             against the dipole's {:.3}, {:.3} (the same fit to its `Rd`, misfit {:.1} %), scattered by {:.1} / {:.1} % (median absolute deviation); {:.0} % of those spots \
              within {:.0} % on both rates; the kernels' total (2π∫m) within {:.1} / {:.1} / {:.1} % (median, R / G / B). \
              Spots whose data a line crosses ({}; the data divided by the detail texture as gathered so far): σ1 {:.3}, σ2 {:.3}. {}",
             f.local_params.radius_mm,
             f.atlas.texel_mm,
             f.atlas.width,
             f.atlas.height,
+            f.local_params.pool_mm,
+            k.pooled,
             f.spots.len(),
             f.local_hidden,
             f.local_failed,
@@ -773,6 +789,8 @@ fn write_report(
             k.reference[0].sigma[0],
             k.reference[0].sigma[1],
             100.0 * k.reference[0].misfit,
+            100.0 * k.spread[0],
+            100.0 * k.spread[1],
             100.0 * k.within,
             100.0 * KERNEL_TOLERANCE,
             100.0 * k.total[0],

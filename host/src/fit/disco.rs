@@ -20,7 +20,8 @@
 //!    and where its sub-pixel peak lies (a check of the calibration, reported); the frame
 //!    resampled at the visible vertices into the entry triangle's three columns by barycentric
 //!    weight ([`Accumulator`]), lasers into R, G, B by wavelength, views combined by
-//!    confidence. Frames are streamed a chunk at a time: memory is `F` plus one chunk.
+//!    confidence. Frames are streamed a chunk at a time: memory is `F` plus one chunk, and
+//!    the data of one view step's kept kernel spots (their rates pooled at the step's end).
 //! 4. **Interpolation** (section 6.2, [`interpolate`]): missing entries and never-lit columns
 //!    filled on the mesh, `F` made symmetric. The local term (section 7) and the detail texture
 //!    `T_ρ` (section 6.3, [`frame_ratios`]) are gathered from the same frames in step 3.
@@ -39,7 +40,7 @@ use lightrig_pipelines::disco::falloff;
 use lightrig_pipelines::disco::interpolate::{interpolate, FillParams, FillReport, Matrix};
 use lightrig_pipelines::disco::kernel::{self, Sample};
 use lightrig_pipelines::disco::local::{
-    spot_samples, spot_sigma, Blurs, LocalAccumulator, LocalParams, LocalTextures, SpotKernel,
+    pool, spot_samples, spot_sigma, Blurs, LocalAccumulator, LocalParams, LocalTextures, PoolSpot, SpotKernel,
 };
 use lightrig_pipelines::disco::mesh::SurfaceMesh;
 use lightrig_pipelines::disco::optics::{point_of, Pinhole};
@@ -180,6 +181,10 @@ struct Pending {
     angle_deg: f64,
     sigma_mm: f64,
 }
+
+/// A kept spot awaiting its view step's pooling: the spot, its data as sampled (for the
+/// correction texture) and divided by the detail texture (for the rates).
+type KeptSpot = (SpotKernel, Vec<(u32, Sample)>, Vec<Sample>);
 
 /// A held-out frame: what its prediction needs (the image is read again then).
 struct Held {
@@ -459,6 +464,8 @@ pub fn fit_session(
     let mut spots: Vec<SpotKernel> = Vec::new();
     let (mut local_hidden, mut local_failed, mut glint_frames) = (0usize, 0usize, 0usize);
     let mut local_rejected: Vec<SpotKernel> = Vec::new();
+    // A view step's kept spots (their raw and detail-divided data), pooled at its end.
+    let mut step_kept: Vec<KeptSpot> = Vec::new();
     let mut done_count = 0u64;
     for p in view_steps {
         let meta = p.extra.get("meta").cloned().unwrap_or(Value::Null);
@@ -596,7 +603,7 @@ pub fn fit_session(
             // The data divided by the detail texture as the frames so far show it (by a spot's
             // last laser, its view's earlier lasers have shown most texels near it from afar):
             // a line of the skin's through a spot's data bends its fall-off.
-            let fitted: Vec<Option<kernel::Profile>> = ready
+            let fitted: Vec<(Vec<Sample>, Option<kernel::Profile>)> = ready
                 .par_iter()
                 .map(|(_, p)| {
                     let data: Vec<Sample> = p
@@ -607,10 +614,11 @@ pub fn fit_session(
                             Sample { value: s.value / skin.unwrap_or(1.0), ..s }
                         })
                         .collect();
-                    kernel::fit(&data, &blurs.at(p.sigma_mm), &local_params.stages)
+                    let f = kernel::fit(&data, &blurs.at(p.sigma_mm), &local_params.stages);
+                    (data, f)
                 })
                 .collect();
-            for (((view, code), p), f) in ready.into_iter().zip(fitted) {
+            for (((view, code), p), (data, f)) in ready.into_iter().zip(fitted) {
                 let spot = |profile| SpotKernel {
                     view,
                     code,
@@ -619,26 +627,32 @@ pub fn fit_session(
                     sigma_mm: p.sigma_mm,
                     profile,
                     samples: p.samples.len(),
+                    pooled: 1,
                 };
-                let profile = match f {
-                    Some(f) if local_params.accepts(&f) => f,
-                    Some(f) => {
-                        local_rejected.push(spot(f));
-                        continue;
-                    }
-                    None if p.samples.iter().any(|s| s.1.d < local_params.stages.delta2) => {
-                        local_failed += 1;
-                        continue;
-                    }
-                    None => {
-                        local_hidden += 1;
-                        continue;
-                    }
-                };
-                local.record(&atlas, &blurs.at(p.sigma_mm), &p.samples, p.point, &profile);
-                spots.push(spot(profile));
+                match f {
+                    Some(f) if local_params.accepts(&f) => step_kept.push((spot(f), p.samples, data)),
+                    Some(f) => local_rejected.push(spot(f)),
+                    None if p.samples.iter().any(|s| s.1.d < local_params.stages.delta2) => local_failed += 1,
+                    None => local_hidden += 1,
+                }
             }
             progress(done_count, total);
+        }
+        // The view's kept spots: rates fitted with their neighbours', then recorded.
+        let blur_of: Vec<std::sync::Arc<kernel::Blur>> =
+            step_kept.iter().map(|(k, _, _)| blurs.at(k.sigma_mm)).collect();
+        let pool_in: Vec<PoolSpot> = step_kept
+            .iter()
+            .zip(&blur_of)
+            .map(|((k, _, data), b)| PoolSpot { point: k.point, samples: data, blur: b, own: k.profile })
+            .collect();
+        let pooled = pool(&pool_in, &local_params);
+        drop(pool_in);
+        for (((mut k, samples, _), (profile, n)), b) in step_kept.drain(..).zip(pooled).zip(&blur_of) {
+            k.profile = profile;
+            k.pooled = n;
+            local.record(&atlas, b, &samples, k.point, &profile);
+            spots.push(k);
         }
     }
     lap("frames: read, resampled, local data fitted");
@@ -1044,7 +1058,7 @@ fn spot_json(k: &SpotKernel, kept: bool) -> serde_json::Value {
     serde_json::json!({
         "view": k.view, "code": k.code, "point_mm": k.point, "incidence_deg": k.angle_deg,
         "blur_sigma_mm": k.sigma_mm, "sigma_per_mm": p.sigma, "c1": p.c1, "c2": p.c2,
-        "misfit": p.misfit, "samples": k.samples, "kept": kept,
+        "misfit": p.misfit, "samples": k.samples, "pooled": k.pooled, "kept": kept,
     })
 }
 
