@@ -214,6 +214,7 @@ pub fn send<T: Transport>(
         other => {
             let e = format!("a write of the image at byte {} answered with {other:?}", starts[i]);
             unexpected = Some(e.clone());
+            // Stops the pipeline; reported below as what it is.
             Err(ClientError::Protocol { device: String::new(), detail: e })
         }
     });

@@ -216,8 +216,8 @@ pub struct SpotKernel {
     pub pooled: usize,
 }
 
-/// One spot's data for [`pool`]: its entry point, data (the correction divided out), blur and
-/// its own fit.
+/// One spot's data for [`pool`]: its entry point, its data (divided by the detail texture),
+/// the blur it shows and its own fit.
 pub struct PoolSpot<'a> {
     pub point: V3,
     pub samples: &'a [Sample],
