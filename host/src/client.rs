@@ -226,8 +226,8 @@ pub struct Client<T: Transport> {
     link: Link<HostMsg, DeviceMsg, WINDOW>,
     info: DeviceInfo,
     next_id: u16,
-    /// The requests whose answers [`Self::request`] or [`Self::pipeline`] wait for.
-    awaited: Vec<u16>,
+    /// The request whose answer [`Self::request`] waits for.
+    awaited: Option<u16>,
     /// Answers not yet collected, by request id.
     answers: Vec<(u16, Result<Reply, Error>)>,
     /// Requests whose answers nobody waits for (heartbeats).
@@ -302,7 +302,7 @@ impl<T: Transport> Client<T> {
             // again the answers the last client had not acknowledged (the link is at-least-once
             // across epochs), and those must not match this client's first requests.
             next_id: (nonce ^ (nonce >> 16)) as u16,
-            awaited: Vec::new(),
+            awaited: None,
             answers: Vec::new(),
             ignored: HashSet::new(),
             events: VecDeque::new(),
@@ -456,19 +456,12 @@ impl<T: Transport> Client<T> {
     fn request_timeout(&mut self, command: Command, timeout_us: u64) -> Result<Reply, ClientError> {
         let what = command_name(&command);
         let id = self.send(command, timeout_us)?;
-        self.awaited.push(id);
-        let r = self.answer(id, what, timeout_us);
-        self.awaited.clear();
-        r
-    }
-
-    /// Waits up to `timeout_us` for the answer to request `id` (one of [`Self::awaited`]).
-    fn answer(&mut self, id: u16, what: String, timeout_us: u64) -> Result<Reply, ClientError> {
+        self.awaited = Some(id);
         let deadline = self.transport.now_us().saturating_add(timeout_us);
         loop {
             if let Some(i) = self.answers.iter().position(|(a, _)| *a == id) {
                 let (_, result) = self.answers.remove(i);
-                self.awaited.retain(|&a| a != id);
+                self.awaited = None;
                 return result.map_err(|error| ClientError::Refused {
                     device: self.transport.describe(),
                     command: what,
@@ -476,6 +469,7 @@ impl<T: Transport> Client<T> {
                 });
             }
             if self.transport.now_us() >= deadline {
+                self.awaited = None;
                 return Err(ClientError::Timeout {
                     device: self.transport.describe(),
                     what,
@@ -484,57 +478,6 @@ impl<T: Transport> Client<T> {
             }
             self.pump(deadline)?;
         }
-    }
-
-    /// Sends `commands` in order with as many in flight as the link's window holds (a
-    /// firmware image's chunks: stop-and-wait spends a round trip on each), and hands each
-    /// answer to `each` in order with the command's index. Each answer is awaited up to
-    /// `timeout_us` from when the one before it came. The first refusal, timeout or error
-    /// from `each` ends it; the answers to the commands still in flight are then dropped.
-    pub fn pipeline(
-        &mut self,
-        commands: impl IntoIterator<Item = Command>,
-        timeout_us: u64,
-        mut each: impl FnMut(usize, Reply) -> Result<(), ClientError>,
-    ) -> Result<(), ClientError> {
-        let mut commands = commands.into_iter().enumerate().peekable();
-        let mut flight: VecDeque<(usize, u16, String)> = VecDeque::new();
-        let r = 'run: loop {
-            // Fill the window, one place left for the heartbeat.
-            while self.link.free() > 1 || (flight.is_empty() && self.link.free() > 0) {
-                let Some((i, c)) = commands.next() else { break };
-                let what = command_name(&c);
-                match self.send(c, timeout_us) {
-                    Ok(id) => {
-                        self.awaited.push(id);
-                        flight.push_back((i, id, what));
-                    }
-                    Err(e) => break 'run Err(e),
-                }
-            }
-            let Some((i, id, what)) = flight.pop_front() else {
-                if commands.peek().is_none() {
-                    break Ok(());
-                }
-                // The window is full of others' requests: wait for room.
-                let deadline = self.transport.now_us().saturating_add(timeout_us);
-                if let Err(e) = self.pump(deadline) {
-                    break Err(e);
-                }
-                continue;
-            };
-            match self.answer(id, what, timeout_us).and_then(|reply| each(i, reply)) {
-                Ok(()) => {}
-                Err(e) => break Err(e),
-            }
-        };
-        // Answers still to come for the commands in flight are nobody's now.
-        for (_, id, _) in flight {
-            self.ignored.insert(id);
-        }
-        self.awaited.clear();
-        self.answers.clear();
-        r
     }
 
     /// Queues a command (waiting for room in the link window); returns its request id.
@@ -637,7 +580,7 @@ impl<T: Transport> Client<T> {
                 }
                 // Anything else answers a request nobody waits for any more: one that timed
                 // out, or one of an earlier client's, sent again after a reconnection.
-                if !self.ignored.remove(&id) && self.awaited.contains(&id) {
+                if !self.ignored.remove(&id) && self.awaited == Some(id) {
                     self.answers.push((id, result));
                 }
             }

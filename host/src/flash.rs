@@ -191,37 +191,18 @@ pub fn send<T: Transport>(
 ) -> Result<UpdateStatus, FlashError> {
     let total = image.signed.len() as u32;
     let st = update(client, UpdateCommand::Begin(image.info))?;
-    let at = match st.phase {
+    let mut at = match st.phase {
         UpdatePhase::Receiving { image: i, received } if i == image.info => received,
         other => return Err(FlashError::Unexpected(format!("Begin answered with phase {other:?}"))),
     };
     progress(at, total);
-    // The chunks go with the link's window full (stop-and-wait spends a round trip on each;
-    // the link delivers them in order, as the device takes them).
-    let starts: Vec<u32> = (at..total).step_by(UPDATE_CHUNK).collect();
-    let writes = starts.iter().map(|&offset| {
-        let end = (offset as usize + UPDATE_CHUNK).min(image.signed.len());
-        let data = HVec::from_slice(&image.signed[offset as usize..end]).expect("a chunk fits");
-        Command::Update(UpdateCommand::Write { offset, data })
-    });
-    let mut unexpected = None;
-    let within = answer_within_us(&UpdateCommand::Write { offset: 0, data: HVec::new() });
-    let sent = client.pipeline(writes, within, |i, reply| match reply {
-        Reply::Update(_) => {
-            progress((starts[i] + UPDATE_CHUNK as u32).min(total), total);
-            Ok(())
-        }
-        other => {
-            let e = format!("a write of the image at byte {} answered with {other:?}", starts[i]);
-            unexpected = Some(e.clone());
-            // Stops the pipeline; reported below as what it is.
-            Err(ClientError::Protocol { device: String::new(), detail: e })
-        }
-    });
-    if let Some(e) = unexpected {
-        return Err(FlashError::Unexpected(e));
+    while at < total {
+        let end = (at as usize + UPDATE_CHUNK).min(image.signed.len());
+        let data = HVec::from_slice(&image.signed[at as usize..end]).expect("a chunk fits");
+        update(client, UpdateCommand::Write { offset: at, data })?;
+        at = end as u32;
+        progress(at, total);
     }
-    sent?;
     update(client, UpdateCommand::Finish(Signature::from_bytes(&image.signature)))
 }
 

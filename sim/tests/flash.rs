@@ -7,7 +7,6 @@ mod common;
 use lightrig_firmware::sim::{virtual_device_info, SimBoard};
 use lightrig_host::client::{Client, ClientError};
 use lightrig_host::flash::{self, FlashError};
-use lightrig_host::transport::Transport;
 use lightrig_protocol::session::{ResetCause, Version};
 use lightrig_protocol::update::{UpdateCommand, UpdateError, UpdatePhase};
 use lightrig_protocol::{Command, Error};
@@ -152,98 +151,6 @@ fn an_update_is_refused_while_a_sequence_runs() {
     assert_eq!(flash::update(&mut c, UpdateCommand::Status).unwrap().phase, UpdatePhase::Idle);
     c.request(Command::SequenceAbort { sequence: 9 }).unwrap();
     flash::update(&mut c, UpdateCommand::Begin(virtual_image(v(2)).info)).unwrap();
-}
-
-/// The virtual device, counting the frames the host sends between two arrivals of the
-/// device's bytes.
-struct Counting {
-    inner: VirtualTransport,
-    run: usize,
-    most: usize,
-}
-
-impl Transport for Counting {
-    fn send(&mut self, bytes: &[u8]) -> std::io::Result<()> {
-        self.run += 1;
-        self.most = self.most.max(self.run);
-        self.inner.send(bytes)
-    }
-
-    fn recv(&mut self, buf: &mut [u8], deadline: u64) -> std::io::Result<usize> {
-        let n = self.inner.recv(buf, deadline)?;
-        if n > 0 {
-            self.run = 0;
-        }
-        Ok(n)
-    }
-
-    fn now_us(&self) -> u64 {
-        self.inner.now_us()
-    }
-
-    fn describe(&self) -> String {
-        self.inner.describe()
-    }
-
-    fn runs_alone(&self) -> bool {
-        false
-    }
-}
-
-#[test]
-fn an_image_goes_with_the_link_window_full() {
-    // Stop-and-wait would send one chunk per answer (a round trip each: over a serial line,
-    // most of the transfer); the chunks go seven at a time (the window of 8, one place kept
-    // for the heartbeat), and the image arrives whole.
-    let t = Counting {
-        inner: VirtualTransport::new(virtual_device_info(), SimBoard::default()),
-        run: 0,
-        most: 0,
-    };
-    let mut c = Client::connect(t, 1).unwrap();
-    let img = virtual_image(v(2));
-    let before = c.transport().most;
-    let mut seen = Vec::new();
-    let st = flash::send(&mut c, &img, |s, _| seen.push(s)).unwrap();
-    assert_eq!(st.phase, UpdatePhase::Ready { image: img.info });
-    assert!(before <= 2 && c.transport().most >= 7, "{before} {}", c.transport().most);
-    let total = img.signed.len() as u32;
-    assert!(seen.windows(2).all(|w| w[0] < w[1]), "progress in order");
-    assert_eq!((seen.first(), seen.last()), (Some(&0), Some(&total)));
-    let t = flash::await_reset(c, 5_000_000).unwrap();
-    let c = Client::connect(t, 2).unwrap();
-    assert_eq!(c.info().firmware, v(2));
-}
-
-#[test]
-fn a_refusal_in_a_pipeline_ends_it_and_the_link_goes_on() {
-    use lightrig_protocol::update::UPDATE_CHUNK;
-    use lightrig_protocol::Reply;
-    let mut c = device();
-    let img = virtual_image(v(2));
-    flash::update(&mut c, UpdateCommand::Begin(img.info)).unwrap();
-    // Chunks 0, 1, then 3 (out of order), then 2 and 4: five in flight at once.
-    let write = |k: usize| {
-        let data = heapless::Vec::from_slice(&img.signed[k * UPDATE_CHUNK..(k + 1) * UPDATE_CHUNK]).unwrap();
-        Command::Update(UpdateCommand::Write { offset: (k * UPDATE_CHUNK) as u32, data })
-    };
-    let mut answered = Vec::new();
-    let e = c
-        .pipeline([0, 1, 3, 2, 4].map(write), 2_000_000, |i, r| {
-            answered.push((i, matches!(r, Reply::Update(_))));
-            Ok(())
-        })
-        .unwrap_err();
-    assert_eq!(answered, [(0, true), (1, true)]);
-    assert_eq!(
-        refused_for_update(e),
-        UpdateError::OutOfOrder { expected: 2 * UPDATE_CHUNK as u32 },
-        "the third command's refusal"
-    );
-    // The answers still to come (the device took chunk 2 after refusing 3) are dropped: the
-    // next request gets its own answer.
-    let st = flash::update(&mut c, UpdateCommand::Status).unwrap();
-    assert_eq!(st.phase, UpdatePhase::Receiving { image: img.info, received: 3 * UPDATE_CHUNK as u32 });
 }
 
 #[test]

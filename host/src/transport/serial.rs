@@ -5,6 +5,10 @@ use std::time::{Duration, Instant};
 
 use super::Transport;
 
+/// How long a write may wait for room in the port's buffer: a frame of 300 bytes takes 26 ms
+/// at 115 200 baud, a window of them a fifth of a second.
+const SEND_TIMEOUT: Duration = Duration::from_secs(2);
+
 /// A serial port: CDC-ACM over USB, or a UART.
 pub struct SerialTransport {
     port: Box<dyn serialport::SerialPort>,
@@ -22,6 +26,9 @@ impl SerialTransport {
 
 impl Transport for SerialTransport {
     fn send(&mut self, bytes: &[u8]) -> io::Result<()> {
+        // The port's timeout is whatever the last `recv` waited (down to 1 µs): a write that
+        // must wait for room (a window of frames into a full buffer) would fail at once.
+        self.port.set_timeout(SEND_TIMEOUT).map_err(io::Error::other)?;
         self.port.write_all(bytes)
     }
 
