@@ -43,8 +43,8 @@ use lightrig_pipelines::disco::local::{
     pool, spot_samples, spot_sigma, Blurs, LocalAccumulator, LocalParams, LocalTextures, PoolSpot, SpotKernel,
 };
 use lightrig_pipelines::disco::mesh::SurfaceMesh;
-use lightrig_pipelines::disco::optics::{point_of, Pinhole};
-use lightrig_pipelines::disco::projector_pose::{entry_shift, fit_projector, HitPoint};
+use lightrig_pipelines::disco::optics::{point_of, Pinhole, Projector};
+use lightrig_pipelines::disco::projector_pose::{entry_shift, fit_projector, HitPoint, ProjectorFit};
 use lightrig_pipelines::disco::register::{
     agreement, register_global, render, silhouette, Pose, SilhouetteView, ViewAgreement,
 };
@@ -53,7 +53,7 @@ use lightrig_pipelines::disco::resample::{
     background_sigma, beam_sigma, flux_scale, spot_peak, Accumulator, Incidence, ViewLimits, ViewMap,
 };
 use lightrig_pipelines::firs::mesh::{read_ply, write_ply};
-use lightrig_pipelines::vec3::{norm, normalize, sub, V3};
+use lightrig_pipelines::vec3::{dot, norm, normalize, sub, V3};
 use lightrig_protocol::event::TriggerEvent;
 use rayon::prelude::*;
 use serde_json::{json, Value};
@@ -938,7 +938,7 @@ struct SpotFrame {
 #[derive(Debug, Clone)]
 pub struct ProjectorReport {
     /// The fitted projector (used for every entry point).
-    pub projector: lightrig_pipelines::disco::optics::Projector,
+    pub projector: Projector,
     /// How far the rig file's pivot moved (mm) and its axes turned (degrees).
     pub moved_mm: f64,
     pub turned_deg: f64,
@@ -956,7 +956,10 @@ pub struct ProjectorReport {
 
 /// Each frame's spot: the rig file's projector says roughly where it entered; its sub-pixel
 /// peak within [`PROJECTOR_SEARCH_MM`] of that, cast from the camera onto the mesh, is where it
-/// did. The projector is then fitted to those points.
+/// did. The projector is fitted to those points, then the spots are chosen again with the
+/// fitted projector and the fit repeated from it: which spots pass the incidence, facing and
+/// glint checks follows the projector they are judged by, and judged by the hand-measured one
+/// the choice (and so the result) depended on how far off it was.
 fn calibrate_projector(
     mesh: &SurfaceMesh,
     setup: &DiscoSetup,
@@ -964,6 +967,63 @@ fn calibrate_projector(
     frames: &[SpotFrame],
     (w, h): (u32, u32),
 ) -> Result<ProjectorReport, FitError> {
+    let start = setup.projector;
+    let hits = projector_hits(mesh, setup, &start, limits, frames, (w, h))?;
+    let first = fit_projector_checked(&start, &hits, frames.len())?;
+    let hits = projector_hits(mesh, setup, &first.projector, limits, frames, (w, h))?;
+    let fit = fit_projector_checked(&first.projector, &hits, frames.len())?;
+    let mut angles: Vec<f64> = frames.iter().map(|f| f.deg).collect();
+    angles.sort_by(f64::total_cmp);
+    angles.dedup();
+    // The two fits' corrections together: the pivot's move and the axes' turn (from the trace
+    // of the rotation taking the rig file's axes to the fitted ones).
+    let trace: f64 = (0..3).map(|i| dot(start.axes[i], fit.projector.axes[i])).sum();
+    Ok(ProjectorReport {
+        projector: fit.projector,
+        moved_mm: norm(sub(fit.projector.eye, start.eye)),
+        turned_deg: ((trace - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees(),
+        shift_mm: entry_shift(&start, &fit.projector, mesh, &angles),
+        frames: frames.len(),
+        used: fit.used,
+        dropped: fit.dropped,
+        rms_mm: fit.rms_mm,
+        max_mm: fit.max_mm,
+    })
+}
+
+/// [`fit_projector`], refused when too few spots were seen or its beams miss them.
+fn fit_projector_checked(
+    start: &Projector,
+    hits: &[HitPoint],
+    frames: usize,
+) -> Result<ProjectorFit, FitError> {
+    let fit = fit_projector(start, hits, PROJECTOR_FLOOR_MM).ok_or_else(|| {
+        fail(format!(
+            "the laser projector's pose: {} spots seen near where [plan.fit] projector puts them, in {} frames looked at; too few to fit it (at least 12). Check [plan.fit] projector (the scanner's pivot and aim, within some 10 mm and 3°) and the galvo's calibration; a plan with more spots per view gives more",
+            hits.len(),
+            frames
+        ))
+    })?;
+    if fit.rms_mm > PROJECTOR_MAX_RMS_MM {
+        return Err(fail(format!(
+            "the laser projector's pose: its beams miss the {} spots seen by {:.2} mm RMS (at most {PROJECTOR_MAX_RMS_MM} mm); check the galvo's calibration ([[galvo]] urad_per_code, zero_code) and [plan.fit] projector",
+            fit.used, fit.rms_mm
+        )));
+    }
+    Ok(fit)
+}
+
+/// The spots of `frames` as `projector` judges them: each frame's sub-pixel peak near where
+/// its beam enters, cast onto the mesh, for beams entering within the limits and seen clear of
+/// the outline and of a glint.
+fn projector_hits(
+    mesh: &SurfaceMesh,
+    setup: &DiscoSetup,
+    projector: &Projector,
+    limits: &ViewLimits,
+    frames: &[SpotFrame],
+    (w, h): (u32, u32),
+) -> Result<Vec<HitPoint>, FitError> {
     let mut hits: Vec<HitPoint> = Vec::new();
     let mut keys: Vec<(usize, i64)> = frames.iter().map(|f| (f.pos, (f.deg * 1e6).round() as i64)).collect();
     keys.sort_unstable();
@@ -976,7 +1036,7 @@ fn calibrate_projector(
             .par_iter()
             .map(|f| {
                 let img = read_plane(&f.file, w, h)?;
-                let p = &setup.projector;
+                let p = projector;
                 // A glint (the camera near the beam's mirror direction) puts the peak on the
                 // surface's reflection, not on the glow the other spots' peaks sit on: left out.
                 let Some(inc) =
@@ -989,7 +1049,7 @@ fn calibrate_projector(
                 // turns a pixel's error into millimetres on the surface.
                 let cam = &map.camera;
                 let (_, n) = point_of(mesh, &map.world, map.turntable_deg, &inc.hit);
-                let facing = |q: V3, n: V3| lightrig_pipelines::vec3::dot(n, normalize(sub(cam.eye, q)));
+                let facing = |q: V3, n: V3| dot(n, normalize(sub(cam.eye, q)));
                 if inc.angle_deg > PROJECTOR_MAX_ANGLE_DEG || facing(inc.point, n) < PROJECTOR_MIN_FACING {
                     return Ok(None);
                 }
@@ -1021,34 +1081,7 @@ fn calibrate_projector(
             hits.extend(r?);
         }
     }
-    let start = setup.projector;
-    let fit = fit_projector(&start, &hits, PROJECTOR_FLOOR_MM).ok_or_else(|| {
-        fail(format!(
-            "the laser projector's pose: {} spots seen near where [plan.fit] projector puts them, in {} frames looked at; too few to fit it (at least 12). Check [plan.fit] projector (the scanner's pivot and aim, within some 10 mm and 3°) and the galvo's calibration; a plan with more spots per view gives more",
-            hits.len(),
-            frames.len()
-        ))
-    })?;
-    if fit.rms_mm > PROJECTOR_MAX_RMS_MM {
-        return Err(fail(format!(
-            "the laser projector's pose: its beams miss the {} spots seen by {:.2} mm RMS (at most {PROJECTOR_MAX_RMS_MM} mm); check the galvo's calibration ([[galvo]] urad_per_code, zero_code) and [plan.fit] projector",
-            fit.used, fit.rms_mm
-        )));
-    }
-    let mut angles: Vec<f64> = frames.iter().map(|f| f.deg).collect();
-    angles.sort_by(f64::total_cmp);
-    angles.dedup();
-    Ok(ProjectorReport {
-        projector: fit.projector,
-        moved_mm: norm(fit.correction.translation),
-        turned_deg: fit.correction.angle_deg(),
-        shift_mm: entry_shift(&start, &fit.projector, mesh, &angles),
-        frames: frames.len(),
-        used: fit.used,
-        dropped: fit.dropped,
-        rms_mm: fit.rms_mm,
-        max_mm: fit.max_mm,
-    })
+    Ok(hits)
 }
 
 /// A spot's local fit in `fit.json`: where and how its beam entered, the blur taken out, `m(d)`
@@ -1067,9 +1100,8 @@ fn beam_on_plane(setup: &DiscoSetup, code: [f64; 2]) -> V3 {
     let d = setup.projector.ray(code);
     let t = &setup.white;
     let o = setup.projector.eye;
-    let dn = lightrig_pipelines::vec3::dot(d, t.normal);
-    let s =
-        if dn.abs() < 1e-12 { 0.0 } else { lightrig_pipelines::vec3::dot(sub(t.point, o), t.normal) / dn };
+    let dn = dot(d, t.normal);
+    let s = if dn.abs() < 1e-12 { 0.0 } else { dot(sub(t.point, o), t.normal) / dn };
     lightrig_pipelines::vec3::add(o, lightrig_pipelines::vec3::scale(d, s))
 }
 
@@ -1162,8 +1194,7 @@ fn predict_held_out(
                 }
                 let rd: f64 =
                     (0..3).map(|k| f64::from(hit.bary[k]) * vertex_rd[t[k] as usize].ln()).sum::<f64>().exp();
-                let cos_o =
-                    lightrig_pipelines::vec3::dot(nrm, lightrig_pipelines::vec3::normalize(sub(cam.eye, p)));
+                let cos_o = dot(nrm, normalize(sub(cam.eye, p)));
                 let ft_o = lightrig_pipelines::disco::dipole::fresnel_transmittance(eta, cos_o);
                 // The model's detail between the vertices (section 6.3).
                 let skin = detail.at(atlas, mesh, hit.triangle, hit.bary.map(f64::from))[d.channel];
@@ -1230,8 +1261,7 @@ fn predict_held_out_near(
                 if measured <= f64::from(lightrig_pipelines::disco::resample::MIN_FLOOR_RATIO * d.floor) {
                     continue;
                 }
-                let cos_o =
-                    lightrig_pipelines::vec3::dot(nrm, lightrig_pipelines::vec3::normalize(sub(cam.eye, p)));
+                let cos_o = dot(nrm, normalize(sub(cam.eye, p)));
                 if cos_o < params.max_view_deg.to_radians().cos() {
                     continue;
                 }
