@@ -630,5 +630,12 @@ pub(crate) mod tests {
         for k in 0..2 {
             assert!((q.sigma[k] / p.sigma[k] - 1.0).abs() < 0.06, "{p:?} {q:?}");
         }
+        // The fast rate follows the blur's width steeply: told a beam 2 % narrower than the
+        // data's, the fit gives σ2 about 10 % lower (the data fix the blur's and the fast
+        // term's widths together); σ1 hardly moves.
+        let narrow = fit(&samples, &Blur::new(0.85 / 1.02, 8.0), &Stages::default()).unwrap();
+        let drop = 1.0 - narrow.sigma[1] / q.sigma[1];
+        assert!(drop > 0.06 && drop < 0.16, "σ2 {} against {}", narrow.sigma[1], q.sigma[1]);
+        assert!((narrow.sigma[0] / q.sigma[0] - 1.0).abs() < 0.06, "{narrow:?} {q:?}");
     }
 }

@@ -879,7 +879,7 @@ mod tests {
 
     #[test]
     fn the_fine_beam_has_the_gaussians_width() {
-        // The kernel fit's fast rate follows the blur's width steeply (1 % wider, ~5 % faster):
+        // The kernel fit's σ2 follows the blur's width steeply (told 1 % too wide, ~5 % high):
         // the rendered beam must have the σ the fit is told. Cut at 3σ the grid's variance was
         // 0.949 σ² per axis.
         let g = fine_grid();
