@@ -20,14 +20,7 @@ use rayon::prelude::*;
 
 /// This process's peak resident memory, MiB.
 fn peak_mib() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1).and_then(|v| v.parse::<f64>().ok()))
-        })
-        .map_or(f64::NAN, |kib| kib / 1024.0)
+    lightrig_host::fit::disco::peak_resident_mib().unwrap_or(f64::NAN)
 }
 
 /// Child: does one job on `dir`, prints `seconds peak_mib frames`.
@@ -53,13 +46,13 @@ fn child(job: &str, dir: &Path) {
         }
     };
     println!("{} {} {}", t.elapsed().as_secs_f64(), peak_mib(), frames);
-    for (name, s) in phases {
-        println!("{s} {name}");
+    for p in phases {
+        println!("{} {} {}", p.seconds, p.peak_mib.unwrap_or(f64::NAN), p.name);
     }
 }
 
-/// (seconds, peak MiB, frames, the fit's phases as (seconds, name)).
-fn run(job: &str, dir: &Path) -> (f64, f64, usize, Vec<(f64, String)>) {
+/// (seconds, peak MiB, frames, the fit's phases as (seconds, peak MiB at its end, name)).
+fn run(job: &str, dir: &Path) -> (f64, f64, usize, Vec<(f64, f64, String)>) {
     let exe = std::env::current_exe().expect("the bench's own path");
     let out = Command::new(exe).args(["--child", job]).arg(dir).output().expect("child");
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
@@ -67,7 +60,11 @@ fn run(job: &str, dir: &Path) -> (f64, f64, usize, Vec<(f64, String)>) {
     let mut lines = text.lines();
     let v: Vec<&str> = lines.next().unwrap_or("").split_whitespace().collect();
     let phases = lines
-        .filter_map(|l| l.split_once(' ').map(|(s, n)| (s.parse().unwrap_or(f64::NAN), n.to_string())))
+        .filter_map(|l| {
+            let (s, rest) = l.split_once(' ')?;
+            let (m, n) = rest.split_once(' ')?;
+            Some((s.parse().unwrap_or(f64::NAN), m.parse().unwrap_or(f64::NAN), n.to_string()))
+        })
         .collect();
     (
         v.first().and_then(|x| x.parse().ok()).unwrap_or(f64::NAN),
@@ -109,7 +106,7 @@ fn main() {
         let (ft, fm, _, phases) = run("fit", &dir);
         // The streaming phase (reading the frames and the per-frame work) against reading
         // alone; the rest (F on the mesh) does not grow with the frames.
-        let streaming = phases.iter().find(|p| p.1.starts_with("frames")).map_or(f64::NAN, |p| p.0);
+        let streaming = phases.iter().find(|p| p.2.starts_with("frames")).map_or(f64::NAN, |p| p.0);
         println!(
             "| {grid} × {grid} | {n} | {rt:.1} | {ft:.1} | {streaming:.1} | {:.2} | {rm:.0} | {fm:.0} |",
             streaming / rt
@@ -118,7 +115,8 @@ fn main() {
     }
     println!();
     for (grid, phases) in details {
-        let list: Vec<String> = phases.iter().map(|(s, n)| format!("{n} {s:.1} s")).collect();
+        let list: Vec<String> =
+            phases.iter().map(|(s, m, n)| format!("{n} {s:.1} s (peak {m:.0} MiB)")).collect();
         println!("{grid} × {grid}: {}", list.join("; "));
     }
 }

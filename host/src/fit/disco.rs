@@ -148,8 +148,24 @@ pub struct DiscoFit {
     pub registration: Option<RegistrationReport>,
     /// The projector's pose fitted to the spots seen (section 4.4).
     pub projector: ProjectorReport,
-    /// Wall time of each phase, s: (name, seconds), in order.
-    pub phases: Vec<(&'static str, f64)>,
+    /// Each phase in order: its name, its wall time in s and the process's peak resident
+    /// memory at its end (MiB; where the system says).
+    pub phases: Vec<Phase>,
+}
+
+/// One phase of the fit, for the benchmark's break-down.
+#[derive(Clone, Debug)]
+pub struct Phase {
+    pub name: &'static str,
+    pub seconds: f64,
+    pub peak_mib: Option<f64>,
+}
+
+/// This process's peak resident memory so far (VmHWM), MiB; Linux only.
+pub fn peak_resident_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    line.split_whitespace().nth(1)?.parse::<f64>().ok().map(|kib| kib / 1024.0)
 }
 
 /// One laser frame to resample.
@@ -313,11 +329,11 @@ pub fn fit_session(
         channels.iter().find(|(l, _)| t.snapshot.lasers & (1 << **l) != 0).map(|(_, &c)| c)
     };
     let clock = std::time::Instant::now();
-    let mut phases: Vec<(&'static str, f64)> = Vec::new();
+    let mut phases: Vec<Phase> = Vec::new();
     let mut lap = |name: &'static str| {
         let t = clock.elapsed().as_secs_f64();
-        let before: f64 = phases.iter().map(|p| p.1).sum();
-        phases.push((name, t - before));
+        let before: f64 = phases.iter().map(|p| p.seconds).sum();
+        phases.push(Phase { name, seconds: t - before, peak_mib: peak_resident_mib() });
     };
     // 2a. The object's pose on the turntable.
     let spotlights = match rig.plan.get("registration").and_then(|v| v.as_str()) {
@@ -659,12 +675,16 @@ pub fn fit_session(
     // Twice: the gradients the neighbouring columns show give a first `F` and its fall-off;
     // the fall-off's own gradient then moves each mean to its vertex (far less noisy than a
     // plane through a few neighbours' means).
-    let (mut values, mut weights) = acc.nodal(&mesh, beam_sigma_mm, None);
-    let first = Matrix { n, values: values.clone(), weight: weights.clone() };
-    if let Some(f) = falloff::fit(&mesh, &first, 2.0 * mesh.mean_edge()) {
-        (values, weights) = acc.nodal(&mesh, beam_sigma_mm, Some(f.map(|x| x.s)));
-    }
-    drop(first);
+    // One `F`-sized result at a time beside the sums (the fit's peak of memory).
+    let (values, weights) = acc.nodal(&mesh, beam_sigma_mm, None);
+    let first = Matrix { n, values, weight: weights };
+    let (values, weights) = match falloff::fit(&mesh, &first, 2.0 * mesh.mean_edge()) {
+        Some(f) => {
+            drop(first);
+            acc.nodal(&mesh, beam_sigma_mm, Some(f.map(|x| x.s)))
+        }
+        None => (first.values, first.weight),
+    };
     drop(acc);
     let detail = detail_acc.finish();
     drop(detail_acc);

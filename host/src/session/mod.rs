@@ -1177,9 +1177,16 @@ pub fn crc_of_file(path: &Path) -> io::Result<u32> {
 /// Every record of a session's journal, in order. Stops at the first damaged line, as
 /// opening does.
 pub fn journal_records(dir: impl AsRef<Path>) -> Result<Vec<Record>> {
+    let mut out = Vec::new();
+    for_each_record(dir, |rec| out.push(rec))?;
+    Ok(out)
+}
+
+/// Each record of a session's journal in turn, none kept (a session of a million frames has
+/// millions of records). Stops at the first damaged line, as opening does.
+pub fn for_each_record(dir: impl AsRef<Path>, mut f: impl FnMut(Record)) -> Result<()> {
     let path = dir.as_ref().join(JOURNAL);
     let file = File::open(&path).map_err(io_at(&path))?;
-    let mut out = Vec::new();
     journal::scan(
         &file,
         |line, payload| {
@@ -1188,12 +1195,12 @@ pub fn journal_records(dir: impl AsRef<Path>) -> Result<Vec<Record>> {
                 line,
                 detail: format!("not a journal record: {e}"),
             })?;
-            out.push(rec);
+            f(rec);
             Ok(())
         },
         io_at(&path),
-    )?;
-    Ok(out)
+    )
+    .map(|_| ())
 }
 
 /// Who prepared each step attempt, in journal order: each `StepPrepared` record's `by`.
@@ -1212,13 +1219,11 @@ pub fn prepared_by(dir: impl AsRef<Path>) -> Result<Vec<String>> {
 pub fn trigger_events(
     dir: impl AsRef<Path>,
 ) -> Result<std::collections::HashMap<(u32, u32), lightrig_protocol::event::TriggerEvent>> {
-    Ok(journal_records(dir)?
-        .into_iter()
-        .filter_map(|r| match r {
-            Record::Event { event: lightrig_protocol::Event::Trigger(t), .. } => {
-                Some(((t.sequence, t.item), t))
-            }
-            _ => None,
-        })
-        .collect())
+    let mut out = std::collections::HashMap::new();
+    for_each_record(dir, |r| {
+        if let Record::Event { event: lightrig_protocol::Event::Trigger(t), .. } = r {
+            out.insert((t.sequence, t.item), t);
+        }
+    })?;
+    Ok(out)
 }

@@ -405,23 +405,43 @@ impl Accumulator {
                 (f64::from(e[1]) / w, [f64::from(e[2]) / w, f64::from(e[3]) / w], w)
             })
         };
-        let mut out: Vec<([f32; 3], f32)> = vec![([0.0; 3], 0.0); n * n];
-        out.par_chunks_mut(n).enumerate().for_each(|(k, col)| {
+        // The plane through k's and its ring's centroids of row r (k's tangent coordinates),
+        // `own` being k's: its gradient. `pts` is room for the points, reused.
+        let ring_gradient = |k: usize, r: usize, c: usize, own, pts: &mut Vec<([f64; 2], f64, f64)>| {
+            let (xk, tk) = (mesh.vertices[k], &self.tangents[k]);
+            pts.clear();
+            pts.push(own);
+            for &(j, _) in &mesh.rings[k] {
+                let j = j as usize;
+                if let Some((yj, uj, wj)) = mean(j * n + r, c) {
+                    let tj = &self.tangents[j];
+                    let p = crate::vec3::add(
+                        sub(mesh.vertices[j], xk),
+                        crate::vec3::add(crate::vec3::scale(tj[0], uj[0]), crate::vec3::scale(tj[1], uj[1])),
+                    );
+                    pts.push(([dot(p, tk[0]), dot(p, tk[1])], yj, wj));
+                }
+            }
+            plane_gradient(pts).unwrap_or([0.0, 0.0])
+        };
+        let mut values: Vec<[f32; 3]> = vec![[0.0; 3]; n * n];
+        let mut weights: Vec<f32> = vec![0.0; n * n];
+        values.par_chunks_mut(n).zip(weights.par_chunks_mut(n)).enumerate().for_each(|(k, (vcol, wcol))| {
             let xk = mesh.vertices[k];
             let tk = &self.tangents[k];
-            for (r, slot) in col.iter_mut().enumerate() {
+            let mut pts = Vec::with_capacity(16);
+            let mut entry = |r: usize| -> ([f32; 3], f32) {
                 if let Some(ns) = near_slot(mesh, r, k) {
                     // The near field: the barycentric split's plain mean, as the paper resamples.
                     // It estimates `Rd` averaged over `k`'s hat function (blurred by the beam),
                     // which is what carries the right energy when `F` is lit by a broad light
                     // (Σk F(r, k)·Ak is then ∫ Rd(x, xr) dx); no single point value would.
                     let e = &self.near[k * NEAR_SLOTS + ns];
-                    *slot = if e.iter().all(|c| c[0] > 0.0) {
+                    return if e.iter().all(|c| c[0] > 0.0) {
                         (e.map(|c| c[1] / c[0]), e.iter().map(|c| c[0]).fold(f32::MAX, f32::min))
                     } else {
                         ([0.0; 3], 0.0)
                     };
-                    continue;
                 }
                 let mut v = [0.0f32; 3];
                 let mut ok = true;
@@ -436,22 +456,6 @@ impl Accumulator {
                         ok = false;
                         break;
                     }
-                    // The plane through k's and its ring's centroids (k's tangent coordinates).
-                    let mut pts: Vec<([f64; 2], f64, f64)> = vec![(u, y, w)];
-                    for &(j, _) in &mesh.rings[k] {
-                        let j = j as usize;
-                        if let Some((yj, uj, wj)) = mean(j * n + r, c) {
-                            let tj = &self.tangents[j];
-                            let p = crate::vec3::add(
-                                sub(mesh.vertices[j], xk),
-                                crate::vec3::add(
-                                    crate::vec3::scale(tj[0], uj[0]),
-                                    crate::vec3::scale(tj[1], uj[1]),
-                                ),
-                            );
-                            pts.push(([dot(p, tk[0]), dot(p, tk[1])], yj, wj));
-                        }
-                    }
                     let g = match rates {
                         Some(rates) => {
                             let xr = mesh.vertices[r];
@@ -460,19 +464,25 @@ impl Accumulator {
                             let k_ = -(rates[c] + 2.0 / d) / d;
                             [k_ * dot(dv, tk[0]), k_ * dot(dv, tk[1])]
                         }
-                        None => plane_gradient(&pts).unwrap_or([0.0, 0.0]),
+                        None => ring_gradient(k, r, c, (u, y, w), &mut pts),
                     };
                     let blur = 1.0 + 0.5 * beam_sigma_mm * beam_sigma_mm * (g[0] * g[0] + g[1] * g[1]);
                     v[c] = ((y - g[0] * u[0] - g[1] * u[1]).exp() / blur) as f32;
                     weight = weight.min(w as f32);
                 }
-                *slot = if ok { (v, weight) } else { ([0.0; 3], 0.0) };
+                if ok {
+                    (v, weight)
+                } else {
+                    ([0.0; 3], 0.0)
+                }
+            };
+            for (r, (v, w)) in vcol.iter_mut().zip(wcol.iter_mut()).enumerate() {
+                (*v, *w) = entry(r);
             }
         });
-        out.into_iter().unzip()
+        (values, weights)
     }
 }
-
 /// The gradient of the weighted least-squares plane `y = a + g·q` through `(q, y, w)`; `None`
 /// with fewer than three points or when they are (nearly) collinear.
 pub fn plane_gradient(pts: &[([f64; 2], f64, f64)]) -> Option<[f64; 2]> {
