@@ -979,7 +979,8 @@ pub struct ProjectorReport {
 /// did. The projector is fitted to those points, then the spots are chosen again with the
 /// fitted projector and the fit repeated from it: which spots pass the incidence, facing and
 /// glint checks follows the projector they are judged by, and judged by the hand-measured one
-/// the choice (and so the result) depended on how far off it was.
+/// the choice (and so the result) depended on how far off it was. The frames are read once:
+/// the peaks are found by the rig file's projector, only the choice is made twice.
 fn calibrate_projector(
     mesh: &SurfaceMesh,
     setup: &DiscoSetup,
@@ -988,9 +989,10 @@ fn calibrate_projector(
     (w, h): (u32, u32),
 ) -> Result<ProjectorReport, FitError> {
     let start = setup.projector;
-    let hits = projector_hits(mesh, setup, &start, limits, frames, (w, h))?;
-    let first = fit_projector_checked(&start, &hits, frames.len())?;
-    let hits = projector_hits(mesh, setup, &first.projector, limits, frames, (w, h))?;
+    let seen = projector_spots(mesh, setup, limits, frames, (w, h))?;
+    let first =
+        fit_projector_checked(&start, &judge_spots(mesh, setup, &start, limits, &seen), frames.len())?;
+    let hits = judge_spots(mesh, setup, &first.projector, limits, &seen);
     let fit = fit_projector_checked(&first.projector, &hits, frames.len())?;
     let mut angles: Vec<f64> = frames.iter().map(|f| f.deg).collect();
     angles.sort_by(f64::total_cmp);
@@ -1033,18 +1035,33 @@ fn fit_projector_checked(
     Ok(fit)
 }
 
-/// The spots of `frames` as `projector` judges them: each frame's sub-pixel peak near where
-/// its beam enters, cast onto the mesh, for beams entering within the limits and seen clear of
-/// the outline and of a glint.
-fn projector_hits(
+/// A frame's spot as the camera shows it: its galvo code, and its sub-pixel peak cast onto
+/// the mesh (object frame) with how squarely the surface there faces the camera.
+struct SeenSpot {
+    code: [f64; 2],
+    point: V3,
+    facing: f64,
+}
+
+/// The spots of a view (camera position, turntable angle) as the camera showed them.
+struct ViewSpots {
+    pos: usize,
+    deg: f64,
+    spots: Vec<SeenSpot>,
+}
+
+/// Every frame's spot, each frame read once: the sub-pixel peak within
+/// [`PROJECTOR_SEARCH_MM`] of where the rig file's projector puts its beam, cast onto the
+/// placed mesh. Frames whose beam misses the mesh or whose peak is not found are left out.
+fn projector_spots(
     mesh: &SurfaceMesh,
     setup: &DiscoSetup,
-    projector: &Projector,
     limits: &ViewLimits,
     frames: &[SpotFrame],
     (w, h): (u32, u32),
-) -> Result<Vec<HitPoint>, FitError> {
-    let mut hits: Vec<HitPoint> = Vec::new();
+) -> Result<Vec<ViewSpots>, FitError> {
+    let p = &setup.projector;
+    let mut out = Vec::new();
     let mut keys: Vec<(usize, i64)> = frames.iter().map(|f| (f.pos, (f.deg * 1e6).round() as i64)).collect();
     keys.sort_unstable();
     keys.dedup();
@@ -1052,27 +1069,12 @@ fn projector_hits(
         let fr: Vec<&SpotFrame> =
             frames.iter().filter(|f| (f.pos, (f.deg * 1e6).round() as i64) == key).collect();
         let map = ViewMap::new(mesh, &setup.cameras[key.0].1, fr[0].deg, limits);
-        let found: Vec<Result<Option<HitPoint>, FitError>> = fr
+        let cam = &map.camera;
+        let found: Vec<Result<Option<SeenSpot>, FitError>> = fr
             .par_iter()
             .map(|f| {
                 let img = read_plane(&f.file, w, h)?;
-                let p = projector;
-                // A glint (the camera near the beam's mirror direction) puts the peak on the
-                // surface's reflection, not on the glow the other spots' peaks sit on: left out.
-                let Some(inc) =
-                    map.incidence(mesh, p.eye, p.ray(f.code), limits).filter(|i| i.glint_mm == 0.0)
-                else {
-                    return Ok(None);
-                };
-                // Only spots well inside the object's outline, for beam and camera alike: near
-                // it the spot may be hidden and glow taken for it, and a grazing camera ray
-                // turns a pixel's error into millimetres on the surface.
-                let cam = &map.camera;
-                let (_, n) = point_of(mesh, &map.world, map.turntable_deg, &inc.hit);
-                let facing = |q: V3, n: V3| dot(n, normalize(sub(cam.eye, q)));
-                if inc.angle_deg > PROJECTOR_MAX_ANGLE_DEG || facing(inc.point, n) < PROJECTOR_MIN_FACING {
-                    return Ok(None);
-                }
+                let Some(inc) = map.incidence(mesh, p.eye, p.ray(f.code), limits) else { return Ok(None) };
                 let Some((px, _)) = cam.project(inc.point) else { return Ok(None) };
                 let pixel_mm = norm(sub(inc.point, cam.eye)) / cam.focal_px;
                 let radius = (PROJECTOR_SEARCH_MM / pixel_mm).ceil() as usize;
@@ -1089,19 +1091,51 @@ fn projector_hits(
                     return Ok(None);
                 };
                 let (point, n) = point_of(mesh, &map.world, map.turntable_deg, &on);
-                if facing(point, n) < PROJECTOR_MIN_FACING
-                    || norm(sub(point, inc.point)) > PROJECTOR_SEARCH_MM
-                {
-                    return Ok(None);
-                }
-                Ok(Some(HitPoint { code: f.code, point }))
+                Ok(Some(SeenSpot { code: f.code, point, facing: dot(n, normalize(sub(cam.eye, point))) }))
             })
             .collect();
+        let mut spots = Vec::new();
         for r in found {
-            hits.extend(r?);
+            spots.extend(r?);
         }
+        out.push(ViewSpots { pos: key.0, deg: fr[0].deg, spots });
     }
-    Ok(hits)
+    Ok(out)
+}
+
+/// The spots `projector` accepts: its beam enters clear of a glint, within
+/// [`PROJECTOR_MAX_ANGLE_DEG`] and where the surface faces the camera, and the spot seen lies
+/// within [`PROJECTOR_SEARCH_MM`] of that entry on a surface facing the camera too.
+fn judge_spots(
+    mesh: &SurfaceMesh,
+    setup: &DiscoSetup,
+    projector: &Projector,
+    limits: &ViewLimits,
+    views: &[ViewSpots],
+) -> Vec<HitPoint> {
+    let mut hits = Vec::new();
+    for v in views {
+        let map = ViewMap::new(mesh, &setup.cameras[v.pos].1, v.deg, limits);
+        let cam = &map.camera;
+        hits.par_extend(v.spots.par_iter().filter_map(|s| {
+            // A glint (the camera near the beam's mirror direction) puts the peak on the
+            // surface's reflection, not on the glow the other spots' peaks sit on: left out.
+            let inc = map
+                .incidence(mesh, projector.eye, projector.ray(s.code), limits)
+                .filter(|i| i.glint_mm == 0.0)?;
+            // Only spots well inside the object's outline, for beam and camera alike: near it
+            // the spot may be hidden and glow taken for it, and a grazing camera ray turns a
+            // pixel's error into millimetres on the surface.
+            let (_, n) = point_of(mesh, &map.world, map.turntable_deg, &inc.hit);
+            let facing = dot(n, normalize(sub(cam.eye, inc.point)));
+            (inc.angle_deg <= PROJECTOR_MAX_ANGLE_DEG
+                && facing >= PROJECTOR_MIN_FACING
+                && s.facing >= PROJECTOR_MIN_FACING
+                && norm(sub(s.point, inc.point)) <= PROJECTOR_SEARCH_MM)
+                .then_some(HitPoint { code: s.code, point: s.point })
+        }));
+    }
+    hits
 }
 
 /// A spot's local fit in `fit.json`: where and how its beam entered, the blur taken out, `m(d)`
