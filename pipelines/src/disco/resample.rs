@@ -483,6 +483,7 @@ impl Accumulator {
         (values, weights)
     }
 }
+
 /// The gradient of the weighted least-squares plane `y = a + g·q` through `(q, y, w)`; `None`
 /// with fewer than three points or when they are (nearly) collinear.
 pub fn plane_gradient(pts: &[([f64; 2], f64, f64)]) -> Option<[f64; 2]> {
