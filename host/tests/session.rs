@@ -9,15 +9,17 @@ use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::{Duration, Instant};
 
 use lightrig_firmware::sim::virtual_device_info;
-use lightrig_host::client::EventRecord;
 use lightrig_host::session::{
-    crc32, crc_of_file, decode_line, encode_line, pair, Arrival, CameraTriggers, Damage, Extra, ExtraReason,
-    Manifest, Pair, Pairing, PlanStep, PlanSummary, Record, Session, SessionError, State, Trigger,
+    crc32, crc_of_file, decode_line, encode_line, pair, trigger_events, Arrival, Damage, Extra, ExtraReason,
+    Manifest, Pair, Pairing, Record, Session, SessionError, SessionIndex, State, StepRecords, Trigger,
     FORMAT_VERSION, JOURNAL, MANIFEST,
 };
-use lightrig_protocol::config::Xy;
-use lightrig_protocol::event::{Snapshot, TriggerEvent};
+use lightrig_protocol::event::TriggerEvent;
 use lightrig_protocol::Event;
+
+#[path = "support/sessions.rs"]
+mod sessions;
+use sessions::{event_record, manifest, plan, trigger_event, triggers_of};
 
 // ---------------------------------------------------------------------------------------------
 // Helpers
@@ -53,66 +55,12 @@ impl Rng {
     }
 }
 
-fn plan(steps: u32, cameras: u8, frames: u32) -> PlanSummary {
-    PlanSummary {
-        steps: (0..steps)
-            .map(|id| PlanStep {
-                id: 10 + id,
-                name: format!("view {id}"),
-                triggers: (0..cameras).map(|camera| CameraTriggers { camera, count: frames }).collect(),
-                extra: serde_json::json!({ "turntable_deg": id * 30 }),
-            })
-            .collect(),
-        extra: serde_json::json!({ "planner": "test", "exposure_us": 1000 }),
-    }
-}
-
-fn manifest(plan: PlanSummary) -> Manifest {
-    Manifest::new("[rig]\nname = \"test rig\"\n", &virtual_device_info(), plan)
-}
-
-fn trigger_event(t: &Trigger) -> Event {
-    Event::Trigger(TriggerEvent {
-        sequence: t.sequence,
-        item: t.item,
-        frame: t.frame,
-        camera: t.camera,
-        tick: t.tick,
-        width: 100,
-        snapshot: Snapshot {
-            galvos: heapless::Vec::from_slice(&[Xy { x: 100, y: 200 }]).unwrap(),
-            axes: heapless::Vec::from_slice(&[1200, -5]).unwrap(),
-            filters: heapless::Vec::from_slice(&[Some(2)]).unwrap(),
-            lasers: 0b101,
-        },
-    })
-}
-
-/// The triggers a plan step fires in `sequence`: cameras interleaved, 1 ms apart.
-fn triggers_of(step: &PlanStep, sequence: u32) -> Vec<Trigger> {
-    let frames = step.triggers.iter().map(|t| t.count).max().unwrap_or(0);
-    let mut out = Vec::new();
-    for frame in 0..frames {
-        for t in step.triggers.iter().filter(|t| frame < t.count) {
-            let item = out.len() as u32;
-            let tick = 1_000_000 + u64::from(item) * 1000;
-            out.push(Trigger { sequence, item, camera: t.camera, frame, tick, host_us: Some(tick as f64) });
-        }
-    }
-    out
-}
-
 /// A frame's image: content and size depend on step, camera and frame only, so a re-acquired
 /// step writes the same bytes.
 fn image(step: u32, camera: u8, frame: u32) -> Vec<u8> {
     let mut rng = Rng(u64::from(step) << 40 | u64::from(camera) << 32 | u64::from(frame));
     let len = 1024 + rng.below(24 * 1024) as usize;
     (0..len).map(|_| rng.next() as u8).collect()
-}
-
-fn event_record(boot_id: u32, index: u32, event: Event) -> EventRecord {
-    let host_us = lightrig_host::client::event_tick(&event).map(|t| t as f64 + 0.25);
-    EventRecord { index, boot_id, event, host_us }
 }
 
 /// Every record of a journal, read without the session code's state machine.
@@ -262,6 +210,77 @@ fn round_trip_rebuilds_the_same_state() {
     drop(s);
     let (s, _) = Session::read(&dir).unwrap();
     assert_eq!(s.state().resumes, 1);
+    fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The session's triggers by `(sequence, item)`, from the whole journal.
+fn all_triggers(dir: &Path) -> BTreeMap<(u32, u32), TriggerEvent> {
+    trigger_events(dir).unwrap().into_iter().collect()
+}
+
+/// `SessionIndex::step` against `Session::read`'s state, step by step: the same frames, missing
+/// and extra records, each frame's trigger found in the step's own stretch of the journal.
+fn index_agrees_with_reading(dir: &Path) {
+    let (read, _) = Session::read(dir).unwrap();
+    let index = SessionIndex::read(dir).unwrap();
+    let triggers = all_triggers(dir);
+    assert_eq!(index.is_done(), read.is_done());
+    for step in &read.manifest().plan.steps {
+        let r = index.step(step.id).unwrap();
+        assert_eq!(index.done_attempt(step.id), read.state().done_attempt(step.id).map(|(n, _)| n));
+        assert_eq!(r.frames, read.frames_of(step.id), "step {}", step.id);
+        assert_eq!(r.missing, read.state().missing_of(step.id));
+        assert_eq!(r.extra, read.state().extra_of(step.id));
+        for camera in read.cameras() {
+            assert_eq!(
+                index.frame_count(step.id, camera) as usize,
+                read.camera_frames_of(step.id, camera).len()
+            );
+            assert!(r
+                .camera_frames(camera)
+                .map(|f| f.frame)
+                .eq(read.camera_frames_of(step.id, camera).iter().map(|f| f.frame)));
+        }
+        for f in &r.frames {
+            let t = r.trigger_of(f).unwrap_or_else(|| panic!("{}: no trigger", f.file));
+            assert_eq!(Some(t), triggers.get(&(f.sequence, f.item)));
+        }
+    }
+}
+
+#[test]
+fn the_index_reads_each_steps_completed_attempt_back_from_the_journal() {
+    let dir = scratch("index", true);
+    // Step 10 done (a missing frame, a duplicate), step 11 abandoned and then left open.
+    drop(populated(&dir));
+    index_agrees_with_reading(&dir);
+    let index = SessionIndex::read(&dir).unwrap();
+    assert_eq!((index.done_attempt(10), index.done_attempt(11)), (Some(1), None));
+    assert_eq!(index.step(10).unwrap().frames.len(), 5);
+    assert_eq!(index.step(11).unwrap(), StepRecords::default());
+    drop(index);
+
+    // Step 10 retaken for its missing frame: attempt 2 is the one read, not attempt 1.
+    let (mut s, _) = Session::open(&dir).unwrap();
+    assert_eq!(s.reopen_missing().unwrap(), vec![10]);
+    acquire_pending(&mut s);
+    s.finish().unwrap();
+    drop(s);
+    index_agrees_with_reading(&dir);
+    let index = SessionIndex::read(&dir).unwrap();
+    assert!(index.is_done());
+    assert_eq!(index.done_attempt(10), Some(2));
+    let r = index.step(10).unwrap();
+    assert_eq!((r.frames.len(), r.missing.len(), r.extra.len()), (6, 0, 1));
+    assert!(r.frames.iter().all(|f| f.attempt == 2 && f.file.starts_with("frames/step-000010/attempt-02/")));
+
+    // A journal cut short after the index was read: the step's records are refused, not half read.
+    let journal = dir.join(JOURNAL);
+    let bytes = fs::read(&journal).unwrap();
+    fs::write(&journal, &bytes[..bytes.len() / 2]).unwrap();
+    let last = *index.manifest().plan.steps.iter().map(|p| &p.id).max().unwrap();
+    let e = index.step(last).unwrap_err().to_string();
+    assert!(e.contains("the journal changed while it was read"), "{e}");
     fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -525,6 +544,13 @@ fn acquire(dir: &Path) {
     if s.is_done() {
         return;
     }
+    acquire_pending(&mut s);
+    s.finish().unwrap();
+}
+
+/// Acquires each of `s`'s pending steps, as device `BOOT`: every frame, plus a duplicate of each
+/// step's first.
+fn acquire_pending(s: &mut Session) {
     let mut info = virtual_device_info();
     info.boot_id = BOOT;
     s.device_connected(&info).unwrap();
@@ -542,11 +568,11 @@ fn acquire(dir: &Path) {
         let triggers = triggers_of(&step, sequence);
         let mut arrivals = Vec::new();
         for t in &triggers {
-            event(&mut s, trigger_event(t));
+            event(s, trigger_event(t));
             arrivals.push(Arrival { camera: t.camera, frame: Some(t.frame), host_us: t.tick as f64 + 900.0 });
         }
         arrivals.push(arrivals[0]);
-        event(&mut s, Event::SequenceDone { sequence, items: triggers.len() as u32, tick: 2_000_000 });
+        event(s, Event::SequenceDone { sequence, items: triggers.len() as u32, tick: 2_000_000 });
         let pairing = pair(&triggers, &arrivals, 5_000.0);
         for p in &pairing.pairs {
             s.store_frame(p, "raw", &image(id, p.trigger.camera, p.trigger.frame)).unwrap();
@@ -556,7 +582,6 @@ fn acquire(dir: &Path) {
         }
         s.finish_step().unwrap();
     }
-    s.finish().unwrap();
 }
 
 /// The child side of `kill_and_resume_loses_and_duplicates_nothing`: runs only when re-executed

@@ -61,7 +61,7 @@ use serde_json::{json, Value};
 use super::{fail, FitError};
 use crate::disco::DiscoSetup;
 use crate::rigfile::RigFile;
-use crate::session::{trigger_events, FrameRecord, Session};
+use crate::session::{FrameRecord, SessionIndex, StepId, StepRecords};
 
 /// A frame is noise below this many background σ.
 pub const FLOOR_SIGMAS: f32 = 5.0;
@@ -249,7 +249,9 @@ pub fn fit_session(
     mesh: Option<&Path>,
     progress: &(dyn Fn(u64, u64) + Sync),
 ) -> Result<DiscoFit, FitError> {
-    let (s, _) = Session::read(dir).map_err(|e| fail(e.to_string()))?;
+    // The journal indexed, each step's records read back when it is processed: memory does
+    // not grow with the session's frames.
+    let s = SessionIndex::read(dir).map_err(|e| fail(e.to_string()))?;
     let m = s.manifest();
     let method = m.plan.extra.get("method").and_then(Value::as_str).unwrap_or("");
     if method != "disco" {
@@ -287,7 +289,6 @@ pub fn fit_session(
         return Err(fail(format!("{}: the mesh has no surface", mesh_path.display())));
     }
     let camera = s.pipeline_camera(None).map_err(fail)?;
-    let triggers = trigger_events(dir).map_err(|e| fail(e.to_string()))?;
     let table = rig
         .stepper_named("turntable")
         .or_else(|| rig.steppers.iter().find(|x| x.kind == lightrig_protocol::config::AxisKind::Rotary))
@@ -302,11 +303,7 @@ pub fn fit_session(
             a.iter().filter_map(|p| Some([p.get(0)?.as_u64()? as u16, p.get(1)?.as_u64()? as u16])).collect()
         })
         .unwrap_or_default();
-    let trig = |f: &FrameRecord| -> Result<&TriggerEvent, FitError> {
-        triggers.get(&(f.sequence, f.item)).ok_or_else(|| {
-            fail(format!("{}: frame {} has no trigger record in the journal", dir.display(), f.file))
-        })
-    };
+    let records = |id: StepId| s.step(id).map_err(|e| fail(e.to_string()));
 
     // 1. White balance, from the `white` step wherever the plan has it (read once the
     // projector is fitted, below).
@@ -351,15 +348,7 @@ pub fn fit_session(
     let registration = match spotlights {
         None => None,
         Some(c) => {
-            let frames = registration_frames(
-                &s,
-                &m.plan.steps,
-                camera,
-                c,
-                &|f| trig(f).map(|t| (*t).clone()),
-                table,
-                dir,
-            )?;
+            let frames = registration_frames(&s, &m.plan.steps, camera, c, table, dir)?;
             Some(register_mesh(&scan, &mesh_path, &setup, &frames, (w, h))?)
         }
     };
@@ -389,17 +378,17 @@ pub fn fit_session(
         }
         // The green laser's spots (the brightest in the camera); where a view has too few,
         // every laser's (a spot's peak is where its beam enters, whatever its colour).
-        let laser: Vec<(FrameRecord, &TriggerEvent, usize)> = s
-            .camera_frames_of(p.id, camera)
-            .into_iter()
+        let step = records(p.id)?;
+        let laser: Vec<(&FrameRecord, &TriggerEvent, usize)> = step
+            .camera_frames(camera)
             .filter_map(|f| {
-                let t = triggers.get(&(f.sequence, f.item))?;
+                let t = step.trigger_of(f)?;
                 let c = channel_of(t)?;
                 Some((f, t, c))
             })
             .collect();
         let green = laser.iter().filter(|x| x.2 == 1).count();
-        let lit: Vec<(FrameRecord, &TriggerEvent)> = laser
+        let lit: Vec<(&FrameRecord, &TriggerEvent)> = laser
             .into_iter()
             .filter(|x| green < PROJECTOR_SPOTS_PER_VIEW || x.2 == 1)
             .map(|(f, t, _)| (f, t))
@@ -431,8 +420,9 @@ pub fn fit_session(
         let (_, cam) = setup.cameras[0];
         let mut sums = [(0.0, 0usize); 3];
         let mut widths = Vec::new();
-        for f in &s.camera_frames_of(p.id, camera) {
-            let t = trig(f)?;
+        let step = records(p.id)?;
+        for f in step.camera_frames(camera) {
+            let t = trigger(&step, f, dir)?;
             let Some(c) = channel_of(t) else { continue };
             let img = read_plane(&dir.join(&f.file), w, h)?;
             let code = t.snapshot.galvos.first().map_or([0.0; 2], |g| [f64::from(g.x), f64::from(g.y)]);
@@ -460,7 +450,7 @@ pub fn fit_session(
     // 2–3. Step by step: each new view mapped once, the step's frames streamed a chunk at a
     // time (memory: `F`'s sums, the views, one chunk of frames, the step's job list).
     let grid_index: HashMap<[u16; 2], usize> = grid.iter().enumerate().map(|(i, &g)| (g, i)).collect();
-    let total: u64 = view_steps.iter().map(|p| s.camera_frames_of(p.id, camera).len() as u64).sum();
+    let total: u64 = view_steps.iter().map(|p| u64::from(s.frame_count(p.id, camera))).sum();
     let mut views: Vec<(usize, f64)> = Vec::new();
     let mut maps: Vec<ViewMap> = Vec::new();
     let n = mesh.vertices.len();
@@ -494,10 +484,10 @@ pub fn fit_session(
                 setup.cameras.len()
             )));
         }
-        let step_frames = s.camera_frames_of(p.id, camera);
+        let step = records(p.id)?;
         let mut jobs: Vec<Job> = Vec::new();
-        for f in &step_frames {
-            let t = trig(f)?;
+        for f in step.camera_frames(camera) {
+            let t = trigger(&step, f, dir)?;
             let Some(c) = channel_of(t) else {
                 done_count += 1;
                 continue; // the registration frame
@@ -805,14 +795,20 @@ struct RegistrationFrame {
     file: PathBuf,
 }
 
+/// The trigger event `f` was paired with, or an error naming the frame.
+fn trigger<'a>(step: &'a StepRecords, f: &FrameRecord, dir: &Path) -> Result<&'a TriggerEvent, FitError> {
+    step.trigger_of(f).ok_or_else(|| {
+        fail(format!("{}: frame {} has no trigger record in the journal", dir.display(), f.file))
+    })
+}
+
 /// Each view step's registration frame (the spotlights on channel `spot` alone); a view without
 /// one is refused.
 fn registration_frames(
-    s: &Session,
+    s: &SessionIndex,
     steps: &[crate::session::PlanStep],
     camera: u8,
     spot: u8,
-    trig: &dyn Fn(&FrameRecord) -> Result<TriggerEvent, FitError>,
     table: &crate::rigfile::Stepper,
     dir: &Path,
 ) -> Result<Vec<RegistrationFrame>, FitError> {
@@ -823,8 +819,9 @@ fn registration_frames(
             continue;
         }
         let mut found = None;
-        for f in &s.camera_frames_of(p.id, camera) {
-            let t = trig(f)?;
+        let step = s.step(p.id).map_err(|e| fail(e.to_string()))?;
+        for f in step.camera_frames(camera) {
+            let t = trigger(&step, f, dir)?;
             if t.snapshot.lasers == 1 << spot {
                 let steps = t.snapshot.axes.get(usize::from(table.axis)).copied().unwrap_or(0);
                 found = Some((f.file.clone(), table.units(i64::from(steps)).unwrap_or(0.0)));

@@ -23,6 +23,7 @@
 //! opened again, and the step is acquired anew as the next attempt.
 
 mod fsutil;
+mod index;
 mod journal;
 mod pairing;
 mod records;
@@ -42,6 +43,7 @@ use lightrig_protocol::session::DeviceInfo;
 use crate::client::EventRecord;
 
 pub use fsutil::{now_rfc3339, rfc3339};
+pub use index::{SessionIndex, StepRecords};
 pub use journal::{crc32, decode_line, encode_line, Crc32, Damage};
 pub use pairing::{camera_clock, off_their_triggers, pair, repair_by_stamps, Arrival, CameraClock, Extra};
 pub use pairing::{ExtraReason, Pair, Pairing, RobustClock, Trigger};
@@ -597,27 +599,13 @@ impl Session {
 
     /// The cameras the plan triggers, in increasing order.
     pub fn cameras(&self) -> Vec<u8> {
-        let mut c: Vec<u8> =
-            self.manifest.plan.steps.iter().flat_map(|s| s.triggers.iter().map(|t| t.camera)).collect();
-        c.sort_unstable();
-        c.dedup();
-        c
+        cameras(&self.manifest)
     }
 
     /// The camera a single-camera pipeline reads: `wanted` if the plan triggers it, else the
     /// plan's only camera, or its lowest one when it has several (the error says which exist).
     pub fn pipeline_camera(&self, wanted: Option<u8>) -> std::result::Result<u8, String> {
-        let cameras = self.cameras();
-        match (wanted, cameras.first()) {
-            (Some(c), _) if cameras.contains(&c) => Ok(c),
-            (Some(c), _) => Err(format!(
-                "{}: the session has no frames from camera {c} (its cameras: {:?}); pick one of those with --camera",
-                self.dir.display(),
-                cameras
-            )),
-            (None, Some(&c)) => Ok(c),
-            (None, None) => Err(format!("{}: the session's plan triggers no camera", self.dir.display())),
-        }
+        pipeline_camera(&self.manifest, &self.dir, wanted)
     }
 
     /// The plan's steps not done yet, in plan order (those of `plan`, which may differ from the
@@ -1058,6 +1046,30 @@ fn check_plan(m: &Manifest) -> Result<(), String> {
         }
     }
     Ok(())
+}
+
+/// The cameras `manifest`'s plan triggers, in increasing order.
+fn cameras(manifest: &Manifest) -> Vec<u8> {
+    let mut c: Vec<u8> =
+        manifest.plan.steps.iter().flat_map(|s| s.triggers.iter().map(|t| t.camera)).collect();
+    c.sort_unstable();
+    c.dedup();
+    c
+}
+
+/// [`Session::pipeline_camera`] of the session in `dir` with `manifest`.
+fn pipeline_camera(manifest: &Manifest, dir: &Path, wanted: Option<u8>) -> std::result::Result<u8, String> {
+    let cameras = cameras(manifest);
+    match (wanted, cameras.first()) {
+        (Some(c), _) if cameras.contains(&c) => Ok(c),
+        (Some(c), _) => Err(format!(
+            "{}: the session has no frames from camera {c} (its cameras: {:?}); pick one of those with --camera",
+            dir.display(),
+            cameras
+        )),
+        (None, Some(&c)) => Ok(c),
+        (None, None) => Err(format!("{}: the session's plan triggers no camera", dir.display())),
+    }
 }
 
 fn read_manifest(dir: &Path) -> Result<Manifest> {
