@@ -424,6 +424,7 @@ impl Accumulator {
             }
             plane_gradient(pts).unwrap_or([0.0, 0.0])
         };
+        let half_edge = 0.5 * mesh.mean_edge(); // a sum over every edge: once, not per entry
         let mut values: Vec<[f32; 3]> = vec![[0.0; 3]; n * n];
         let mut weights: Vec<f32> = vec![0.0; n * n];
         values.par_chunks_mut(n).zip(weights.par_chunks_mut(n)).enumerate().for_each(|(k, (vcol, wcol))| {
@@ -460,7 +461,7 @@ impl Accumulator {
                         Some(rates) => {
                             let xr = mesh.vertices[r];
                             let dv = sub(xk, xr);
-                            let d = norm(dv).max(0.5 * mesh.mean_edge());
+                            let d = norm(dv).max(half_edge);
                             let k_ = -(rates[c] + 2.0 / d) / d;
                             [k_ * dot(dv, tk[0]), k_ * dot(dv, tk[1])]
                         }
