@@ -280,7 +280,7 @@ fn the_index_reads_each_steps_completed_attempt_back_from_the_journal() {
     fs::write(&journal, &bytes[..bytes.len() / 2]).unwrap();
     let last = *index.manifest().plan.steps.iter().map(|p| &p.id).max().unwrap();
     let e = index.step(last).unwrap_err().to_string();
-    assert!(e.contains("the journal changed while it was read"), "{e}");
+    assert!(e.contains("the journal changed after the session was read"), "{e}");
     fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -24,6 +24,9 @@ use super::records::{ExtraRecord, FrameRecord, Manifest, MissingRecord, Record, 
 use super::state::{Outcome, State};
 use super::{io_at, read_manifest, Result, SessionError, JOURNAL};
 
+/// What a step's records read back no longer matching the index means, and what to do.
+const CHANGED: &str = "the journal changed after the session was read: read it again";
+
 /// Where one attempt's records lie in the journal, and what it holds.
 #[derive(Debug, Clone, PartialEq)]
 struct AttemptSpan {
@@ -188,15 +191,10 @@ impl SessionIndex {
         file.seek(SeekFrom::Start(span.start)).map_err(io_at(&path))?;
         let mut reader = BufReader::with_capacity(1 << 16, file.take(span.end - span.start));
         let mut line = Vec::new();
-        let changed = |detail: String| {
-            SessionError::Corrupt {
+        let changed = |detail: String| SessionError::Corrupt {
             path: path.clone(),
             line: 0,
-            detail: format!(
-                "{detail} at byte {} or after, where step {step}'s records were when the session was read; the journal changed while it was read: read the session again",
-                span.start
-            ),
-        }
+            detail: format!("step {step}'s records from byte {}: {detail}; {CHANGED}", span.start),
         };
         let (mut first, mut read) = (true, 0u64);
         loop {
