@@ -586,6 +586,12 @@ fn run_lossy(seed: u64, faults: Faults, n_host: u32, n_dev: u32) -> (Vec<HostMsg
             h.send(req(sent_h as u16)).unwrap();
             sent_h += 1;
         }
+        // The host's heartbeat, as the client sends one: a device that stopped retransmitting
+        // to a host silent for GIVE_UP_TIMEOUTS (every ack of its last message lost) resumes
+        // when it hears one; a host with nothing more to send would otherwise never speak.
+        if now % HEARTBEAT == 0 && h.state() == LinkState::Up {
+            h.send_datagram(req(u16::MAX)).unwrap();
+        }
         while sent_d < n_dev && d.free() > 0 && d.state() == LinkState::Up {
             d.send(ev(sent_d)).unwrap();
             sent_d += 1;
@@ -597,6 +603,7 @@ fn run_lossy(seed: u64, faults: Faults, n_host: u32, n_dev: u32) -> (Vec<HostMsg
             if let Some(f) = h2d.pop_front() {
                 d.receive_all(&f, now, |x| match x {
                     Delivery::Message(m) => to_dev.push(m),
+                    Delivery::Datagram(m) => assert_eq!(m, req(u16::MAX), "only heartbeats"),
                     Delivery::Connected { epoch } => assert_eq!(epoch, 1, "one epoch only"),
                     other => panic!("device got {other:?}"),
                 });
@@ -619,6 +626,19 @@ fn run_lossy(seed: u64, faults: Faults, n_host: u32, n_dev: u32) -> (Vec<HostMsg
         to_dev.len(),
         to_host.len()
     );
+}
+
+/// Ticks between the host's heartbeats in [`run_lossy`] (20 RTO).
+const HEARTBEAT: u64 = 20 * RTO;
+
+/// A case the property found: every message delivered, but every ack of the device's last ones
+/// lost until it gave up on the host, which had nothing more to send; its heartbeat revives it.
+#[test]
+fn a_device_that_gave_up_on_a_silent_host_resumes_at_its_heartbeat() {
+    let faults = Faults { drop: 253, duplicate: 141, reorder: 276, corrupt: 184 };
+    let (to_dev, to_host) = run_lossy(2514677830614570351, faults, 48, 39);
+    assert_eq!(to_dev, (0..48).map(req).collect::<Vec<_>>());
+    assert_eq!(to_host, (0..39).map(ev).collect::<Vec<_>>());
 }
 
 proptest! {
