@@ -25,7 +25,7 @@ mod spectral_exr;
 
 pub use self::buffer::{linear_to_srgb, srgb_to_linear, Encoding, Image};
 pub use self::error::IoError;
-pub use self::exr_io::{read_exr_layers, write_exr, write_exr_layers, ExrPrecision, Layer};
+pub use self::exr_io::{read_exr_layers, read_exr_rows, write_exr, write_exr_layers, ExrPrecision, Layer};
 pub use self::raster::{write_png, write_png_with, write_tiff, write_tiff_with, BitDepth, WriteOptions};
 pub use self::spectral_exr::{parse_wavelength, wavelength_name, BispectralImage, Nm};
 
@@ -66,6 +66,24 @@ pub fn read(path: impl AsRef<Path>) -> Result<Image, IoError> {
 /// Reads a PNG, TIFF or EXR file; the format is recognised by its magic bytes, not its extension.
 pub fn read_with(path: impl AsRef<Path>, opts: ReadOptions) -> Result<Image, IoError> {
     read_inner(path.as_ref(), opts).map(|(image, _)| image)
+}
+
+/// Reads rows `rows` of an image: of a one-channel EXR only the blocks of scanlines that hold them
+/// are decompressed (see [`read_exr_rows`]); anything else is read whole. Returns the image at
+/// full size, zero outside the rows read, and the rows read (a superset of `rows` within the
+/// image: whole EXR blocks, or every row).
+pub fn read_rows(
+    path: impl AsRef<Path>,
+    rows: std::ops::Range<u32>,
+) -> Result<(Image, std::ops::Range<u32>), IoError> {
+    let path = path.as_ref();
+    match sniff(path)? {
+        Format::Exr => read_exr_rows(path, rows),
+        _ => read(path).map(|image| {
+            let h = image.height;
+            (image, 0..h)
+        }),
+    }
 }
 
 /// Reads a series of frames (e.g. an exposure stack) that must share size, channel count and bit

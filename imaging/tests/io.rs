@@ -3,8 +3,8 @@
 use std::path::PathBuf;
 
 use lightrig_imaging::io::{
-    linear_to_srgb, read, read_exr_layers, read_stack, read_with, srgb_to_linear, write_exr,
-    write_exr_layers, write_png, write_png_with, write_tiff, write_tiff_with, BitDepth, Encoding,
+    linear_to_srgb, read, read_exr_layers, read_exr_rows, read_rows, read_stack, read_with, srgb_to_linear,
+    write_exr, write_exr_layers, write_png, write_png_with, write_tiff, write_tiff_with, BitDepth, Encoding,
     ExrPrecision, Image, IoError, Layer, ReadOptions, WriteOptions,
 };
 
@@ -183,6 +183,68 @@ fn exr_float_is_exact_and_half_within_precision() {
         );
         for (a, b) in back.data.iter().zip(&image.data) {
             assert!((a - b).abs() <= b.abs() * 2f32.powi(-11) + 1e-7, "{a} vs {b}");
+        }
+    }
+}
+
+#[test]
+fn a_band_of_rows_decodes_only_the_blocks_that_hold_it() {
+    let dir = temp_dir("exr-rows");
+    // ZIP: blocks of 16 scanlines; 70 rows = 4 whole blocks and one of 6.
+    let image = Image::from_fn(37, 70, 1, |x, y, _| (x as f32 - 5.5) * 0.25 + y as f32 * 100.0);
+    for (precision, tol) in [(ExrPrecision::Float, 0.0f32), (ExrPrecision::Half, 2f32.powi(-11))] {
+        let path = dir.join(format!("y-{precision:?}.exr"));
+        write_exr(&path, &image, precision).unwrap();
+        for (asked, read_rows) in
+            [(20..21, 16..32), (15..33, 0..48), (60..99, 48..70), (0..70, 0..70), (80..90, 70..70)]
+        {
+            let (band, rows) = read_exr_rows(&path, asked.clone()).unwrap();
+            assert_eq!(rows, read_rows, "{asked:?}");
+            assert_eq!(
+                (band.width, band.height, band.channels, band.encoding),
+                (37, 70, 1, Encoding::Linear)
+            );
+            for y in 0..70u32 {
+                for x in 0..37u32 {
+                    let (got, want) = (band.pixel(x, y)[0], image.pixel(x, y)[0]);
+                    if rows.contains(&y) {
+                        assert!((got - want).abs() <= want.abs() * tol, "({x}, {y}): {got} vs {want}");
+                    } else {
+                        assert_eq!(got, 0.0, "({x}, {y}) outside the band");
+                    }
+                }
+            }
+        }
+    }
+    // Three channels: read whole, every row reported read.
+    let rgb = ramp(9, 40, 3, 255).with_encoding(Encoding::Linear);
+    let path = dir.join("rgb.exr");
+    write_exr(&path, &rgb, ExrPrecision::Float).unwrap();
+    assert_eq!(read_exr_rows(&path, 3..4).unwrap(), (rgb, 0..40));
+    // Not an EXR: read whole.
+    let png_image = srgb(ramp(5, 33, 1, 255));
+    let png = dir.join("y.png");
+    write_png(&png, &png_image, BitDepth::Eight).unwrap();
+    assert_eq!(read_rows(&png, 3..4).unwrap(), (png_image, 0..33));
+    let (band, rows) = read_rows(dir.join("y-Float.exr"), 20..21).unwrap();
+    assert_eq!((rows, band.pixel(3, 20)[0]), (16..32, image.pixel(3, 20)[0]));
+    // A damaged file is an error naming it, not a panic or a short band.
+    let bytes = std::fs::read(dir.join("y-Float.exr")).unwrap();
+    let cut = dir.join("cut.exr");
+    std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
+    let err = read_exr_rows(&cut, 60..70).unwrap_err();
+    assert_eq!(err.path(), cut, "{err}");
+    assert!(read_exr_rows(dir.join("missing.exr"), 0..1).is_err());
+    // Bytes flipped anywhere (header, offset table, blocks): an answer or an error, never a
+    // panic, and an answer is the image's size.
+    let bad = dir.join("flipped.exr");
+    for k in (0..bytes.len()).step_by(97) {
+        let mut b = bytes.clone();
+        b[k] ^= 0x5a;
+        std::fs::write(&bad, &b).unwrap();
+        if let Ok((band, rows)) = read_exr_rows(&bad, 30..40) {
+            assert_eq!(band.data.len(), band.width as usize * band.height as usize * usize::from(band.channels));
+            assert!(rows.end <= band.height, "byte {k}");
         }
     }
 }

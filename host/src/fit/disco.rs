@@ -30,6 +30,7 @@
 
 use std::collections::HashMap;
 use std::io::Write;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 use lightrig_pipelines::disco::atlas::Atlas;
@@ -43,7 +44,7 @@ use lightrig_pipelines::disco::local::{
     pool, spot_samples, spot_sigma, Blurs, LocalAccumulator, LocalParams, LocalTextures, PoolSpot, SpotKernel,
 };
 use lightrig_pipelines::disco::mesh::SurfaceMesh;
-use lightrig_pipelines::disco::optics::{point_of, Pinhole, Projector};
+use lightrig_pipelines::disco::optics::{point_of, Hit, Pinhole, Projector};
 use lightrig_pipelines::disco::projector_pose::{entry_shift, fit_projector, HitPoint, ProjectorFit};
 use lightrig_pipelines::disco::register::{
     agreement, register_global, render, silhouette, Pose, SilhouetteView, ViewAgreement,
@@ -240,6 +241,41 @@ fn read_plane(path: &Path, w: u32, h: u32) -> Result<Vec<f32>, FitError> {
     }
     let c = usize::from(img.channels.max(1));
     Ok(img.data.iter().step_by(c).copied().collect())
+}
+
+/// Rows `rows` of a one-channel frame (of an EXR, only the blocks that hold them decoded): the
+/// plane at full size, zero outside the rows read, and those rows (a superset of `rows`).
+fn read_band(path: &Path, w: u32, h: u32, rows: Range<usize>) -> Result<(Vec<f32>, Range<usize>), FitError> {
+    let (img, read) = lightrig_imaging::io::read_rows(path, rows.start as u32..rows.end as u32)
+        .map_err(|e| fail(format!("{}: {e}", path.display())))?;
+    if img.width != w || img.height != h {
+        return Err(fail(format!(
+            "{}: the frame is {} × {}, the rig file's [plan.fit] image is {w} × {h}; fix image (or the camera's ROI)",
+            path.display(),
+            img.width,
+            img.height
+        )));
+    }
+    let c = usize::from(img.channels.max(1));
+    let plane = if c == 1 { img.data } else { img.data.iter().step_by(c).copied().collect() };
+    Ok((plane, read.start as usize..read.end as usize))
+}
+
+/// The rows of a view's frames that show the object, `margin` rows either side (a bilinear
+/// look-up at a vertex on the outline reaches a row past it): all the frame pass reads.
+fn object_rows(map: &ViewMap, w: usize, h: usize, margin: usize) -> Range<usize> {
+    let first = map.surface.iter().position(Option::is_some);
+    let last = map.surface.iter().rposition(Option::is_some);
+    match (first, last) {
+        (Some(a), Some(b)) => (a / w).saturating_sub(margin)..(b / w + 1 + margin).min(h),
+        _ => 0..0,
+    }
+}
+
+/// The background's noise in the rows of a frame that were read (see [`background_sigma`]).
+fn band_sigma(img: &[f32], surface: &[Option<Hit>], w: usize, rows: &Range<usize>) -> f32 {
+    let r = rows.start * w..rows.end * w;
+    background_sigma(&img[r.clone()], &surface[r], 7)
 }
 
 /// Reads and fits the DISCO session in `dir`; `mesh` overrides `[plan.fit] mesh`. `progress`
@@ -453,6 +489,8 @@ pub fn fit_session(
     let total: u64 = view_steps.iter().map(|p| u64::from(s.frame_count(p.id, camera))).sum();
     let mut views: Vec<(usize, f64)> = Vec::new();
     let mut maps: Vec<ViewMap> = Vec::new();
+    // Per view, the rows of its frames that show the object.
+    let mut bands: Vec<Range<usize>> = Vec::new();
     let n = mesh.vertices.len();
     let mut acc = Accumulator::new(&mesh);
     let (mut frames, mut used, mut missed, mut seen, mut offsets) =
@@ -500,6 +538,7 @@ pub fn fit_session(
                     views.push((pos, deg));
                     let map = ViewMap::new(&mesh, &setup.cameras[pos].1, deg, &limits);
                     detail_views.push(DetailView::new(&mesh, &atlas, &map, &detail_params));
+                    bands.push(object_rows(&map, w as usize, h as usize, 4));
                     maps.push(map);
                     views.len() - 1
                 }
@@ -514,12 +553,12 @@ pub fn fit_session(
             let results: Vec<Result<Done, FitError>> = chunk
                 .par_iter()
                 .map(|j| {
-                    let img = read_plane(&j.file, w, h)?;
                     let map = &maps[j.view];
+                    let (img, rows) = read_band(&j.file, w, h, bands[j.view].clone())?;
                     let origin = setup.projector.eye;
                     let dir_ = setup.projector.ray([f64::from(j.code[0]), f64::from(j.code[1])]);
                     let inc = map.incidence(&mesh, origin, dir_, &limits);
-                    let floor = FLOOR_SIGMAS * background_sigma(&img, &map.surface, 7);
+                    let floor = FLOOR_SIGMAS * band_sigma(&img, &map.surface, w as usize, &rows);
                     let peak_offset = inc.as_ref().and_then(|inc| spot_offset(&mesh, map, inc, &img, floor));
                     let local = match &inc {
                         // A glint would be the fast term: such a spot is not fitted.
@@ -1070,12 +1109,22 @@ fn projector_spots(
         let found: Vec<Result<Option<SeenSpot>, FitError>> = fr
             .par_iter()
             .map(|f| {
-                let img = read_plane(&f.file, w, h)?;
                 let Some(inc) = map.incidence(mesh, p.eye, p.ray(f.code), limits) else { return Ok(None) };
                 let Some((px, _)) = cam.project(inc.point) else { return Ok(None) };
                 let pixel_mm = norm(sub(inc.point, cam.eye)) / cam.focal_px;
                 let radius = (PROJECTOR_SEARCH_MM / pixel_mm).ceil() as usize;
-                let floor = FLOOR_SIGMAS * background_sigma(&img, &map.surface, 7);
+                // Only the rows the search window covers are decoded, the noise measured
+                // on the background beside the object in them.
+                // (The whole frame where the object fills those rows from edge to edge.)
+                let y = px[1].floor().max(0.0) as usize;
+                let (mut img, rows) = read_band(&f.file, w, h, y.saturating_sub(radius + 1)..y + radius + 2)?;
+                let mut sigma = band_sigma(&img, &map.surface, w as usize, &rows);
+                if sigma == 0.0 {
+                    let (whole, all) = read_band(&f.file, w, h, 0..h as usize)?;
+                    sigma = band_sigma(&whole, &map.surface, w as usize, &all);
+                    img = whole;
+                }
+                let floor = FLOOR_SIGMAS * sigma;
                 let Some(peak) = spot_peak(&img, w as usize, h as usize, px, radius, floor) else {
                     return Ok(None);
                 };

@@ -321,3 +321,111 @@ fn map_exr_error(path: &Path, e: x::Error) -> IoError {
         other => IoError::Decode { path: path.into(), detail: other.to_string() },
     }
 }
+
+/// Rows `rows` (clamped to the image) of a one-channel EXR, only the blocks of scanlines that
+/// hold them decompressed: what a fit needs from a frame whose light falls in a band of it.
+/// Returns the image at full size, every row outside the blocks read left at 0, and the rows
+/// actually read (`rows` widened to whole blocks). Any other EXR (several channels or parts,
+/// tiles, an offset data window, integer samples) is read whole, and all its rows reported read.
+pub fn read_exr_rows(
+    path: impl AsRef<Path>,
+    rows: std::ops::Range<u32>,
+) -> Result<(Image, std::ops::Range<u32>), IoError> {
+    let path = path.as_ref();
+    // Third-party decoder fed untrusted bytes, as in `read_layers`.
+    let band = std::panic::catch_unwind(|| read_band(path, rows)).map_err(|_| IoError::Decode {
+        path: path.into(),
+        detail: "EXR decoder failed (corrupt file?)".into(),
+    })??;
+    match band {
+        Some(b) => Ok(b),
+        None => {
+            let (image, _) = read_single(path)?;
+            let h = image.height;
+            Ok((image, 0..h))
+        }
+    }
+}
+
+/// [`read_exr_rows`]'s block-level path; `None` for a file it leaves to the whole-image reader.
+fn read_band(
+    path: &Path,
+    rows: std::ops::Range<u32>,
+) -> Result<Option<(Image, std::ops::Range<u32>)>, IoError> {
+    use exr::block::chunk::Chunk;
+    use exr::block::reader::ChunksReader;
+    use exr::block::UncompressedBlock;
+    use exr::meta::attribute::SampleType;
+    let file = std::fs::File::open(path).map_err(|source| IoError::Open { path: path.into(), source })?;
+    let file_len = file.metadata().map_err(|source| IoError::Open { path: path.into(), source })?.len();
+    let reader =
+        exr::block::read(std::io::BufReader::new(file), false).map_err(|e| map_exr_error(path, e))?;
+    let [header] = reader.headers() else { return Ok(None) };
+    let channels = &header.channels.list;
+    let simple = channels.len() == 1
+        && channels[0].sampling == x::Vec2(1, 1)
+        && matches!(channels[0].sample_type, SampleType::F32 | SampleType::F16)
+        && !header.deep
+        && matches!(header.blocks, exr::meta::BlockDescription::ScanLines)
+        && header.own_attributes.layer_position == x::Vec2(0, 0);
+    if !simple {
+        return Ok(None);
+    }
+    let (w, h) = (header.layer_size.0, header.layer_size.1);
+    let (Ok(width), Ok(height)) = (u32::try_from(w), u32::try_from(h)) else { return Ok(None) };
+    // The same guard as `read_layers`: a header cannot promise more pixels than the file holds.
+    if (w as u64).saturating_mul(h as u64).saturating_mul(4)
+        > file_len.saturating_mul(MAX_EXPANSION).max(MIN_BUDGET)
+    {
+        return Err(IoError::Decode {
+            path: path.into(),
+            detail: format!("header promises {w} × {h} pixels, impossible for a {file_len}-byte file (corrupt or truncated)"),
+        });
+    }
+    let half = channels[0].sample_type == SampleType::F16;
+    let (y0, y1) = (rows.start.min(height) as usize, rows.end.min(height) as usize);
+    let (mut lo, mut hi) = (usize::MAX, 0usize);
+    let chunks = reader
+        .filter_chunks(false, |_, _, b| {
+            let keep = b.pixel_position.y() < y1 && b.pixel_position.y() + b.pixel_size.height() > y0;
+            if keep {
+                lo = lo.min(b.pixel_position.y());
+                hi = hi.max(b.pixel_position.y() + b.pixel_size.height());
+            }
+            keep
+        })
+        .map_err(|e| map_exr_error(path, e))?;
+    let meta = chunks.meta_data().clone();
+    let mut data = vec![0.0f32; w * h];
+    let mut chunks = chunks;
+    let mut line16: Vec<x::f16> = Vec::new();
+    while let Some(chunk) = chunks.read_next_chunk() {
+        let chunk: Chunk = chunk.map_err(|e| map_exr_error(path, e))?;
+        let block =
+            UncompressedBlock::decompress_chunk(chunk, &meta, false).map_err(|e| map_exr_error(path, e))?;
+        for line in block.lines(&meta.headers[0].channels) {
+            let (x0, y, n) =
+                (line.location.position.x(), line.location.position.y(), line.location.sample_count);
+            if y >= h || x0 + n > w {
+                return Err(IoError::Decode {
+                    path: path.into(),
+                    detail: format!("scanline {y} outside the image"),
+                });
+            }
+            let out = &mut data[y * w + x0..y * w + x0 + n];
+            let read = if half {
+                line16.resize(n, x::f16::ZERO);
+                line.read_samples_into_slice(&mut line16).map(|()| {
+                    for (o, v) in out.iter_mut().zip(&line16) {
+                        *o = v.to_f32();
+                    }
+                })
+            } else {
+                line.read_samples_into_slice(out)
+            };
+            read.map_err(|e| map_exr_error(path, e))?;
+        }
+    }
+    let read = if lo < hi { lo as u32..hi as u32 } else { y0 as u32..y0 as u32 };
+    Ok(Some((Image { width, height, channels: 1, data, encoding: Encoding::Linear }, read)))
+}
