@@ -243,7 +243,10 @@ fn a_band_of_rows_decodes_only_the_blocks_that_hold_it() {
         b[k] ^= 0x5a;
         std::fs::write(&bad, &b).unwrap();
         if let Ok((band, rows)) = read_exr_rows(&bad, 30..40) {
-            assert_eq!(band.data.len(), band.width as usize * band.height as usize * usize::from(band.channels));
+            assert_eq!(
+                band.data.len(),
+                band.width as usize * band.height as usize * usize::from(band.channels)
+            );
             assert!(rows.end <= band.height, "byte {k}");
         }
     }

@@ -549,8 +549,11 @@ pub fn fit_session(
             jobs.push(Job { view, channel: c, code, file: dir.join(&f.file), held_out });
         }
         frames += jobs.len();
-        for chunk in jobs.chunks(64) {
-            let results: Vec<Result<Done, FitError>> = chunk
+        // A chunk decoded while the one before is summed into `F` (in order, on one thread):
+        // the sums do not wait for the decoding nor leave a core idle (two chunks of 32 frames
+        // held at a time).
+        let decode = |chunk: &[Job]| -> Vec<Result<Done, FitError>> {
+            chunk
                 .par_iter()
                 .map(|j| {
                     let map = &maps[j.view];
@@ -596,92 +599,108 @@ pub fn fit_session(
                     };
                     Ok(Done { inc, img, floor, peak_offset, local, ratios })
                 })
-                .collect();
-            for (j, r) in chunk.iter().zip(results) {
-                let d = r?;
-                done_count += 1;
-                if let Some(o) = d.peak_offset {
-                    seen += 1;
-                    offsets.push(o);
-                }
-                let Some(inc) = d.inc else {
-                    missed += 1;
-                    continue;
-                };
-                if j.held_out {
-                    // The frame is read again for the comparison after the fit.
-                    held.push(Held {
-                        view: j.view,
-                        channel: j.channel,
-                        inc,
-                        file: j.file.clone(),
-                        floor: d.floor,
-                    });
-                    continue;
-                }
-                acc.add(&mesh, &maps[j.view], &inc, &d.img, j.channel, flux[j.channel], d.floor);
-                detail_acc.add(j.channel, &d.ratios);
-                used += 1;
-                if inc.glint_mm > 0.0 {
-                    glint_frames += 1;
-                    continue;
-                }
-                if inc.angle_deg > local_params.max_incidence_deg {
-                    continue;
-                }
-                let e = pending.entry((j.view, j.code)).or_insert_with(|| Pending {
-                    samples: Vec::new(),
-                    channels: 0,
-                    point: inc.object,
-                    angle_deg: inc.angle_deg,
-                    sigma_mm: spot_sigma(beam_sigma_mm, &mesh, &maps[j.view], &inc),
-                });
-                e.samples.extend(d.local);
-                e.channels |= 1 << j.channel;
-            }
-            // Spots with all three lasers in: fitted in parallel, recorded, dropped.
-            let ready: Vec<((usize, [u16; 2]), Pending)> = {
-                let keys: Vec<(usize, [u16; 2])> =
-                    pending.iter().filter(|(_, p)| p.channels == 7).map(|(k, _)| *k).collect();
-                keys.into_iter().filter_map(|k| pending.remove(&k).map(|p| (k, p))).collect()
-            };
-            // The data divided by the detail texture as the frames so far show it (by a spot's
-            // last laser, its view's earlier lasers have shown most texels near it from afar):
-            // a line of the skin's through a spot's data bends its fall-off.
-            let fitted: Vec<(Vec<Sample>, Option<kernel::Profile>)> = ready
-                .par_iter()
-                .map(|(_, p)| {
-                    let data: Vec<Sample> = p
-                        .samples
-                        .iter()
-                        .map(|&(t, s)| {
-                            let skin = detail_acc.current(t, usize::from(s.channel)).filter(|&v| v > 0.05);
-                            Sample { value: s.value / skin.unwrap_or(1.0), ..s }
+                .collect()
+        };
+        let chunks: Vec<&[Job]> = jobs.chunks(32).collect();
+        let mut current = chunks.first().map(|c| decode(c));
+        for (k, chunk) in chunks.iter().enumerate() {
+            let results = current.take().unwrap_or_default();
+            let (next, summed) = rayon::join(
+                || chunks.get(k + 1).map(|c| decode(c)),
+                || -> Result<(), FitError> {
+                    for (j, r) in chunk.iter().zip(results) {
+                        let d = r?;
+                        done_count += 1;
+                        if let Some(o) = d.peak_offset {
+                            seen += 1;
+                            offsets.push(o);
+                        }
+                        let Some(inc) = d.inc else {
+                            missed += 1;
+                            continue;
+                        };
+                        if j.held_out {
+                            // The frame is read again for the comparison after the fit.
+                            held.push(Held {
+                                view: j.view,
+                                channel: j.channel,
+                                inc,
+                                file: j.file.clone(),
+                                floor: d.floor,
+                            });
+                            continue;
+                        }
+                        acc.add(&mesh, &maps[j.view], &inc, &d.img, j.channel, flux[j.channel], d.floor);
+                        detail_acc.add(j.channel, &d.ratios);
+                        used += 1;
+                        if inc.glint_mm > 0.0 {
+                            glint_frames += 1;
+                            continue;
+                        }
+                        if inc.angle_deg > local_params.max_incidence_deg {
+                            continue;
+                        }
+                        let e = pending.entry((j.view, j.code)).or_insert_with(|| Pending {
+                            samples: Vec::new(),
+                            channels: 0,
+                            point: inc.object,
+                            angle_deg: inc.angle_deg,
+                            sigma_mm: spot_sigma(beam_sigma_mm, &mesh, &maps[j.view], &inc),
+                        });
+                        e.samples.extend(d.local);
+                        e.channels |= 1 << j.channel;
+                    }
+                    // Spots with all three lasers in: fitted in parallel, recorded, dropped.
+                    let ready: Vec<((usize, [u16; 2]), Pending)> = {
+                        let keys: Vec<(usize, [u16; 2])> =
+                            pending.iter().filter(|(_, p)| p.channels == 7).map(|(k, _)| *k).collect();
+                        keys.into_iter().filter_map(|k| pending.remove(&k).map(|p| (k, p))).collect()
+                    };
+                    // The data divided by the detail texture as the frames so far show it (by a spot's
+                    // last laser, its view's earlier lasers have shown most texels near it from afar):
+                    // a line of the skin's through a spot's data bends its fall-off.
+                    let fitted: Vec<(Vec<Sample>, Option<kernel::Profile>)> = ready
+                        .par_iter()
+                        .map(|(_, p)| {
+                            let data: Vec<Sample> = p
+                                .samples
+                                .iter()
+                                .map(|&(t, s)| {
+                                    let skin =
+                                        detail_acc.current(t, usize::from(s.channel)).filter(|&v| v > 0.05);
+                                    Sample { value: s.value / skin.unwrap_or(1.0), ..s }
+                                })
+                                .collect();
+                            let f = kernel::fit(&data, &blurs.at(p.sigma_mm), &local_params.stages);
+                            (data, f)
                         })
                         .collect();
-                    let f = kernel::fit(&data, &blurs.at(p.sigma_mm), &local_params.stages);
-                    (data, f)
-                })
-                .collect();
-            for (((view, code), p), (data, f)) in ready.into_iter().zip(fitted) {
-                let spot = |profile| SpotKernel {
-                    view,
-                    code,
-                    point: p.point,
-                    angle_deg: p.angle_deg,
-                    sigma_mm: p.sigma_mm,
-                    profile,
-                    samples: p.samples.len(),
-                    pooled: 1,
-                };
-                match f {
-                    Some(f) if local_params.accepts(&f) => step_kept.push((spot(f), p.samples, data)),
-                    Some(f) => local_rejected.push(spot(f)),
-                    None if p.samples.iter().any(|s| s.1.d < local_params.stages.delta2) => local_failed += 1,
-                    None => local_hidden += 1,
-                }
-            }
-            progress(done_count, total);
+                    for (((view, code), p), (data, f)) in ready.into_iter().zip(fitted) {
+                        let spot = |profile| SpotKernel {
+                            view,
+                            code,
+                            point: p.point,
+                            angle_deg: p.angle_deg,
+                            sigma_mm: p.sigma_mm,
+                            profile,
+                            samples: p.samples.len(),
+                            pooled: 1,
+                        };
+                        match f {
+                            Some(f) if local_params.accepts(&f) => step_kept.push((spot(f), p.samples, data)),
+                            Some(f) => local_rejected.push(spot(f)),
+                            None if p.samples.iter().any(|s| s.1.d < local_params.stages.delta2) => {
+                                local_failed += 1
+                            }
+                            None => local_hidden += 1,
+                        }
+                    }
+                    progress(done_count, total);
+                    Ok(())
+                },
+            );
+            summed?;
+            current = next;
         }
         // The view's kept spots: rates fitted with their neighbours', then recorded.
         let blur_of: Vec<std::sync::Arc<kernel::Blur>> =
@@ -743,15 +762,24 @@ pub fn fit_session(
     }
     lap("F interpolated on the mesh");
     // 5.
-    let mut held_out =
-        predict_held_out(&mesh, &matrix, (&atlas, &detail), &maps, &held, &flux, near_mm, setup.eta, (w, h))?;
+    let mut held_out = predict_held_out(
+        &mesh,
+        &matrix,
+        (&atlas, &detail),
+        (&maps, &bands),
+        &held,
+        &flux,
+        near_mm,
+        setup.eta,
+        (w, h),
+    )?;
     let near = predict_held_out_near(
         &mesh,
         &atlas,
         &local_textures,
         &blurs,
         &local_params,
-        &maps,
+        (&maps, &bands),
         &held,
         &flux,
         beam_sigma_mm,
@@ -1236,7 +1264,7 @@ fn predict_held_out(
     mesh: &SurfaceMesh,
     f: &Matrix,
     (atlas, detail): (&Atlas, &DetailTexture),
-    maps: &[ViewMap],
+    (maps, bands): (&[ViewMap], &[Range<usize>]),
     held: &[Held],
     flux: &[f64; 3],
     near_mm: f64,
@@ -1248,7 +1276,8 @@ fn predict_held_out(
         .par_iter()
         .map(|d| {
             let inc = &d.inc;
-            let img = read_plane(&d.file, w, h)?;
+            // Only the surface's pixels are compared: the rows that show the object.
+            let (img, _) = read_band(&d.file, w, h, bands[d.view].clone())?;
             let map = &maps[d.view];
             let tri = mesh.triangles[inc.hit.triangle as usize];
             // Predicted exitant Rd per vertex (column mix), then radiance at each vertex.
@@ -1331,7 +1360,7 @@ fn predict_held_out_near(
     local: &LocalTextures,
     blurs: &Blurs,
     params: &LocalParams,
-    maps: &[ViewMap],
+    (maps, bands): (&[ViewMap], &[Range<usize>]),
     held: &[Held],
     flux: &[f64; 3],
     beam_sigma_mm: f64,
@@ -1347,7 +1376,8 @@ fn predict_held_out_near(
             let map = &maps[d.view];
             let Some(profile) = nearest(inc.object).and_then(|t| local.profile(t)) else { return Ok(None) };
             let blur = blurs.at(spot_sigma(beam_sigma_mm, mesh, map, inc));
-            let img = read_plane(&d.file, w, h)?;
+            // Only the surface's pixels are compared: the rows that show the object.
+            let (img, _) = read_band(&d.file, w, h, bands[d.view].clone())?;
             let cam = &map.camera;
             let (mut se, mut sm, mut count) = (0.0, 0.0, 0usize);
             for (i, hit) in map.surface.iter().enumerate() {
