@@ -229,18 +229,9 @@ pub fn colour_channels(rig: &RigFile, lasers: &[u8]) -> Result<HashMap<u8, usize
     Ok(l.iter().enumerate().map(|(k, &(_, c))| (c, k)).collect())
 }
 
+/// A whole frame, its first channel (see [`read_band`]).
 fn read_plane(path: &Path, w: u32, h: u32) -> Result<Vec<f32>, FitError> {
-    let img = lightrig_imaging::io::read(path).map_err(|e| fail(format!("{}: {e}", path.display())))?;
-    if img.width != w || img.height != h {
-        return Err(fail(format!(
-            "{}: the frame is {} × {}, the rig file's [plan.fit] image is {w} × {h}; fix image (or the camera's ROI)",
-            path.display(),
-            img.width,
-            img.height
-        )));
-    }
-    let c = usize::from(img.channels.max(1));
-    Ok(img.data.iter().step_by(c).copied().collect())
+    read_band(path, w, h, 0..h as usize).map(|(plane, _)| plane)
 }
 
 /// Rows `rows` of a one-channel frame (of an EXR, only the blocks that hold them decoded): the
