@@ -592,104 +592,100 @@ pub fn fit_session(
                 })
                 .collect()
         };
+        // Sums a decoded chunk into `F`, the detail texture and the spots, in the frames' order.
+        let mut sum = |chunk: &[Job], results: Vec<Result<Done, FitError>>| -> Result<(), FitError> {
+            for (j, r) in chunk.iter().zip(results) {
+                let d = r?;
+                done_count += 1;
+                if let Some(o) = d.peak_offset {
+                    seen += 1;
+                    offsets.push(o);
+                }
+                let Some(inc) = d.inc else {
+                    missed += 1;
+                    continue;
+                };
+                if j.held_out {
+                    // The frame is read again for the comparison after the fit.
+                    held.push(Held {
+                        view: j.view,
+                        channel: j.channel,
+                        inc,
+                        file: j.file.clone(),
+                        floor: d.floor,
+                    });
+                    continue;
+                }
+                acc.add(&mesh, &maps[j.view], &inc, &d.img, j.channel, flux[j.channel], d.floor);
+                detail_acc.add(j.channel, &d.ratios);
+                used += 1;
+                if inc.glint_mm > 0.0 {
+                    glint_frames += 1;
+                    continue;
+                }
+                if inc.angle_deg > local_params.max_incidence_deg {
+                    continue;
+                }
+                let e = pending.entry((j.view, j.code)).or_insert_with(|| Pending {
+                    samples: Vec::new(),
+                    channels: 0,
+                    point: inc.object,
+                    angle_deg: inc.angle_deg,
+                    sigma_mm: spot_sigma(beam_sigma_mm, &mesh, &maps[j.view], &inc),
+                });
+                e.samples.extend(d.local);
+                e.channels |= 1 << j.channel;
+            }
+            // Spots with all three lasers in: fitted in parallel, recorded, dropped.
+            let ready: Vec<((usize, [u16; 2]), Pending)> = {
+                let keys: Vec<(usize, [u16; 2])> =
+                    pending.iter().filter(|(_, p)| p.channels == 7).map(|(k, _)| *k).collect();
+                keys.into_iter().filter_map(|k| pending.remove(&k).map(|p| (k, p))).collect()
+            };
+            // The data divided by the detail texture as the frames so far show it (by a spot's
+            // last laser, its view's earlier lasers have shown most texels near it from afar):
+            // a line of the skin's through a spot's data bends its fall-off.
+            let fitted: Vec<(Vec<Sample>, Option<kernel::Profile>)> = ready
+                .par_iter()
+                .map(|(_, p)| {
+                    let data: Vec<Sample> = p
+                        .samples
+                        .iter()
+                        .map(|&(t, s)| {
+                            let skin = detail_acc.current(t, usize::from(s.channel)).filter(|&v| v > 0.05);
+                            Sample { value: s.value / skin.unwrap_or(1.0), ..s }
+                        })
+                        .collect();
+                    let f = kernel::fit(&data, &blurs.at(p.sigma_mm), &local_params.stages);
+                    (data, f)
+                })
+                .collect();
+            for (((view, code), p), (data, f)) in ready.into_iter().zip(fitted) {
+                let spot = |profile| SpotKernel {
+                    view,
+                    code,
+                    point: p.point,
+                    angle_deg: p.angle_deg,
+                    sigma_mm: p.sigma_mm,
+                    profile,
+                    samples: p.samples.len(),
+                    pooled: 1,
+                };
+                match f {
+                    Some(f) if local_params.accepts(&f) => step_kept.push((spot(f), p.samples, data)),
+                    Some(f) => local_rejected.push(spot(f)),
+                    None if p.samples.iter().any(|s| s.1.d < local_params.stages.delta2) => local_failed += 1,
+                    None => local_hidden += 1,
+                }
+            }
+            progress(done_count, total);
+            Ok(())
+        };
         let chunks: Vec<&[Job]> = jobs.chunks(32).collect();
         let mut current = chunks.first().map(|c| decode(c));
         for (k, chunk) in chunks.iter().enumerate() {
             let results = current.take().unwrap_or_default();
-            let (next, summed) = rayon::join(
-                || chunks.get(k + 1).map(|c| decode(c)),
-                || -> Result<(), FitError> {
-                    for (j, r) in chunk.iter().zip(results) {
-                        let d = r?;
-                        done_count += 1;
-                        if let Some(o) = d.peak_offset {
-                            seen += 1;
-                            offsets.push(o);
-                        }
-                        let Some(inc) = d.inc else {
-                            missed += 1;
-                            continue;
-                        };
-                        if j.held_out {
-                            // The frame is read again for the comparison after the fit.
-                            held.push(Held {
-                                view: j.view,
-                                channel: j.channel,
-                                inc,
-                                file: j.file.clone(),
-                                floor: d.floor,
-                            });
-                            continue;
-                        }
-                        acc.add(&mesh, &maps[j.view], &inc, &d.img, j.channel, flux[j.channel], d.floor);
-                        detail_acc.add(j.channel, &d.ratios);
-                        used += 1;
-                        if inc.glint_mm > 0.0 {
-                            glint_frames += 1;
-                            continue;
-                        }
-                        if inc.angle_deg > local_params.max_incidence_deg {
-                            continue;
-                        }
-                        let e = pending.entry((j.view, j.code)).or_insert_with(|| Pending {
-                            samples: Vec::new(),
-                            channels: 0,
-                            point: inc.object,
-                            angle_deg: inc.angle_deg,
-                            sigma_mm: spot_sigma(beam_sigma_mm, &mesh, &maps[j.view], &inc),
-                        });
-                        e.samples.extend(d.local);
-                        e.channels |= 1 << j.channel;
-                    }
-                    // Spots with all three lasers in: fitted in parallel, recorded, dropped.
-                    let ready: Vec<((usize, [u16; 2]), Pending)> = {
-                        let keys: Vec<(usize, [u16; 2])> =
-                            pending.iter().filter(|(_, p)| p.channels == 7).map(|(k, _)| *k).collect();
-                        keys.into_iter().filter_map(|k| pending.remove(&k).map(|p| (k, p))).collect()
-                    };
-                    // The data divided by the detail texture as the frames so far show it (by a spot's
-                    // last laser, its view's earlier lasers have shown most texels near it from afar):
-                    // a line of the skin's through a spot's data bends its fall-off.
-                    let fitted: Vec<(Vec<Sample>, Option<kernel::Profile>)> = ready
-                        .par_iter()
-                        .map(|(_, p)| {
-                            let data: Vec<Sample> = p
-                                .samples
-                                .iter()
-                                .map(|&(t, s)| {
-                                    let skin =
-                                        detail_acc.current(t, usize::from(s.channel)).filter(|&v| v > 0.05);
-                                    Sample { value: s.value / skin.unwrap_or(1.0), ..s }
-                                })
-                                .collect();
-                            let f = kernel::fit(&data, &blurs.at(p.sigma_mm), &local_params.stages);
-                            (data, f)
-                        })
-                        .collect();
-                    for (((view, code), p), (data, f)) in ready.into_iter().zip(fitted) {
-                        let spot = |profile| SpotKernel {
-                            view,
-                            code,
-                            point: p.point,
-                            angle_deg: p.angle_deg,
-                            sigma_mm: p.sigma_mm,
-                            profile,
-                            samples: p.samples.len(),
-                            pooled: 1,
-                        };
-                        match f {
-                            Some(f) if local_params.accepts(&f) => step_kept.push((spot(f), p.samples, data)),
-                            Some(f) => local_rejected.push(spot(f)),
-                            None if p.samples.iter().any(|s| s.1.d < local_params.stages.delta2) => {
-                                local_failed += 1
-                            }
-                            None => local_hidden += 1,
-                        }
-                    }
-                    progress(done_count, total);
-                    Ok(())
-                },
-            );
+            let (next, summed) = rayon::join(|| chunks.get(k + 1).map(|c| decode(c)), || sum(chunk, results));
             summed?;
             current = next;
         }
