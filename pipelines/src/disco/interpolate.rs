@@ -426,10 +426,16 @@ struct Scratch {
     next: Vec<u32>,
     fresh: Vec<Px>,
     hood: Hood,
-    /// [`steady_state`]'s moving entries, their diagonal, search directions (per vertex),
-    /// residuals and a work vector.
+    /// [`steady_state`]'s moving entries, each vertex's index among them, their diagonal and
+    /// off-diagonal weights (rows `start[i]..start[i + 1]` of `col`/`w`), their values, search
+    /// directions, residuals and a work vector.
     moving: Vec<u32>,
+    slot: Vec<u32>,
     diag: Vec<f64>,
+    start: Vec<u32>,
+    col: Vec<u32>,
+    w: Vec<f64>,
+    x: Vec<[f64; 3]>,
     dir: Vec<[f64; 3]>,
     res: Vec<[f64; 3]>,
     aux: Vec<[f64; 3]>,
@@ -549,17 +555,21 @@ fn steady_state(
     flt: &Filter,
     s: &mut Scratch,
 ) -> Outcome {
-    // The moving entries: below full confidence with a known neighbour (an entry without one
-    // has no equation and keeps its value).
+    // The moving entries: below full confidence, with a value and a known neighbour (an entry
+    // without one has no equation and keeps its value).
+    const FIXED: u32 = u32::MAX;
     s.moving.clear();
     s.diag.clear();
+    s.slot.clear();
+    s.slot.resize(f.len(), FIXED);
     for &r in &s.list {
         let r = r as usize;
-        if conf(r) >= 1.0 {
+        if conf(r) >= 1.0 || !known(&f[r]) {
             continue;
         }
         let d: f64 = mesh.ring(r).filter(|(u, _)| known(&f[*u])).map(|(_, e)| 1.0 / e).sum();
         if d > 0.0 && d.is_finite() {
+            s.slot[r] = s.moving.len() as u32;
             s.moving.push(r as u32);
             s.diag.push(d);
         }
@@ -567,38 +577,64 @@ fn steady_state(
     if s.moving.is_empty() {
         return Outcome::NOTHING;
     }
-    let m = s.moving.len();
-    // Search directions live on the vertices (0 off the moving set) so that A·p reads rings.
-    s.dir.clear();
-    s.dir.resize(f.len(), [0.0; 3]);
+    // The system A·x = b on the moving entries, built once: A = D − W, W the 1/e weights
+    // between moving neighbours (rows in `start`/`col`/`w`), b the fixed neighbours' Σ f_u/e.
+    // The iterations then read flat arrays, no per-neighbour checks or divisions.
+    s.start.clear();
+    s.col.clear();
+    s.w.clear();
+    s.x.clear();
     s.res.clear();
-    s.res.resize(m, [0.0; 3]);
-    s.aux.clear();
-    s.aux.resize(m, [0.0; 3]);
-    // r = b − A·x = Σ_u (f_u − x_r)/e_ru over known neighbours; z = r / d.
-    let residual = |f: &[Px], r: usize| -> [f64; 3] {
-        let mut acc = [0.0f64; 3];
+    for &r in &s.moving {
+        let r = r as usize;
+        s.start.push(s.col.len() as u32);
+        let mut b = [0.0f64; 3];
         for (u, e) in mesh.ring(r) {
-            if known(&f[u]) {
+            if !known(&f[u]) {
+                continue;
+            }
+            let w = 1.0 / e;
+            if s.slot[u] == FIXED {
                 for c in 0..3 {
-                    acc[c] += (f64::from(f[u][c]) - f64::from(f[r][c])) / e;
+                    b[c] += w * f64::from(f[u][c]);
                 }
+            } else {
+                s.col.push(s.slot[u]);
+                s.w.push(w);
             }
         }
-        acc
+        s.x.push(f[r].map(f64::from));
+        s.res.push(b);
+    }
+    s.start.push(s.col.len() as u32);
+    let (start, col, w, diag) = (&s.start, &s.col, &s.w, &s.diag);
+    // A·v at moving entry i.
+    let apply = |v: &[[f64; 3]], i: usize| -> [f64; 3] {
+        let mut q = v[i].map(|x| diag[i] * x);
+        for k in start[i] as usize..start[i + 1] as usize {
+            let (j, wk) = (col[k] as usize, w[k]);
+            for c in 0..3 {
+                q[c] -= wk * v[j][c];
+            }
+        }
+        q
     };
+    // r = b − A·x; z = r / d (the diagonal preconditioner); p = z.
+    s.dir.clear();
+    s.aux.clear();
     let mut rho = [0.0f64; 3];
     let mut big = 0.0f64;
-    for (i, &r) in s.moving.iter().enumerate() {
-        let res = residual(f, r as usize);
-        let d = s.diag[i];
-        s.res[i] = res;
+    for (i, (res, &d)) in s.res.iter_mut().zip(diag).enumerate() {
+        let ax = apply(&s.x, i);
+        let mut z = [0.0f64; 3];
         for c in 0..3 {
-            let z = res[c] / d;
-            s.dir[r as usize][c] = z;
-            rho[c] += res[c] * z;
-            big = big.max(z.abs());
+            res[c] -= ax[c];
+            z[c] = res[c] / d;
+            rho[c] += res[c] * z[c];
+            big = big.max(z[c].abs());
         }
+        s.dir.push(z);
+        s.aux.push([0.0; 3]);
     }
     let tol = f64::from(flt.tolerance);
     let mut out = Outcome { iterations: 0, converged: big <= tol };
@@ -606,48 +642,37 @@ fn steady_state(
         out.iterations += 1;
         // q = A·p (kept in `aux`), then α = ρ / (p·q) per channel.
         let mut pq = [0.0f64; 3];
-        for (i, &r) in s.moving.iter().enumerate() {
-            let r = r as usize;
-            let p = s.dir[r];
-            let mut q = [0.0f64; 3];
-            for (u, e) in mesh.ring(r) {
-                if known(&f[u]) {
-                    let pu = s.dir[u];
-                    for c in 0..3 {
-                        q[c] += (p[c] - pu[c]) / e;
-                    }
-                }
-            }
-            s.aux[i] = q;
+        for (i, aux) in s.aux.iter_mut().enumerate() {
+            let q = apply(&s.dir, i);
             for c in 0..3 {
-                pq[c] += p[c] * q[c];
+                pq[c] += s.dir[i][c] * q[c];
             }
+            *aux = q;
         }
         let alpha: [f64; 3] =
             std::array::from_fn(|c| if pq[c] > 0.0 && pq[c].is_finite() { rho[c] / pq[c] } else { 0.0 });
         let mut next = [0.0f64; 3];
         big = 0.0;
-        for (i, &r) in s.moving.iter().enumerate() {
-            let r = r as usize;
-            let d = s.diag[i];
+        let rows = s.x.iter_mut().zip(&mut s.res).zip(&mut s.aux).zip(&s.dir).zip(diag);
+        for ((((x, res), aux), p), &d) in rows {
             for c in 0..3 {
-                f[r][c] = (f64::from(f[r][c]) + alpha[c] * s.dir[r][c]) as f32;
-                s.res[i][c] -= alpha[c] * s.aux[i][c];
-                let z = s.res[i][c] / d;
-                s.aux[i][c] = z;
-                next[c] += s.res[i][c] * z;
+                x[c] += alpha[c] * p[c];
+                res[c] -= alpha[c] * aux[c];
+                let z = res[c] / d;
+                aux[c] = z;
+                next[c] += res[c] * z;
                 big = big.max(z.abs());
             }
         }
         let beta: [f64; 3] = std::array::from_fn(|c| if rho[c] > 0.0 { next[c] / rho[c] } else { 0.0 });
         rho = next;
-        for (i, &r) in s.moving.iter().enumerate() {
-            let p = &mut s.dir[r as usize];
-            for c in 0..3 {
-                p[c] = s.aux[i][c] + beta[c] * p[c];
-            }
+        for (p, z) in s.dir.iter_mut().zip(&s.aux) {
+            *p = std::array::from_fn(|c| z[c] + beta[c] * p[c]);
         }
         out.converged = big <= tol;
+    }
+    for (&r, x) in s.moving.iter().zip(&s.x) {
+        f[r as usize] = x.map(|v| v as f32);
     }
     out
 }
