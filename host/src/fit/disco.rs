@@ -749,31 +749,20 @@ pub fn fit_session(
     }
     lap("F interpolated on the mesh");
     // 5.
-    let mut held_out = predict_held_out(
-        &mesh,
-        &matrix,
-        (&atlas, &detail),
-        (&maps, &bands),
-        &held,
-        &flux,
+    let model = HeldModel {
+        mesh: &mesh,
+        f: &matrix,
+        atlas: &atlas,
+        detail: &detail,
+        local: &local_textures,
+        blurs: &blurs,
+        params: &local_params,
+        flux,
         near_mm,
-        setup.eta,
-        (w, h),
-    )?;
-    let near = predict_held_out_near(
-        &mesh,
-        &atlas,
-        &local_textures,
-        &blurs,
-        &local_params,
-        (&maps, &bands),
-        &held,
-        &flux,
         beam_sigma_mm,
-        setup.eta,
-        (w, h),
-    )?;
-    (held_out.near_frames, held_out.near_pixels, held_out.near_rel_rms) = near;
+        eta: setup.eta,
+    };
+    let held_out = predict_held_out(&model, (&maps, &bands), &held, (w, h))?;
     lap("held-out frames predicted");
     offsets.sort_by(f64::total_cmp);
     Ok(DiscoFit {
@@ -1243,87 +1232,113 @@ fn spot_offset(mesh: &SurfaceMesh, map: &ViewMap, inc: &Incidence, img: &[f32], 
     Some(norm(sub(q, inc.point)))
 }
 
-/// Each held-out frame predicted from `F`: at every object pixel, the vertices' predicted
-/// `Σk βk F(r, k)` interpolated by the pixel's barycentric weights in log, times
-/// `Ft_o·Ft_i·Φ/π`, against the frame.
-#[allow(clippy::too_many_arguments)]
+/// The fitted model the held-out frames are predicted from.
+struct HeldModel<'a> {
+    mesh: &'a SurfaceMesh,
+    f: &'a Matrix,
+    atlas: &'a Atlas,
+    detail: &'a DetailTexture,
+    local: &'a LocalTextures,
+    blurs: &'a Blurs,
+    params: &'a LocalParams,
+    flux: [f64; 3],
+    near_mm: f64,
+    beam_sigma_mm: f64,
+    eta: f64,
+}
+
+/// Each held-out frame read once (its object rows) and predicted twice: away from the spot
+/// by `F` ([`far_error`]), near it by the local term ([`near_error`]).
 fn predict_held_out(
-    mesh: &SurfaceMesh,
-    f: &Matrix,
-    (atlas, detail): (&Atlas, &DetailTexture),
+    model: &HeldModel,
     (maps, bands): (&[ViewMap], &[Range<usize>]),
     held: &[Held],
-    flux: &[f64; 3],
-    near_mm: f64,
-    eta: f64,
     (w, h): (u32, u32),
 ) -> Result<HeldOut, FitError> {
-    let n = mesh.vertices.len();
-    let per_frame: Vec<Option<(f64, usize)>> = held
+    type Score = Option<(f64, usize)>;
+    let per_frame: Vec<(Score, Score)> = held
         .par_iter()
         .map(|d| {
-            let inc = &d.inc;
-            // Only the surface's pixels are compared: the rows that show the object.
-            let (img, _) = read_band(&d.file, w, h, bands[d.view].clone())?;
             let map = &maps[d.view];
-            let tri = mesh.triangles[inc.hit.triangle as usize];
-            // Predicted exitant Rd per vertex (column mix), then radiance at each vertex.
-            let mut vertex_rd = vec![f64::NAN; n];
-            for vv in &map.vertices {
-                let r = vv.vertex as usize;
-                let mut s = 0.0;
-                for (k, &col) in tri.iter().enumerate() {
-                    s += f64::from(inc.hit.bary[k]) * f64::from(f.values[col as usize * n + r][d.channel]);
-                }
-                vertex_rd[r] = s;
-            }
-            let cam = &map.camera;
-            // The near field (the entry triangle's vertices and their rings) is the local
-            // kernels' domain: its triangles are left out, as are pixels within `near_mm`
-            // (and within a glint's radius, where the surface may reflect the beam).
-            let mut near = vec![false; n];
-            for &v in &tri {
-                near[v as usize] = true;
-                for &(j, _) in &mesh.rings[v as usize] {
-                    near[j as usize] = true;
-                }
-            }
-            let (mut se, mut sm, mut count) = (0.0, 0.0, 0usize);
-            for (i, hit) in map.surface.iter().enumerate() {
-                let Some(hit) = hit else { continue };
-                let t = mesh.triangles[hit.triangle as usize];
-                if t.iter().any(|&v| vertex_rd[v as usize].is_nan() || near[v as usize]) {
-                    continue;
-                }
-                let (p, nrm) = point_of(mesh, &map.world, map.turntable_deg, hit);
-                if norm(sub(p, inc.point)) < near_mm.max(inc.glint_mm) {
-                    continue;
-                }
-                let measured = f64::from(img[i]);
-                if measured <= f64::from(d.floor) {
-                    continue;
-                }
-                // Between vertices in log: the fall-off is exponential (linear Gouraud would
-                // overshoot mid-triangle by the edge's fall-off).
-                if t.iter().any(|&v| vertex_rd[v as usize] <= 0.0) {
-                    continue;
-                }
-                let rd: f64 =
-                    (0..3).map(|k| f64::from(hit.bary[k]) * vertex_rd[t[k] as usize].ln()).sum::<f64>().exp();
-                let cos_o = dot(nrm, normalize(sub(cam.eye, p)));
-                let ft_o = lightrig_pipelines::disco::dipole::fresnel_transmittance(eta, cos_o);
-                // The model's detail between the vertices (section 6.3).
-                let skin = detail.at(atlas, mesh, hit.triangle, hit.bary.map(f64::from))[d.channel];
-                let predicted = skin * rd * ft_o * inc.fresnel * flux[d.channel] / std::f64::consts::PI;
-                se += (predicted - measured).powi(2);
-                sm += measured * measured;
-                count += 1;
-            }
-            Ok((count > 0).then(|| ((se / sm).sqrt(), count)))
+            let (img, _) = read_band(&d.file, w, h, bands[d.view].clone())?;
+            Ok((far_error(model, map, d, &img), near_error(model, map, d, &img)))
         })
         .collect::<Result<_, FitError>>()?;
-    let (frames, pixels, median_rel_rms) = summarise(per_frame);
-    Ok(HeldOut { frames, pixels, median_rel_rms, near_mm, ..HeldOut::default() })
+    let (far, near): (Vec<Score>, Vec<Score>) = per_frame.into_iter().unzip();
+    let (frames, pixels, median_rel_rms) = summarise(far);
+    let (near_frames, near_pixels, near_rel_rms) = summarise(near);
+    Ok(HeldOut {
+        frames,
+        pixels,
+        median_rel_rms,
+        near_mm: model.near_mm,
+        near_frames,
+        near_pixels,
+        near_rel_rms,
+    })
+}
+
+/// A held-out frame predicted from `F`: at every object pixel, the vertices' predicted
+/// `Σk βk F(r, k)` interpolated by the pixel's barycentric weights in log, times
+/// `Ft_o·Ft_i·Φ/π`, against the frame: (relative RMS, pixels).
+fn far_error(m: &HeldModel, map: &ViewMap, d: &Held, img: &[f32]) -> Option<(f64, usize)> {
+    let (mesh, f) = (m.mesh, m.f);
+    let n = mesh.vertices.len();
+    let inc = &d.inc;
+    let tri = mesh.triangles[inc.hit.triangle as usize];
+    // Predicted exitant Rd per vertex (column mix), then radiance at each vertex.
+    let mut vertex_rd = vec![f64::NAN; n];
+    for vv in &map.vertices {
+        let r = vv.vertex as usize;
+        let mut s = 0.0;
+        for (k, &col) in tri.iter().enumerate() {
+            s += f64::from(inc.hit.bary[k]) * f64::from(f.values[col as usize * n + r][d.channel]);
+        }
+        vertex_rd[r] = s;
+    }
+    let cam = &map.camera;
+    // The near field (the entry triangle's vertices and their rings) is the local kernels'
+    // domain: its triangles are left out, as are pixels within `near_mm` (and within a
+    // glint's radius, where the surface may reflect the beam).
+    let mut near = vec![false; n];
+    for &v in &tri {
+        near[v as usize] = true;
+        for &(j, _) in &mesh.rings[v as usize] {
+            near[j as usize] = true;
+        }
+    }
+    let (mut se, mut sm, mut count) = (0.0, 0.0, 0usize);
+    for (i, hit) in map.surface.iter().enumerate() {
+        let Some(hit) = hit else { continue };
+        let t = mesh.triangles[hit.triangle as usize];
+        if t.iter().any(|&v| vertex_rd[v as usize].is_nan() || near[v as usize]) {
+            continue;
+        }
+        let (p, nrm) = point_of(mesh, &map.world, map.turntable_deg, hit);
+        if norm(sub(p, inc.point)) < m.near_mm.max(inc.glint_mm) {
+            continue;
+        }
+        let measured = f64::from(img[i]);
+        if measured <= f64::from(d.floor) {
+            continue;
+        }
+        // Between vertices in log: the fall-off is exponential (linear Gouraud would
+        // overshoot mid-triangle by the edge's fall-off).
+        if t.iter().any(|&v| vertex_rd[v as usize] <= 0.0) {
+            continue;
+        }
+        let rd: f64 =
+            (0..3).map(|k| f64::from(hit.bary[k]) * vertex_rd[t[k] as usize].ln()).sum::<f64>().exp();
+        let cos_o = dot(nrm, normalize(sub(cam.eye, p)));
+        let ft_o = lightrig_pipelines::disco::dipole::fresnel_transmittance(m.eta, cos_o);
+        // The model's detail between the vertices (section 6.3).
+        let skin = m.detail.at(m.atlas, mesh, hit.triangle, hit.bary.map(f64::from))[d.channel];
+        let predicted = skin * rd * ft_o * inc.fresnel * m.flux[d.channel] / std::f64::consts::PI;
+        se += (predicted - measured).powi(2);
+        sm += measured * measured;
+        count += 1;
+    }
+    (count > 0).then(|| ((se / sm).sqrt(), count))
 }
 
 /// Per-frame `(relative RMS, pixels)` → (frames, pixels, median relative RMS).
@@ -1338,75 +1353,55 @@ fn summarise(per_frame: Vec<Option<(f64, usize)>>) -> (usize, usize, f64) {
     )
 }
 
-/// The held-out frames' near fields predicted by the local term (see [`HeldOut::near_rel_rms`]):
-/// (frames, pixels, median relative RMS).
-#[allow(clippy::too_many_arguments)]
-fn predict_held_out_near(
-    mesh: &SurfaceMesh,
-    atlas: &Atlas,
-    local: &LocalTextures,
-    blurs: &Blurs,
-    params: &LocalParams,
-    (maps, bands): (&[ViewMap], &[Range<usize>]),
-    held: &[Held],
-    flux: &[f64; 3],
-    beam_sigma_mm: f64,
-    eta: f64,
-    (w, h): (u32, u32),
-) -> Result<(usize, usize, f64), FitError> {
-    let nearest = |p: V3| atlas.nearest(p);
-    let per_frame: Vec<Option<(f64, usize)>> = held
-        .par_iter()
-        .filter(|d| d.inc.angle_deg <= params.max_incidence_deg && d.inc.glint_mm == 0.0)
-        .map(|d| {
-            let inc = &d.inc;
-            let map = &maps[d.view];
-            let Some(profile) = nearest(inc.object).and_then(|t| local.profile(t)) else { return Ok(None) };
-            let blur = blurs.at(spot_sigma(beam_sigma_mm, mesh, map, inc));
-            // Only the surface's pixels are compared: the rows that show the object.
-            let (img, _) = read_band(&d.file, w, h, bands[d.view].clone())?;
-            let cam = &map.camera;
-            let (mut se, mut sm, mut count) = (0.0, 0.0, 0usize);
-            for (i, hit) in map.surface.iter().enumerate() {
-                let Some(hit) = hit else { continue };
-                let (p, nrm) = point_of(mesh, &map.world, map.turntable_deg, hit);
-                let dist = norm(sub(p, inc.point));
-                if dist > params.radius_mm {
-                    continue;
-                }
-                let measured = f64::from(img[i]);
-                if measured <= f64::from(lightrig_pipelines::disco::resample::MIN_FLOOR_RATIO * d.floor) {
-                    continue;
-                }
-                let cos_o = dot(nrm, normalize(sub(cam.eye, p)));
-                if cos_o < params.max_view_deg.to_radians().cos() {
-                    continue;
-                }
-                let t = mesh.triangles[hit.triangle as usize];
-                let object = (0..3).fold([0.0; 3], |acc, j| {
-                    lightrig_pipelines::vec3::add(
-                        acc,
-                        lightrig_pipelines::vec3::scale(mesh.vertices[t[j] as usize], f64::from(hit.bary[j])),
-                    )
-                });
-                let corr = nearest(object)
-                    .and_then(|t| local.correction[t as usize])
-                    .map_or(1.0, |c| f64::from(c[d.channel]));
-                let ft_o = lightrig_pipelines::disco::dipole::fresnel_transmittance(eta, cos_o);
-                let predicted = profile.eval_blurred(&blur, d.channel, dist)
-                    * corr
-                    * ft_o
-                    * inc.fresnel
-                    * flux[d.channel]
-                    / std::f64::consts::PI;
-                se += (predicted - measured).powi(2);
-                sm += measured * measured;
-                count += 1;
-            }
-            Ok((count > 0).then(|| ((se / sm).sqrt(), count)))
-        })
-        .collect::<Result<_, FitError>>()?;
-    Ok(summarise(per_frame))
+/// A held-out frame's near field predicted by the local term (see [`HeldOut::near_rel_rms`]):
+/// (relative RMS, pixels); `None` for a spot outside the local fit's incidence limit, on a
+/// glint, or with nothing to compare.
+fn near_error(m: &HeldModel, map: &ViewMap, d: &Held, img: &[f32]) -> Option<(f64, usize)> {
+    let (mesh, params) = (m.mesh, m.params);
+    let inc = &d.inc;
+    if inc.angle_deg > params.max_incidence_deg || inc.glint_mm != 0.0 {
+        return None;
+    }
+    let profile = m.atlas.nearest(inc.object).and_then(|t| m.local.profile(t))?;
+    let blur = m.blurs.at(spot_sigma(m.beam_sigma_mm, mesh, map, inc));
+    let cam = &map.camera;
+    let (mut se, mut sm, mut count) = (0.0, 0.0, 0usize);
+    for (i, hit) in map.surface.iter().enumerate() {
+        let Some(hit) = hit else { continue };
+        let (p, nrm) = point_of(mesh, &map.world, map.turntable_deg, hit);
+        let dist = norm(sub(p, inc.point));
+        if dist > params.radius_mm {
+            continue;
+        }
+        let measured = f64::from(img[i]);
+        if measured <= f64::from(lightrig_pipelines::disco::resample::MIN_FLOOR_RATIO * d.floor) {
+            continue;
+        }
+        let cos_o = dot(nrm, normalize(sub(cam.eye, p)));
+        if cos_o < params.max_view_deg.to_radians().cos() {
+            continue;
+        }
+        let t = mesh.triangles[hit.triangle as usize];
+        let object = (0..3).fold([0.0; 3], |acc, j| {
+            lightrig_pipelines::vec3::add(
+                acc,
+                lightrig_pipelines::vec3::scale(mesh.vertices[t[j] as usize], f64::from(hit.bary[j])),
+            )
+        });
+        let corr = m
+            .atlas
+            .nearest(object)
+            .and_then(|t| m.local.correction[t as usize])
+            .map_or(1.0, |c| f64::from(c[d.channel]));
+        let ft_o = lightrig_pipelines::disco::dipole::fresnel_transmittance(m.eta, cos_o);
+        let predicted =
+            profile.eval_blurred(&blur, d.channel, dist) * corr * ft_o * inc.fresnel * m.flux[d.channel]
+                / std::f64::consts::PI;
+        se += (predicted - measured).powi(2);
+        sm += measured * measured;
+        count += 1;
+    }
+    (count > 0).then(|| ((se / sm).sqrt(), count))
 }
 
 /// The object lit by [`relight::side_light`] (a light no frame used) as the first camera
