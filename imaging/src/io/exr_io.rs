@@ -416,9 +416,8 @@ fn read_band(
             let read = if half {
                 line16.resize(n, x::f16::ZERO);
                 line.read_samples_into_slice(&mut line16).map(|()| {
-                    for (o, v) in out.iter_mut().zip(&line16) {
-                        *o = v.to_f32();
-                    }
+                    use half::slice::HalfFloatSliceExt;
+                    line16.convert_to_f32_slice(out);
                 })
             } else {
                 line.read_samples_into_slice(out)
