@@ -14,7 +14,7 @@
 //! is nearly linear) together with their offset from `k`, and [`Accumulator::nodal`] moves each
 //! mean back to the vertex along the gradient that the neighbouring columns show.
 
-use crate::vec3::{dot, norm, normalize, sub, V3};
+use crate::vec3::{add, dot, norm, normalize, scale, sub, V3};
 
 use super::dipole::fresnel_transmittance;
 use super::mesh::SurfaceMesh;
@@ -70,6 +70,8 @@ pub struct ViewMap {
     pub turntable_deg: f64,
     /// The object's vertices turned, world.
     pub world: Vec<V3>,
+    /// The object's vertex normals turned, world (per-pixel normals without a turn each).
+    pub normals: Vec<V3>,
     /// Which surface point each pixel sees.
     pub surface: Vec<Option<Hit>>,
     /// The visible vertices.
@@ -104,7 +106,21 @@ impl ViewMap {
                 confidence: cos_o as f32,
             });
         }
-        ViewMap { camera: *camera, turntable_deg: deg, world, surface, vertices }
+        let normals = mesh.normals.iter().map(|&n| super::optics::turn(n, deg)).collect();
+        ViewMap { camera: *camera, turntable_deg: deg, world, normals, surface, vertices }
+    }
+
+    /// The world point and interpolated unit normal of `hit` ([`point_of`], from the turned
+    /// normals).
+    pub fn point(&self, mesh: &SurfaceMesh, hit: &Hit) -> (V3, V3) {
+        let tri = mesh.triangles[hit.triangle as usize];
+        let (mut p, mut n) = ([0.0; 3], [0.0; 3]);
+        for (k, &i) in tri.iter().enumerate() {
+            let b = f64::from(hit.bary[k]);
+            p = add(p, scale(self.world[i as usize], b));
+            n = add(n, scale(self.normals[i as usize], b));
+        }
+        (p, normalize(n))
     }
 
     /// The beam `(origin, dir)` entering the mesh in this view ([`incidence`]), its glint
@@ -685,6 +701,20 @@ mod tests {
         let got = beam_sigma(&img, &cam, &target, beam, centre, 10.0).unwrap();
         assert!((got / sigma - 1.0).abs() < 0.02, "{got}");
         assert_eq!(beam_sigma(&vec![0.0; 200 * 200], &cam, &target, beam, centre, 10.0), None);
+    }
+
+    #[test]
+    fn a_views_points_are_point_of_at_its_turntable_angle() {
+        let mesh = SurfaceMesh::new(&pebble(2, [20.0, 20.0, 30.0]));
+        let cam = Pinhole::looking(320, 240, 500.0, [200.0, 0.0, 30.0], [0.0, 0.0, 30.0]);
+        let view = ViewMap::new(&mesh, &cam, 37.0, &ViewLimits::default());
+        let hits: Vec<&Hit> = view.surface.iter().flatten().collect();
+        assert!(hits.len() > 1000, "{}", hits.len());
+        for hit in hits {
+            let (p, n) = view.point(&mesh, hit);
+            let (q, m) = point_of(&mesh, &view.world, 37.0, hit);
+            assert!(norm(sub(p, q)) < 1e-9 && norm(sub(n, m)) < 1e-9, "{p:?} {q:?} {n:?} {m:?}");
+        }
     }
 
     #[test]
