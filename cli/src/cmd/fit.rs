@@ -232,8 +232,9 @@ fn fit_disco(session: &Path, mesh: Option<&Path>, out: &Path) -> ExitCode {
         }
         if f.held_out.frames > 0 {
             println!(
-                "held-out spots: {} frames predicted from F, relative RMS error {:.1} % (median; beyond {:.1} mm of the spot)",
+                "held-out spots: {} of their {} frames predicted from F, relative RMS error {:.1} % (median; beyond {:.1} mm of the spot)",
                 f.held_out.frames,
+                f.held_out_frames,
                 100.0 * f.held_out.median_rel_rms,
                 f.held_out.near_mm
             );

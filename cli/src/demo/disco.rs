@@ -701,12 +701,14 @@ fn write_report(
     if f.held_out.frames > 0 {
         rep.line("");
         rep.line(format!(
-            "Held out: {} frames of spots left out of the fit, predicted from F (Gouraud over the mesh, as the global term \
+            "Held out: {} of the {} frames of spots left out of the fit (every k-th, at most {}), predicted from F (Gouraud over the mesh, as the global term \
              renders, times the detail texture) against the frames themselves: relative RMS error {:.1} % (median over frames, {} pixels, beyond \
              {:.1} mm of the spot: nearer is the local kernels' domain). Their near field (within {:.1} mm) predicted by \
              the local term — the kernel of the spot's texel, filled from its neighbours as the spot was left out, \
              through the beam's blur, times the correction: {:.1} % ({} frames entering within {:.0}°, {} pixels).",
             f.held_out.frames,
+            f.held_out_frames,
+            fit::MAX_HELD_SCORED,
             100.0 * f.held_out.median_rel_rms,
             f.held_out.pixels,
             f.held_out.near_mm,
