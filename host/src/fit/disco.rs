@@ -1326,7 +1326,7 @@ fn far_error(m: &HeldModel, map: &ViewMap, d: &Held, img: &[f32], px: Range<usiz
         }
     }
     let (mut se, mut sm, mut count) = (0.0, 0.0, 0usize);
-    for i in px.clone() {
+    for i in px {
         let Some(hit) = &map.surface[i] else { continue };
         let t = mesh.triangles[hit.triangle as usize];
         if t.iter().any(|&v| vertex_rd[v as usize].is_nan() || near[v as usize]) {
@@ -1384,7 +1384,7 @@ fn near_error(m: &HeldModel, map: &ViewMap, d: &Held, img: &[f32], px: Range<usi
     let blur = m.blurs.at(spot_sigma(m.beam_sigma_mm, mesh, map, inc));
     let cam = &map.camera;
     let (mut se, mut sm, mut count) = (0.0, 0.0, 0usize);
-    for i in px.clone() {
+    for i in px {
         let Some(hit) = &map.surface[i] else { continue };
         let measured = f64::from(img[i]);
         if measured <= f64::from(lightrig_pipelines::disco::resample::MIN_FLOOR_RATIO * d.floor) {
@@ -1399,13 +1399,7 @@ fn near_error(m: &HeldModel, map: &ViewMap, d: &Held, img: &[f32], px: Range<usi
         if cos_o < params.max_view_deg.to_radians().cos() {
             continue;
         }
-        let t = mesh.triangles[hit.triangle as usize];
-        let object = (0..3).fold([0.0; 3], |acc, j| {
-            lightrig_pipelines::vec3::add(
-                acc,
-                lightrig_pipelines::vec3::scale(mesh.vertices[t[j] as usize], f64::from(hit.bary[j])),
-            )
-        });
+        let object = lightrig_pipelines::disco::optics::at_hit(mesh, &mesh.vertices, hit);
         let corr = m
             .atlas
             .nearest(object)

@@ -212,17 +212,15 @@ pub fn surface_map(mesh: &SurfaceMesh, world: &[V3], cam: &Pinhole) -> Vec<Optio
     map
 }
 
+/// Per-vertex values `at` (points, normals) mixed by `hit`'s barycentric weights.
+pub fn at_hit(mesh: &SurfaceMesh, at: &[V3], hit: &Hit) -> V3 {
+    let tri = mesh.triangles[hit.triangle as usize];
+    (0..3).fold([0.0; 3], |acc, k| add(acc, scale(at[tri[k] as usize], f64::from(hit.bary[k]))))
+}
+
 /// The world point and interpolated unit normal of `hit` (normals turned with the object).
 pub fn point_of(mesh: &SurfaceMesh, world: &[V3], deg: f64, hit: &Hit) -> (V3, V3) {
-    let tri = mesh.triangles[hit.triangle as usize];
-    let mut p = [0.0; 3];
-    let mut n = [0.0; 3];
-    for (k, &i) in tri.iter().enumerate() {
-        let b = f64::from(hit.bary[k]);
-        p = add(p, scale(world[i as usize], b));
-        n = add(n, scale(mesh.normals[i as usize], b));
-    }
-    (p, normalize(turn(n, deg)))
+    (at_hit(mesh, world, hit), normalize(turn(at_hit(mesh, &mesh.normals, hit), deg)))
 }
 
 #[cfg(test)]

@@ -14,11 +14,11 @@
 //! is nearly linear) together with their offset from `k`, and [`Accumulator::nodal`] moves each
 //! mean back to the vertex along the gradient that the neighbouring columns show.
 
-use crate::vec3::{add, dot, norm, normalize, scale, sub, V3};
+use crate::vec3::{dot, norm, normalize, sub, V3};
 
 use super::dipole::fresnel_transmittance;
 use super::mesh::SurfaceMesh;
-use super::optics::{point_of, surface_map, turned, Hit, Pinhole};
+use super::optics::{at_hit, point_of, surface_map, turned, Hit, Pinhole};
 
 /// Limits of what a view may contribute.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -113,14 +113,7 @@ impl ViewMap {
     /// The world point and interpolated unit normal of `hit` ([`point_of`], from the turned
     /// normals).
     pub fn point(&self, mesh: &SurfaceMesh, hit: &Hit) -> (V3, V3) {
-        let tri = mesh.triangles[hit.triangle as usize];
-        let (mut p, mut n) = ([0.0; 3], [0.0; 3]);
-        for (k, &i) in tri.iter().enumerate() {
-            let b = f64::from(hit.bary[k]);
-            p = add(p, scale(self.world[i as usize], b));
-            n = add(n, scale(self.normals[i as usize], b));
-        }
-        (p, normalize(n))
+        (at_hit(mesh, &self.world, hit), normalize(at_hit(mesh, &self.normals, hit)))
     }
 
     /// The beam `(origin, dir)` entering the mesh in this view ([`incidence`]), its glint
