@@ -1,6 +1,6 @@
 //! How a command fails: a message and the exit code that tells scripts what kind of failure
 //! it was (0 done, 1 failure, 2 usage, 3 device unreachable or refusing, 4 rig file or session
-//! problem, 130 stopped by Ctrl-C).
+//! problem, 130 stopped by Ctrl-C or `lightrig stop`).
 
 use lightrig_host::bringup::BringUpError;
 
@@ -26,7 +26,7 @@ pub const USAGE: u8 = 2;
 pub const DEVICE: u8 = 3;
 /// Exit code: the rig file or the session is wrong.
 pub const INPUT: u8 = 4;
-/// Exit code: stopped by Ctrl-C (128 + SIGINT, as shells report it).
+/// Exit code: stopped by Ctrl-C (128 + SIGINT, as shells report it) or `lightrig stop`.
 pub const INTERRUPTED: u8 = 130;
 
 impl From<BringUpError> for CliError {
@@ -34,6 +34,10 @@ impl From<BringUpError> for CliError {
         match e {
             BringUpError::Device(m) => err(DEVICE, m),
             BringUpError::RigFile(m) => err(INPUT, m),
+            BringUpError::Client(e @ lightrig_host::client::ClientError::Interrupted { .. }) => {
+                err(INTERRUPTED, e.to_string())
+            }
+            BringUpError::Client(e) => err(DEVICE, e.to_string()),
         }
     }
 }

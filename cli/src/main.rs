@@ -65,9 +65,7 @@ fn main() -> ExitCode {
         Cmd::Soak(args) => soak::run(&args),
         Cmd::Schema => device::schema(),
         Cmd::Devices(args) => device::devices(&args),
-        Cmd::Acquire(a) => {
-            cmd::exit(acquire::acquire(&a.rig, &a.session, a.connect.as_ref(), a.yes, &a.overrides))
-        }
+        Cmd::Acquire(a) => cmd::exit(acquire::acquire(&a)),
         Cmd::Resume(a) => cmd::exit(acquire::resume(&a)),
         Cmd::Hdr(c) => hdr::run(&c),
         Cmd::Calibrate(args) => calibrate::run(&args),

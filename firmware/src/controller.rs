@@ -166,7 +166,8 @@ impl<C: Clock, B: Board> Controller<C, B> {
         self.last_heartbeat
     }
 
-    /// Datagrams dropped unanswered for carrying anything but `EmergencyStop`.
+    /// Datagrams dropped unanswered for carrying anything but `EmergencyStop` (also counted,
+    /// with undecodable ones, in the link's `datagrams_dropped`, which `GetStatus` reports).
     pub fn ignored_datagrams(&self) -> u32 {
         self.ignored_datagrams
     }
@@ -195,7 +196,9 @@ impl<C: Clock, B: Board> Controller<C, B> {
                     if msg.command == Command::EmergencyStop {
                         let _ = self.handle(&msg.command);
                     } else {
+                        // Counted where the host sees it too (`Status.link.datagrams_dropped`).
                         self.ignored_datagrams = self.ignored_datagrams.wrapping_add(1);
+                        self.link.datagram_dropped();
                     }
                 }
                 Some(Delivery::Rejected { seq, reason }) => {

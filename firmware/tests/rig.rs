@@ -419,6 +419,23 @@ fn heartbeat_loss_is_a_fault_at_the_exact_tick() {
 }
 
 #[test]
+fn an_emergency_stop_replaces_a_latched_fault_a_host_may_clear_by_itself() {
+    let mut rig = rig();
+    configure_all(&mut rig);
+    rig.configure(
+        &ConfigItem::Safety(lightrig_protocol::config::SafetyConfig { heartbeat_timeout_ticks: 50_000 }),
+        0,
+    )
+    .unwrap();
+    rig.host_seen(1_000, true);
+    rig.run_until(100_000);
+    assert_eq!(rig.fault(), Some(FaultCause::HeartbeatLost));
+    // The host's stop arrives after the watchdog fired: the stop is what stays latched.
+    rig.emergency_stop(100_000);
+    assert_eq!(rig.fault(), Some(FaultCause::EmergencyStop));
+}
+
+#[test]
 fn emergency_stop_halts_steppers_without_deceleration() {
     let mut rig = homed_rig();
     rig.host_seen(2_000_000, false);

@@ -562,9 +562,11 @@ fn run_steps<T: Transport>(
 }
 
 /// Whether clearing the latched fault `cause` needs a person's word first: an opened laser
-/// interlock (an enclosure door, a key switch) means someone may be at the beam.
+/// interlock (an enclosure door, a key switch) means someone may be at the beam; an emergency
+/// stop (Ctrl-C, `lightrig stop`, the board's stop input) means someone wanted the rig
+/// stopped, and no program may undo that on its own.
 pub fn needs_a_person(cause: &FaultCause) -> bool {
-    matches!(cause, FaultCause::Interlock { .. })
+    matches!(cause, FaultCause::Interlock { .. } | FaultCause::EmergencyStop)
 }
 
 /// What [`recover`] found on the device and did.
@@ -641,6 +643,12 @@ pub fn run_reconnecting<T: Transport>(
 ) -> Result<(), AcquireError> {
     loop {
         let lost = match run_prepared(&mut client, session, plan, input, prep, &mut progress) {
+            // A stop asked for while the link failed: the run ends here, never reconnects.
+            Err(AcquireError::Device(e)) if is_link_loss(&e) && client.interrupted().is_some() => {
+                let answered = client.interrupted().is_some_and(|i| i.answered());
+                let device = client.transport().describe();
+                return Err(AcquireError::Device(ClientError::Interrupted { device, answered }));
+            }
             Err(AcquireError::Device(e)) if is_link_loss(&e) => e,
             other => return other,
         };
@@ -653,6 +661,11 @@ pub fn run_reconnecting<T: Transport>(
                 Ok(c) => {
                     back = Some(c);
                     break;
+                }
+                // A stop asked for meanwhile, or a fault that needs a person: trying again
+                // cannot help.
+                Err(e @ (ClientError::Interrupted { .. } | ClientError::NeedsConfirmation { .. })) => {
+                    return Err(AcquireError::Device(e));
                 }
                 Err(e) => {
                     notify(&format!("reconnection {k}/{attempts} failed: {e}"));
@@ -713,6 +726,9 @@ fn run_step<T: Transport>(
     let mut triggers = Vec::new();
     let mut arrivals: Vec<Captured> = Vec::new();
     let mut failure: Option<AcquireError> = None;
+    // Sequence ids repeat across host sessions: an earlier session's triggers of the same id
+    // (still queued on the device) are stamped before this tick (docs/protocol.md §6.4).
+    let fence = client.fence().map_err(AcquireError::Device)?;
     let result = client.run_sequence(seq, items, StartAt::Now, |e| {
         if failure.is_some() {
             return;
@@ -722,7 +738,7 @@ fn run_step<T: Transport>(
             return;
         }
         if let Event::Trigger(t) = &e.event {
-            if t.sequence == seq {
+            if t.sequence == seq && t.tick >= fence {
                 triggers.push(Trigger::from_event(t, e.host_us));
                 triggered(triggers.len() as u64);
                 if let Err(err) = input.on_trigger(t, e.host_us) {

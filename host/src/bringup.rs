@@ -14,19 +14,32 @@ use crate::rigfile::{RigFile, Stepper};
 use crate::transport::Transport;
 
 /// Why a rig could not be brought up.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug)]
 pub enum BringUpError {
     /// The device could not be reached, refused, or failed (homing).
     Device(String),
     /// The rig file does not fit the device.
     RigFile(String),
+    /// Bring-up ended on a client error that whoever drives it acts on by its kind: a stop
+    /// asked for (Ctrl-C: [`ClientError::Interrupted`]), a fault that needs a person
+    /// ([`ClientError::NeedsConfirmation`]).
+    Client(ClientError),
 }
 
 impl std::fmt::Display for BringUpError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             BringUpError::Device(m) | BringUpError::RigFile(m) => f.write_str(m),
+            BringUpError::Client(e) => e.fmt(f),
         }
+    }
+}
+
+/// A client error during bring-up: kept whole where its kind decides what happens next.
+fn device(e: ClientError) -> BringUpError {
+    match e {
+        ClientError::Interrupted { .. } | ClientError::NeedsConfirmation { .. } => BringUpError::Client(e),
+        other => BringUpError::Device(other.to_string()),
     }
 }
 
@@ -72,7 +85,6 @@ pub fn bring_up_with(
     transport: Box<dyn Transport>,
     hooks: &mut dyn BringUpHooks,
 ) -> Result<Client<Box<dyn Transport>>, BringUpError> {
-    let device = |e: ClientError| BringUpError::Device(e.to_string());
     let mut client = Client::connect(transport, fresh_nonce()).map_err(device)?;
     if let Some(i) = hooks.interrupt() {
         client.set_interrupt(i);

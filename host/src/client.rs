@@ -29,6 +29,8 @@ const WINDOW: usize = 8;
 const RTO_US: u64 = 20_000;
 /// How often [`Client::busy`] looks whether the work is done, µs.
 const BUSY_POLL_US: u64 = 10_000;
+/// How often a client with an [`Interrupt`] looks whether a stop was asked, µs.
+const STOP_POLL_US: u64 = 50_000;
 
 /// A link nonce for one run of a host program: the OS's random source (through the standard
 /// library's hasher keys) mixed with the time and the process id, so two runs, even started
@@ -44,13 +46,16 @@ pub fn fresh_nonce() -> u32 {
     (x ^ (x >> 32)) as u32
 }
 
-/// A request to stop, from outside the thread driving the client (a Ctrl-C handler): the
-/// client sends `EmergencyStop` at its next turn of the link, marks it sent, and fails the
-/// call in progress with [`ClientError::Interrupted`].
+/// A request to stop, from outside the thread driving the client (a Ctrl-C handler, the
+/// acquisition's control socket): the client sends `EmergencyStop` at its next turn of the
+/// link and fails the call in progress with [`ClientError::Interrupted`]. It is final: every
+/// later call of a client holding it fails the same way (sending the stop again until one was
+/// answered), so nothing after a stop can arm, clear or reconnect in this process.
 #[derive(Debug, Default)]
 pub struct Interrupt {
     requested: AtomicBool,
     stopped: AtomicBool,
+    answered: AtomicBool,
 }
 
 impl Interrupt {
@@ -64,9 +69,14 @@ impl Interrupt {
         self.requested.load(Ordering::SeqCst)
     }
 
-    /// Whether the device has been told to stop (its answer came, or the link was gone).
+    /// Whether the device has been sent the stop (answered or not: the link may be gone).
     pub fn stopped(&self) -> bool {
         self.stopped.load(Ordering::SeqCst)
+    }
+
+    /// Whether the device answered the stop: it is latched in `Faulted(EmergencyStop)`.
+    pub fn answered(&self) -> bool {
+        self.answered.load(Ordering::SeqCst)
     }
 }
 
@@ -85,12 +95,15 @@ pub enum ClientError {
     Fault { device: String, cause: FaultCause, tick: u64 },
     /// The device answered something the protocol does not allow here.
     Protocol { device: String, detail: String },
-    /// Stopped at the user's request (Ctrl-C): the device was sent `EmergencyStop`.
-    Interrupted { device: String },
+    /// Stopped at the user's request (Ctrl-C, `lightrig stop`): the device was sent
+    /// `EmergencyStop`; `answered` whether it said it stopped.
+    Interrupted { device: String, answered: bool },
     /// The device has latched a fault that a person must see to before it is cleared.
     NeedsConfirmation { device: String, cause: FaultCause },
     /// The device no longer knows this host's session: it restarted (reset, watchdog, power)
-    /// with the link still open, or its link was reset.
+    /// with the link still open (a new boot nonce in the next link epoch), or it refused a
+    /// request for want of a Hello. A new link epoch of the same device run is not this: the
+    /// client says Hello again and goes on.
     SessionLost { device: String },
 }
 
@@ -121,16 +134,30 @@ impl fmt::Display for ClientError {
                 describe_fault(cause)
             ),
             ClientError::Protocol { device, detail } => write!(f, "{device}: protocol error: {detail}"),
-            ClientError::Interrupted { device } => write!(
+            ClientError::Interrupted { device, answered: true } => write!(
                 f,
-                "stopped by the user: {device} was sent EmergencyStop (lasers off, motion stopped, the fault latched \
-                 until a run clears it)"
+                "stopped by the user: {device} was sent EmergencyStop and answered (lasers off and disarmed, motion \
+                 stopped, galvos parked); the stop stays latched until a person clears it: `lightrig resume` at a \
+                 terminal asks, or pass --clear-stop"
+            ),
+            ClientError::Interrupted { device, answered: false } => write!(
+                f,
+                "stopped by the user: {device} was sent EmergencyStop but did not answer (the link is gone); its \
+                 heartbeat watchdog turns the lasers off once this host is silent. Check the rig before going near \
+                 it; `lightrig info` says its state"
             ),
             ClientError::SessionLost { device } => write!(
                 f,
-                "{device} no longer knows this host's session: it restarted (reset, watchdog, power) or its link \
-                 was reset; it has lost its configuration and whatever it was running. Connecting again says \
-                 Hello, configures and homes it"
+                "{device} no longer knows this host's session: it restarted (reset, watchdog, power) with the link \
+                 left open and has lost its configuration and whatever it was running (or its link was reset \
+                 with too many requests in flight to say Hello first). Connecting again says Hello, configures \
+                 and homes it"
+            ),
+            ClientError::NeedsConfirmation { device, cause: FaultCause::EmergencyStop } => write!(
+                f,
+                "{device} is emergency-stopped (Ctrl-C, `lightrig stop` or its stop input), and only a person may \
+                 clear that: once the rig is safe, run `lightrig resume` at a terminal, which asks, or pass \
+                 --clear-stop"
             ),
             ClientError::NeedsConfirmation { device, cause } => write!(
                 f,
@@ -249,6 +276,13 @@ pub struct Client<T: Transport> {
     open: bool,
     /// Faults the host cleared on this device, for the session to journal.
     cleared: Vec<FaultCause>,
+    /// The protocol version and schema hash this client says Hello with.
+    hello: (u16, u64),
+    /// The boot nonce of the device that answered our Hello: a new link epoch with the same
+    /// one is the same device run, which only wants Hello again ([`Self::reconnected`]).
+    boot_nonce: Option<u32>,
+    /// Request id of the Hello said again after a new link epoch, until it is answered.
+    rehello: Option<u16>,
 }
 
 impl<T: Transport> Client<T> {
@@ -316,6 +350,9 @@ impl<T: Transport> Client<T> {
             interrupt: None,
             open: false,
             cleared: Vec::new(),
+            hello: (version, schema),
+            boot_nonce: None,
+            rehello: None,
         };
         let hello = Command::Hello { protocol_version: version, schema_hash: schema };
         let info = match client.request_timeout(hello, 3_000_000) {
@@ -324,6 +361,8 @@ impl<T: Transport> Client<T> {
             Err(e) => return Err(e),
         };
         client.info = info;
+        // The device run that answered: the link's epoch is the one Hello was answered in.
+        client.boot_nonce = Some(client.link.peer_boot());
         // Events the device resent before answering (what an earlier host left unacknowledged)
         // came before we knew whose they are.
         for e in &mut client.events {
@@ -385,6 +424,12 @@ impl<T: Transport> Client<T> {
     /// sends `EmergencyStop` and fails the call in progress ([`ClientError::Interrupted`]).
     pub fn set_interrupt(&mut self, interrupt: Arc<Interrupt>) {
         self.interrupt = Some(interrupt);
+    }
+
+    /// Whether a stop was asked of this client ([`Self::set_interrupt`]): from then on every
+    /// call fails with [`ClientError::Interrupted`].
+    pub fn interrupted(&self) -> Option<&Arc<Interrupt>> {
+        self.interrupt.as_ref().filter(|i| i.requested())
     }
 
     /// Sends `EmergencyStop` as a datagram (acted on even if the reliable queue is stalled) and
@@ -482,6 +527,9 @@ impl<T: Transport> Client<T> {
 
     /// Queues a command (waiting for room in the link window); returns its request id.
     fn send(&mut self, command: Command, timeout_us: u64) -> Result<u16, ClientError> {
+        // Nothing is queued once a stop is asked for: a command behind the stop (a ClearFault,
+        // an Arm) would otherwise reach the device after it.
+        self.obey_interrupt()?;
         self.next_id = self.next_id.wrapping_add(1);
         let id = self.next_id;
         let deadline = self.transport.now_us().saturating_add(timeout_us);
@@ -506,18 +554,27 @@ impl<T: Transport> Client<T> {
         Ok(id)
     }
 
+    /// A stop asked for ([`Interrupt`]): sent (again, until the device answers one), and the
+    /// call fails.
+    fn obey_interrupt(&mut self) -> Result<(), ClientError> {
+        let Some(stop) = self.interrupt.clone().filter(|i| i.requested()) else { return Ok(()) };
+        if !stop.answered() {
+            // The stop's own round trip runs with the interrupt set aside (it would recurse).
+            self.interrupt = None;
+            let answered = self.emergency_stop().is_ok();
+            self.interrupt = Some(stop.clone());
+            stop.stopped.store(true, Ordering::SeqCst);
+            stop.answered.fetch_or(answered, Ordering::SeqCst);
+        }
+        Err(ClientError::Interrupted { device: self.transport.describe(), answered: stop.answered() })
+    }
+
     /// Moves bytes both ways once, waiting at most until `deadline` for something to arrive.
     fn pump(&mut self, deadline: u64) -> Result<(), ClientError> {
         if let Some(e) = self.pending.take() {
             return Err(e);
         }
-        if let Some(stop) = self.interrupt.clone().filter(|i| i.requested() && !i.stopped()) {
-            // Stop first, then say why the call failed.
-            self.interrupt = None;
-            let _ = self.emergency_stop();
-            stop.stopped.store(true, Ordering::SeqCst);
-            return Err(ClientError::Interrupted { device: self.transport.describe() });
-        }
+        self.obey_interrupt()?;
         let mut out = [0u8; MAX_FRAME];
         let now = self.transport.now_us();
         self.heartbeat(now)?;
@@ -525,16 +582,27 @@ impl<T: Transport> Client<T> {
             let device = self.transport.describe();
             self.transport.send(&out[..n]).map_err(|error| ClientError::Io { device, error })?;
         }
-        let wake =
-            [Some(deadline), self.link.next_deadline(), Some(self.last_request_us + self.heartbeat_us)]
-                .into_iter()
-                .flatten()
-                .min()
-                .unwrap_or(deadline)
-                .max(now + 1);
+        // A stop may be asked from another thread (the control socket) with no signal to cut
+        // the wait short: look at least every STOP_POLL_US.
+        let watch = self.interrupt.as_ref().map(|_| now + STOP_POLL_US);
+        let wake = [
+            Some(deadline),
+            self.link.next_deadline(),
+            Some(self.last_request_us + self.heartbeat_us),
+            watch,
+        ]
+        .into_iter()
+        .flatten()
+        .min()
+        .unwrap_or(deadline)
+        .max(now + 1);
         let mut buf = [0u8; 4096];
         let device = self.transport.describe();
-        let n = self.transport.recv(&mut buf, wake).map_err(|error| ClientError::Io { device, error })?;
+        let n = match self.transport.recv(&mut buf, wake) {
+            // A signal (Ctrl-C) cut the wait short: nothing arrived, the device is still there.
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => 0,
+            other => other.map_err(|error| ClientError::Io { device, error })?,
+        };
         let at = self.transport.now_us();
         let mut got = Vec::new();
         self.link.receive_all(&buf[..n], at, |d| got.push(d));
@@ -568,6 +636,10 @@ impl<T: Transport> Client<T> {
                 if self.open =>
             {
                 return Err(ClientError::SessionLost { device: self.transport.describe() });
+            }
+            Delivery::Message(DeviceMsg::Response { id, result }) if self.rehello == Some(id) => {
+                self.rehello = None;
+                return self.rehello_answered(result);
             }
             Delivery::Message(DeviceMsg::Response { id, result }) => {
                 if let Some((sid, sent)) = self.sample {
@@ -604,9 +676,50 @@ impl<T: Transport> Client<T> {
             Delivery::Rejected { seq, reason } => {
                 return Err(self.protocol(format!("undecodable message {seq} from the device: {reason:?}")));
             }
-            Delivery::Datagram(_) | Delivery::Connected { .. } => {}
+            // The device sends none; one that came anyway is not acted on.
+            Delivery::Datagram(_) => self.link.datagram_dropped(),
+            Delivery::Connected { .. } => self.reconnected()?,
         }
         Ok(())
+    }
+
+    /// A new link epoch started. Once the handshake is done that is a reconnection under a
+    /// running session: a `Resync`, or the sign that a stale `Sync` of an earlier host run
+    /// knocked the device's link back to half-open (§4.6.1). The device returns to
+    /// `AwaitingHello` at every new epoch and keeps everything else (§6.3), so if it is the
+    /// same device run (the same boot nonce, which differs at every device start) this says
+    /// Hello again, ahead of every request still queued (they are sent again in the new epoch
+    /// and would otherwise be refused for want of it), and the session goes on. Another boot
+    /// nonce: the device restarted and has lost the session.
+    fn reconnected(&mut self) -> Result<(), ClientError> {
+        let Some(boot) = self.boot_nonce else {
+            // Still connecting: the Hello in the queue is sent again in the new epoch.
+            return Ok(());
+        };
+        if self.link.peer_boot() != boot {
+            return Err(ClientError::SessionLost { device: self.transport.describe() });
+        }
+        self.next_id = self.next_id.wrapping_add(1);
+        let id = self.next_id;
+        let (protocol_version, schema_hash) = self.hello;
+        let hello = HostMsg { id, command: Command::Hello { protocol_version, schema_hash } };
+        if self.link.send_first(hello).is_err() {
+            // A full window: the requests queued would reach the device before the Hello and
+            // be refused. Only a new connection puts that right.
+            return Err(ClientError::SessionLost { device: self.transport.describe() });
+        }
+        self.rehello = Some(id);
+        Ok(())
+    }
+
+    /// The answer to the Hello said again after a new link epoch: the same device run, as its
+    /// boot nonce said, describes itself as before.
+    fn rehello_answered(&mut self, result: Result<Reply, Error>) -> Result<(), ClientError> {
+        match result {
+            Ok(Reply::Hello(info)) if info.boot_id == self.info.boot_id => Ok(()),
+            Ok(Reply::Hello(_)) => Err(ClientError::SessionLost { device: self.transport.describe() }),
+            other => Err(self.protocol(format!("Hello (after a new link epoch) answered with {other:?}"))),
+        }
     }
 
     /// Measures the clock mapping with `n` `GetClock` round trips.
@@ -721,7 +834,11 @@ impl<T: Transport> Client<T> {
             on_event(&e);
             match e.event {
                 Event::Buffer(b) if b.sequence == id => executed = executed.max(b.executed),
-                Event::SequenceDone { sequence, items, tick } if sequence == id => {
+                // Sequence ids repeat across host sessions (step × 1000 + attempt): an earlier
+                // session's end of the same id is stamped before the fence.
+                Event::SequenceDone { sequence, items, tick }
+                    if sequence == id && tick >= self.fence_tick =>
+                {
                     return Ok(SequenceOutcome { items, tick });
                 }
                 Event::Fault { cause, tick } if tick >= self.fence_tick => {

@@ -18,6 +18,8 @@ pub mod acquire;
 pub mod bringup;
 pub mod client;
 pub mod clock;
+#[cfg(unix)]
+pub mod control;
 pub mod disco;
 pub mod filter;
 pub mod fit;

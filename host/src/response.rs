@@ -209,7 +209,12 @@ pub fn attach(rig: &RigFile, session_dir: &Path) -> Result<(), String> {
         if let Some(src) = &c.response {
             let r = ResponseFile::load(src)
                 .map_err(|e| format!("camera {} ({}): {e}", c.camera, rig.path.display()))?;
-            r.save(&session_copy(session_dir, c.camera))?;
+            // Written as the session writes its own files: never through a planted link.
+            let json = serde_json::to_string_pretty(&r).map_err(|e| e.to_string())?;
+            let copy = session_copy(session_dir, c.camera);
+            let name = copy.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_string();
+            crate::session::write_session_file(session_dir, &name, json.as_bytes())
+                .map_err(|e| e.to_string())?;
         }
     }
     Ok(())

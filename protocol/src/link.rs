@@ -140,6 +140,11 @@ pub struct LinkStats {
     pub deferred: u32,
     /// Epochs started (syncs completed).
     pub syncs: u32,
+    /// Datagrams dropped: intact ones received and not acted on (a body that does not decode,
+    /// also counted by its reason; or a message the receiver takes only sequenced, which its
+    /// owner reports with [`Link::datagram_dropped`]: on the device, every `HostMsg` but
+    /// `EmergencyStop`), and outgoing ones refused by [`Link::send_datagram`] for a full queue.
+    pub datagrams_dropped: u32,
 }
 
 impl LinkStats {
@@ -346,6 +351,19 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
         &self.stats
     }
 
+    /// Counts a datagram [`Link::receive`] handed up that its owner drops unread (a message
+    /// it acts on only when it comes sequenced): `datagrams_dropped`.
+    pub fn datagram_dropped(&mut self) {
+        self.stats.datagrams_dropped = self.stats.datagrams_dropped.wrapping_add(1);
+    }
+
+    /// Initiator: the responder's boot nonce, from the `SyncAck` that started the current
+    /// epoch (0 before the first). It differs at every device start, so an initiator that
+    /// sees it unchanged across a new epoch knows the device kept running.
+    pub fn peer_boot(&self) -> u32 {
+        self.peer_boot
+    }
+
     /// Messages queued and not yet acknowledged.
     pub fn unacked(&self) -> usize {
         self.queue.len()
@@ -411,13 +429,33 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
         Ok(())
     }
 
+    /// Queues a message for reliable delivery ahead of every message queued: it is the first
+    /// of them the peer receives. Only while none of them has been sent in this epoch (as when
+    /// [`Delivery::Connected`] has just been handed up, before the next
+    /// [`Link::poll_transmit`]); otherwise, or with the window full or the message too
+    /// large, it is handed back.
+    pub fn send_first(&mut self, msg: T) -> Result<(), T> {
+        let started = self.state == LinkState::Up && self.sent_max > 0;
+        if started || !fits(&msg) {
+            return Err(msg);
+        }
+        // Nothing queued has been sent under its number: all of them move up by one.
+        self.queue.push_front(msg)?;
+        self.next_seq = self.next_seq.wrapping_add(1);
+        Ok(())
+    }
+
     /// Queues an unsequenced message (sent once, not acknowledged). For urgent, idempotent
-    /// messages such as an emergency stop, sent alongside the reliable copy.
+    /// messages such as an emergency stop, sent alongside the reliable copy. Refused with the
+    /// datagram queue full (two waiting to be sent): counted in `datagrams_dropped`.
     pub fn send_datagram(&mut self, msg: T) -> Result<(), SendError<T>> {
         if !fits(&msg) {
             return Err(SendError::TooLarge(msg));
         }
-        self.datagrams.push_back(msg).map_err(SendError::WindowFull)
+        self.datagrams.push_back(msg).map_err(|m| {
+            self.stats.datagrams_dropped = self.stats.datagrams_dropped.wrapping_add(1);
+            SendError::WindowFull(m)
+        })
     }
 
     /// The next time [`Link::poll_transmit`] has something to do even if nothing arrives.
@@ -523,7 +561,10 @@ impl<T: Message, R: Message, const W: usize> Link<T, R, W> {
         match (header.kind, self.role) {
             (FrameKind::Datagram, _) => match decode::<R>(body) {
                 Ok(msg) => return Some(Delivery::Datagram(msg)),
-                Err(e) => self.stats.count_rejected(e),
+                Err(e) => {
+                    self.stats.count_rejected(e);
+                    self.datagram_dropped();
+                }
             },
             (FrameKind::Sync, Role::Responder) => {
                 // Within one host session (same nonce) epochs only move forward: a Sync of the

@@ -737,3 +737,92 @@ fn an_empty_data_body_is_a_bad_payload_not_an_unknown_type() {
     assert_eq!((d.stats().unknown_type, d.stats().bad_payload), (0, 1));
     let _ = &mut h;
 }
+
+#[test]
+fn datagrams_refused_for_a_full_queue_are_counted_one_each() {
+    let mut h = host_link();
+    h.connect(0);
+    // Two slots: the third and fourth are refused (handed back) and counted.
+    h.send_datagram(req(1)).unwrap();
+    h.send_datagram(req(2)).unwrap();
+    assert!(matches!(h.send_datagram(req(3)), Err(link::SendError::WindowFull(m)) if m == req(3)));
+    assert!(matches!(h.send_datagram(req(4)), Err(link::SendError::WindowFull(_))));
+    assert_eq!(h.stats().datagrams_dropped, 2);
+    // Sent (in any state, §4.7): room again, nothing more counted.
+    let sent = drain(&mut h, 0);
+    assert_eq!(kinds(&sent), vec![FrameKind::Sync, FrameKind::Datagram, FrameKind::Datagram]);
+    h.send_datagram(req(5)).unwrap();
+    assert_eq!(h.stats().datagrams_dropped, 2);
+}
+
+#[test]
+fn received_datagrams_not_acted_on_are_counted_exactly() {
+    let (mut h, mut d) = connected();
+    let dgram = |body: &[u8]| {
+        let mut packet =
+            postcard::to_allocvec(&Header { kind: FrameKind::Datagram, epoch: 1, seq: 0, ack: 0 }).unwrap();
+        packet.extend_from_slice(body);
+        let mut buf = [0u8; lightrig_protocol::MAX_PACKET];
+        buf[..packet.len()].copy_from_slice(&packet);
+        let mut out = [0u8; MAX_FRAME];
+        let n = lightrig_protocol::frame::seal(&mut buf, packet.len(), &mut out);
+        out[..n].to_vec()
+    };
+    // Three whose body does not decode (empty: a bad payload; an unknown command index), one
+    // that does: the three are dropped and counted, also under their reason.
+    let good = postcard::to_allocvec(&req(7)).unwrap();
+    let frames = vec![dgram(&[]), dgram(&[0x05, 0x7f]), dgram(&[]), dgram(&good)];
+    assert_eq!(feed(&mut d, &frames, 10), vec![Delivery::Datagram(req(7))]);
+    let s = *d.stats();
+    assert_eq!(s.datagrams_dropped, 3);
+    assert_eq!((s.bad_payload, s.unknown_type), (2, 1));
+    // One handed up that its owner does not act on (the firmware takes only EmergencyStop
+    // unsequenced) is counted when the owner says so, once per call.
+    d.datagram_dropped();
+    assert_eq!(d.stats().datagrams_dropped, 4);
+    // The host counts device datagrams it cannot decode the same way.
+    let dev_frames = vec![dgram(&[0x09])];
+    assert_eq!(feed(&mut h, &dev_frames, 11), vec![]);
+    assert_eq!(h.stats().datagrams_dropped, 1);
+}
+
+#[test]
+fn a_message_sent_first_after_a_new_epoch_reaches_the_peer_before_those_queued() {
+    let (mut h, mut d) = connected();
+    // Requests queued and sent in epoch 1, never acknowledged (the device went half-open).
+    h.send(req(1)).unwrap();
+    h.send(req(2)).unwrap();
+    drain(&mut h, 10);
+    // Sent once in this epoch: no longer first.
+    assert_eq!(h.send_first(req(99)), Err(req(99)));
+    let mut d2 = dev_link_boot(0xD2);
+    std::mem::swap(&mut d, &mut d2);
+    h.send(req(3)).unwrap();
+    // The device restarted: it answers Resync, the host connects to epoch 2.
+    feed(&mut d, &drain(&mut h, 100), 100);
+    feed(&mut h, &drain(&mut d, 100), 100);
+    assert_eq!(h.state(), LinkState::Syncing);
+    feed(&mut d, &drain(&mut h, 100), 100);
+    assert_eq!(feed(&mut h, &drain(&mut d, 100), 100), vec![Delivery::Connected { epoch: 2 }]);
+    assert_eq!(h.peer_boot(), 0xD2);
+    // Right after Connected, nothing of epoch 2 sent: this one goes ahead of the three.
+    h.send_first(req(0)).unwrap();
+    assert_eq!(h.unacked(), 4);
+    let (to_dev, _) = pump(&mut h, &mut d, 101, 4);
+    assert_eq!(
+        to_dev,
+        vec![
+            Delivery::Connected { epoch: 2 },
+            Delivery::Message(req(0)),
+            Delivery::Message(req(1)),
+            Delivery::Message(req(2)),
+            Delivery::Message(req(3)),
+        ]
+    );
+    assert_eq!(h.unacked(), 0);
+    // A full window hands it back.
+    for id in 10..18 {
+        h.send(req(id)).unwrap();
+    }
+    assert_eq!(h.send_first(req(9)), Err(req(9)));
+}

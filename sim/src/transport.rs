@@ -36,6 +36,9 @@ pub struct VirtualTransport {
     real_time: Option<RealTime>,
     /// The board's changes handed on to the virtual camera ([`VirtualTransport::timeline`]).
     timeline: Option<Timeline>,
+    /// Bytes handed to the device as if they came over the wire, when simulated time reaches
+    /// their tick ([`VirtualTransport::inject_at`]), earliest first.
+    injected: Vec<(u64, Vec<u8>)>,
 }
 
 /// Byte-level damage on the virtual wire, per million bytes, each direction.
@@ -164,6 +167,7 @@ impl VirtualTransport {
             reset_at: None,
             real_time: None,
             timeline: None,
+            injected: Vec::new(),
         }
     }
 
@@ -207,6 +211,21 @@ impl VirtualTransport {
     /// boot with a new boot id and nothing configured, on the same physical board.
     pub fn reset_at(&mut self, tick: u64) {
         self.reset_at = Some(tick);
+    }
+
+    /// Hands `bytes` to the device, as if they came over the wire, when simulated time reaches
+    /// `tick`: frames of another sender (a stale copy of an earlier host run's `Sync` on a
+    /// reordering wire, a stray datagram) in the middle of whatever the host is doing.
+    pub fn inject_at(&mut self, tick: u64, bytes: &[u8]) {
+        let at = self.injected.partition_point(|(t, _)| *t <= tick);
+        self.injected.insert(at, (tick, bytes.to_vec()));
+    }
+
+    fn check_injected(&mut self) {
+        while self.injected.first().is_some_and(|(t, _)| self.clock.now() >= *t) {
+            let (_, bytes) = self.injected.remove(0);
+            self.device.receive(&bytes);
+        }
     }
 
     fn check_reset(&mut self) {
@@ -256,6 +275,7 @@ impl VirtualTransport {
 
     fn collect(&mut self) {
         self.check_reset();
+        self.check_injected();
         let mut out = [0u8; MAX_FRAME];
         self.device.poll();
         if let Some(t) = &self.timeline {
@@ -292,6 +312,7 @@ impl Transport for VirtualTransport {
             }
             // Jump to whatever comes first: the device's next work or the host's deadline.
             let next = self.device.next_deadline().map_or(deadline, |d| d.max(now + 1).min(deadline));
+            let next = self.injected.first().map_or(next, |(t, _)| next.min((*t).max(now + 1)));
             if let Some(rt) = &self.real_time {
                 rt.wait_until(next);
             }

@@ -627,10 +627,26 @@ fn ctrl_c_stops_the_device_at_once_leaves_it_disarmed_and_resume_completes_the_s
     assert!(interrupt.stopped());
     assert!(err.to_string().contains("EmergencyStop"), "{err}");
     assert_eq!(session.open_attempt(), None, "the interrupted attempt was abandoned");
+    // The stop is final for whoever holds the interrupt: nothing more goes through.
+    let again = client.request(Command::ClearFault).unwrap_err();
+    assert!(matches!(again, ClientError::Interrupted { answered: true, .. }), "{again}");
+    // A new interrupt: a new process (`lightrig resume`).
+    client.set_interrupt(std::sync::Arc::new(Interrupt::default()));
     let Reply::Status(s) = client.request(Command::GetStatus).unwrap() else { panic!("no status") };
     assert_eq!(s.state, DeviceState::Faulted(FaultCause::EmergencyStop));
     assert_eq!((s.armed, s.lasers_on), (0, 0), "lasers off and disarmed");
-    // `lightrig resume`: the emergency stop needs no person's word; the session completes.
+    // The stop is not cleared without a person's word, and the run does not start.
+    let refused = acquire::run(&mut client, &mut session, &plan, &mut cam.cam, |_| {}).unwrap_err();
+    let AcquireError::Device(e @ ClientError::NeedsConfirmation { cause: FaultCause::EmergencyStop, .. }) =
+        refused
+    else {
+        panic!("{refused}")
+    };
+    assert!(e.to_string().contains("--clear-stop"), "{e}");
+    let Reply::Status(s) = client.request(Command::GetStatus).unwrap() else { panic!("no status") };
+    assert_eq!(s.state, DeviceState::Faulted(FaultCause::EmergencyStop), "still stopped");
+    // A person said yes (bring-up's question): cleared; the session completes.
+    acquire::recover(&mut client, &mut |_: &FaultCause| true).unwrap();
     acquire::run(&mut client, &mut session, &plan, &mut cam.cam, |_| {}).unwrap();
     drop(session);
     check_complete(&dir, &plan);
@@ -643,7 +659,83 @@ fn ctrl_c_stops_the_device_at_once_leaves_it_disarmed_and_resume_completes_the_s
             _ => None,
         })
         .collect();
-    assert_eq!(cleared, [(FaultCause::EmergencyStop, "automatic".to_string())]);
+    assert_eq!(cleared, [(FaultCause::EmergencyStop, "confirmed".to_string())]);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A transport whose wait on the device fails once a stop is asked for, as a serial port's
+/// poll(2) does when Ctrl-C's signal lands on the thread waiting in it (EINTR).
+struct BrokenBySignal {
+    inner: VirtualTransport,
+    interrupt: std::sync::Arc<lightrig_host::client::Interrupt>,
+    failed: bool,
+}
+
+impl lightrig_host::transport::Transport for BrokenBySignal {
+    fn send(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        self.inner.send(bytes)
+    }
+    fn recv(&mut self, buf: &mut [u8], deadline: u64) -> std::io::Result<usize> {
+        if self.interrupt.requested() && !self.failed {
+            self.failed = true;
+            return Err(std::io::ErrorKind::Interrupted.into());
+        }
+        self.inner.recv(buf, deadline)
+    }
+    fn now_us(&self) -> u64 {
+        self.inner.now_us()
+    }
+    fn describe(&self) -> String {
+        self.inner.describe()
+    }
+    fn runs_alone(&self) -> bool {
+        self.inner.runs_alone()
+    }
+}
+
+/// The defect: Ctrl-C's signal broke the wait on the port, the run took that for a lost
+/// device, reconnected, cleared its own stop and fired the lasers again. A stop asked for ends
+/// the run whatever error it meets: no reconnection, the stop sent and answered.
+#[test]
+fn a_stop_whose_signal_breaks_the_link_is_no_lost_device_and_nothing_reconnects() {
+    use lightrig_host::client::{ClientError, Interrupt};
+    let dir = temp_dir("ctrl-c-eintr");
+    let plan = lls_plan();
+    let mut session = new_session(&dir, &plan);
+    let interrupt = std::sync::Arc::new(Interrupt::default());
+    let board = VirtualTransport::new(virtual_device_info(), SimBoard::default());
+    let transport = BrokenBySignal { inner: board, interrupt: interrupt.clone(), failed: false };
+    let mut client = common::setup(Client::connect(transport, 5).unwrap());
+    client.set_interrupt(interrupt.clone());
+    let mut cam = StopAt { cam: TestCamera::default(), at: 30, interrupt: interrupt.clone() };
+    let mut tries = 0;
+    let mut reconnect = |_: Option<BrokenBySignal>, _: u32| -> Result<Client<BrokenBySignal>, ClientError> {
+        tries += 1;
+        Err(ClientError::Timeout { device: "virtual".into(), what: "Hello".into(), waited_ms: 1 })
+    };
+    let mut said = Vec::new();
+    let err = acquire::run_reconnecting(
+        client,
+        &mut reconnect,
+        5,
+        &mut session,
+        &plan,
+        &mut cam,
+        &mut acquire::Unattended("virtual"),
+        |_| {},
+        |m| said.push(m.to_string()),
+    )
+    .unwrap_err();
+    assert!(matches!(err, AcquireError::Device(ClientError::Interrupted { answered: true, .. })), "{err}");
+    assert_eq!(tries, 0, "no reconnection: {said:?}");
+    assert!(said.is_empty(), "{said:?}");
+    assert!(interrupt.answered(), "the device answered the stop");
+    drop(session);
+    let records = lightrig_host::session::journal_records(&dir).unwrap();
+    assert!(!records.iter().any(|r| matches!(r, Record::FaultCleared { .. })));
+    let started = records.iter().filter(|r| matches!(r, Record::StepStarted { .. })).count();
+    let abandoned = records.iter().filter(|r| matches!(r, Record::StepAbandoned { .. })).count();
+    assert_eq!((started, abandoned), (2, 1), "the second pass, interrupted, is not run again");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -691,6 +783,44 @@ fn a_device_reset_mid_step_is_seen_and_the_step_acquired_again_under_the_new_boo
     let interrupted: Vec<_> =
         session.state().steps.iter().filter(|(_, a)| a.len() == 2).map(|(s, _)| *s).collect();
     assert_eq!(interrupted.len(), 1, "one step was cut short and acquired again");
+    drop(session);
+    check_complete(&dir, &plan);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn a_stale_hosts_sync_mid_step_costs_neither_the_session_nor_the_step() {
+    use lightrig_host::session::journal_records;
+    use lightrig_protocol::link::{self, FrameKind, Header};
+    let dir = temp_dir("stale-sync");
+    let plan = lls_plan();
+    let mut session = new_session(&dir, &plan);
+    let mut client = connect(SimBoard::default());
+    // 0.4 s (simulated) into the run, in the middle of a pass, a copy of an earlier host run's
+    // Sync (another nonce) of the current epoch reaches the device, as a reordering wire may
+    // deliver it (§4.6.1).
+    let mut out = [0u8; lightrig_protocol::MAX_FRAME];
+    let epoch = client.transport().device().link().epoch();
+    let h = Header { kind: FrameKind::Sync, epoch, seq: 0, ack: 0 };
+    let n = link::write(&h, Some(&0x0bad_5eed_u32), &mut out);
+    let now = lightrig_host::transport::Transport::now_us(client.transport());
+    client.transport_mut().inject_at(now + 400_000, &out[..n]);
+    let syncs = client.transport().device().link().stats().syncs;
+    let mut cam = TestCamera::default();
+    acquire::run(&mut client, &mut session, &plan, &mut cam, |_| {}).unwrap_or_else(|e| panic!("{e}"));
+    // It arrived, and the link went through a new epoch ...
+    assert_eq!(client.transport().device().link().stats().syncs, syncs + 2);
+    assert_eq!(client.transport().device().link().epoch(), epoch + 1);
+    // ... and nothing else happened: one device connection, no step attempted twice, no fault.
+    let records = journal_records(&dir).unwrap();
+    let connected = records.iter().filter(|r| matches!(r, Record::DeviceConnected { .. })).count();
+    assert_eq!(connected, 1);
+    let faults: Vec<_> = records
+        .iter()
+        .filter(|r| matches!(r, Record::Event { event: lightrig_protocol::Event::Fault { .. }, .. }))
+        .collect();
+    assert_eq!(faults, Vec::<&Record>::new());
+    assert!(session.state().steps.values().all(|a| a.len() == 1), "a step was acquired again");
     drop(session);
     check_complete(&dir, &plan);
     std::fs::remove_dir_all(&dir).unwrap();

@@ -113,3 +113,86 @@ fn paced_in_real_time_a_sequence_takes_as_long_as_on_a_real_rig_and_keeps_its_ti
     assert!(wall.elapsed() >= std::time::Duration::from_micros(outcome.tick), "{:?}", wall.elapsed());
     assert_eq!(ticks, (1..=100).map(|k| start + 2_000 * k).collect::<Vec<_>>());
 }
+
+/// A copy of an earlier host run's `Sync` (another session nonce) naming `epoch`, as a
+/// reordering wire (a USB–UART bridge's buffer) may deliver it after this host connected.
+fn stale_sync(epoch: u8) -> Vec<u8> {
+    use lightrig_protocol::link::{self, FrameKind, Header};
+    let mut out = [0u8; lightrig_protocol::MAX_FRAME];
+    let h = Header { kind: FrameKind::Sync, epoch, seq: 0, ack: 0 };
+    let n = link::write(&h, Some(&0x0bad_5eed_u32), &mut out);
+    out[..n].to_vec()
+}
+
+#[test]
+fn a_stale_hosts_sync_costs_this_host_neither_its_session_nor_more_than_a_heartbeat_period() {
+    // §4.6.1: the stale Sync knocks the device's link back to half-open in the old session;
+    // naming the current epoch it has the device answer this host with SyncAcks for that
+    // session, naming another one with Resync. Either way this host connects to a new epoch
+    // within a heartbeat period, says Hello again (§6.2) and keeps its session: the device did
+    // not restart, its configuration and armed lasers are as they were.
+    for ahead in [0u8, 5] {
+        let mut c = client();
+        c.set_heartbeat_us(200_000);
+        let laser = LaserConfig {
+            channel: 0,
+            wavelength_nm: 635,
+            warmup_ticks: 0,
+            max_on_ticks: 1_000_000,
+            enable: Polarity::ActiveHigh,
+            interlock: Input::Unused,
+        };
+        c.request(Command::Configure(ConfigItem::Laser(laser))).unwrap();
+        c.request(Command::Arm { lasers: 1 }).unwrap();
+        let boot = c.info().boot_id;
+        let device = c.transport().device().link();
+        let (epoch, syncs) = (device.epoch(), device.stats().syncs);
+        c.transport_mut().device_mut().receive(&stale_sync(epoch.wrapping_add(ahead)));
+        // One heartbeat period (200 ms) and a few round trips.
+        c.idle(250_000).unwrap_or_else(|e| panic!("stale Sync of epoch +{ahead}: {e}"));
+        let d = c.transport().device();
+        assert_eq!(d.state(), DeviceState::Ready, "stale Sync of epoch +{ahead}: session open again");
+        assert_eq!(d.rig().armed(), 1, "nothing but the link was reset");
+        // The stale half-open epoch, then this host's new one.
+        assert_eq!(d.link().stats().syncs, syncs + 2);
+        assert_eq!(d.link().epoch(), epoch + 1, "the host's next epoch, whatever the stale one named");
+        assert_eq!(c.link_stats().syncs, 2, "the host connected once more");
+        assert_eq!(c.info().boot_id, boot);
+        // The session goes on.
+        let Reply::Status(s) = c.request(Command::GetStatus).unwrap() else { panic!("no status") };
+        assert_eq!((s.state, s.armed), (DeviceState::Ready, 1));
+        c.idle(2_000_000).unwrap();
+        assert_eq!(c.transport().device().state(), DeviceState::Ready, "no HeartbeatLost");
+    }
+}
+
+#[test]
+fn datagrams_the_device_drops_show_in_its_status() {
+    use lightrig_protocol::link::{self, FrameKind, Header};
+    use lightrig_protocol::sequence::Action;
+    use lightrig_protocol::HostMsg;
+    let mut c = client();
+    let Reply::Status(before) = c.request(Command::GetStatus).unwrap() else { panic!("no status") };
+    assert_eq!(before.link.datagrams_dropped, 0);
+    // Datagrams from a stray sender or a replay: two commands the device takes only
+    // sequenced, one body that does not decode (§4.7, §4.8).
+    let mut out = [0u8; lightrig_protocol::MAX_FRAME];
+    let h = Header { kind: FrameKind::Datagram, epoch: 0, seq: 0, ack: 0 };
+    let now = lightrig_host::transport::Transport::now_us(c.transport());
+    for command in [Command::Arm { lasers: 1 }, Command::Immediate(Action::Laser { channel: 0, on: true })] {
+        let n = link::write(&h, Some(&HostMsg { id: 7, command }), &mut out);
+        c.transport_mut().inject_at(now + 1_000, &out[..n]);
+    }
+    let n = link::write(&h, Some(&[0x07u8, 0x7f]), &mut out);
+    c.transport_mut().inject_at(now + 2_000, &out[..n]);
+    c.idle(10_000).unwrap();
+    let Reply::Status(s) = c.request(Command::GetStatus).unwrap() else { panic!("no status") };
+    assert_eq!(s.link.datagrams_dropped, 3);
+    assert_eq!(c.transport().device().ignored_datagrams(), 2);
+    // An emergency stop as a datagram is acted on, not dropped.
+    let n = link::write(&h, Some(&HostMsg { id: 8, command: Command::EmergencyStop }), &mut out);
+    c.transport_mut().device_mut().receive(&out[..n]);
+    let Reply::Status(s) = c.request(Command::GetStatus).unwrap() else { panic!("no status") };
+    assert_eq!(s.link.datagrams_dropped, 3);
+    assert_eq!(s.state, DeviceState::Faulted(lightrig_protocol::event::FaultCause::EmergencyStop));
+}

@@ -164,6 +164,8 @@ fn a_datagram_other_than_an_emergency_stop_is_dropped_unanswered() {
         p.device.receive(&out[..n]);
     }
     assert_eq!(p.device.ignored_datagrams(), 3);
+    // Counted in the link's counters too, which the host reads with GetStatus.
+    assert_eq!(p.device.link().stats().datagrams_dropped, 3);
     assert_eq!(p.device.rig().armed(), 0, "a datagram armed a laser");
     assert_eq!(p.device.state(), DeviceState::Ready);
     // Nothing answers them, and the session goes on.
@@ -226,4 +228,81 @@ fn events_lost_to_a_full_queue_leave_a_gap_in_the_numbers_exactly_where_they_wer
         "the overflow fault follows the gap: {:?}",
         events[at]
     );
+}
+
+/// §6.4: the events an earlier host session left unacknowledged reach the next host, even after
+/// the answer to its Hello; their tick, before the fence the new host takes with `GetClock`, is
+/// what marks them (neither the sequence id nor the event index nor the boot id does).
+#[test]
+fn an_earlier_host_sessions_sequence_done_after_the_new_hello_is_before_the_fence() {
+    use lightrig_firmware::Clock;
+    use lightrig_host::client::event_tick;
+    use lightrig_protocol::config::{CameraConfig, ConfigItem, Input, Polarity};
+    use lightrig_protocol::event::Event;
+    use lightrig_protocol::link::{Link, LinkConfig, Role};
+    use lightrig_protocol::sequence::{Action, Chunk, Item, StartAt};
+    use lightrig_protocol::HostMsg;
+    let mut p = Pair::new();
+    p.request(1, hello(), 10);
+    let cam = CameraConfig {
+        camera: 0,
+        pulse_ticks: 2,
+        polarity: Polarity::ActiveHigh,
+        exposure_input: Input::Unused,
+        min_interval_ticks: 0,
+    };
+    p.request(2, Command::Configure(ConfigItem::Camera(cam)), 10);
+    // Sequence 1, twelve triggers: more events than the device's link window holds.
+    let trigger = Item { delta: 10, action: Action::Trigger { camera: 0, exposure: 0 } };
+    let items = std::iter::repeat_n(trigger, 12).collect::<heapless::Vec<_, 32>>();
+    let load = Command::SequenceLoad(Chunk { sequence: 1, chunk: 0, last: true, items });
+    let start = Command::SequenceStart { sequence: 1, at: StartAt::Now };
+    p.request(3, load.clone(), 10);
+    // The first host program starts it and dies: nothing the device sends from now on is
+    // acknowledged, and the device runs the sequence to its end alone.
+    p.host.send(HostMsg { id: 4, command: start.clone() }).expect("window");
+    let mut out = [0u8; MAX_FRAME];
+    while let Some(n) = p.host.poll_transmit(p.clock.now(), &mut out) {
+        p.device.receive(&out[..n]);
+    }
+    for _ in 0..1_000 {
+        p.clock.advance(1);
+        p.device.poll();
+        while p.device.poll_transmit(&mut out).is_some() {}
+    }
+    // The next host program (another nonce) queues its Hello and its fence, a GetClock, while
+    // the link syncs, as the reference client does.
+    p.host =
+        Link::new(Role::Initiator, LinkConfig { rto: lightrig_tests::RTO, rx_reserve: 0, nonce: 0x2d0c });
+    p.host.connect(p.clock.now());
+    p.host.send(HostMsg { id: 100, command: hello() }).expect("window");
+    p.host.send(HostMsg { id: 101, command: Command::GetClock }).expect("window");
+    let stream = p.messages(3 * lightrig_tests::RTO);
+    let at =
+        |f: &dyn Fn(&DeviceMsg) -> bool| stream.iter().position(f).unwrap_or_else(|| panic!("{stream:?}"));
+    let hello_at = at(&|m| matches!(m, DeviceMsg::Response { id: 100, result: Ok(Reply::Hello(_)) }));
+    let fence_at = at(&|m| matches!(m, DeviceMsg::Response { id: 101, result: Ok(Reply::Clock { .. }) }));
+    let DeviceMsg::Response { result: Ok(Reply::Clock { tick: fence }), .. } = stream[fence_at] else {
+        unreachable!()
+    };
+    let done =
+        |m: &DeviceMsg| matches!(m, DeviceMsg::Event { event: Event::SequenceDone { sequence: 1, .. }, .. });
+    let old_at = at(&done);
+    let DeviceMsg::Event { index: old_index, event: old } = stream[old_at].clone() else { unreachable!() };
+    // The device resent what the earlier session left unacknowledged (its answer to request 4
+    // among them) ahead of the answer to the new Hello ...
+    assert!(stream[..hello_at].iter().any(|m| matches!(m, DeviceMsg::Response { id: 4, .. })), "{stream:?}");
+    // ... and the rest of its events after it: the earlier session's SequenceDone arrives after
+    // the answer to the new Hello. Its place in the stream does not mark it; its tick, before
+    // the fence, does.
+    assert!(old_at > hello_at, "{stream:?}");
+    assert!(event_tick(&old).expect("a tick") < fence, "{old:?} against the fence {fence}");
+    // The new session runs its own sequence 1: same sequence id, a SequenceDone after the fence.
+    p.request(102, load, 10);
+    let mine = p.request(103, start, 500);
+    let Some(DeviceMsg::Event { index, event: new }) = mine.into_iter().find(done) else {
+        panic!("no SequenceDone")
+    };
+    assert!(event_tick(&new).expect("a tick") >= fence, "{new:?} against the fence {fence}");
+    assert!(index > old_index);
 }

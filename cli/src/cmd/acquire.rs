@@ -39,6 +39,11 @@ pub struct AcquireArgs {
     /// `meta.host`) as done, without asking: for scripts on a rig set up beforehand.
     #[arg(long)]
     pub yes: bool,
+    /// Clear an emergency stop the device has latched (Ctrl-C, `lightrig stop`, its stop
+    /// input) without asking: a person has seen to the rig. Without it the stop is cleared
+    /// only when a person answers at the terminal (`--yes` does not clear it).
+    #[arg(long)]
+    pub clear_stop: bool,
     /// Change one of the rig file's values for this run, `KEY=VALUE` (repeatable):
     /// `--set plan.step_mm=4 --set camera[0].pulse_us=500`. The session keeps the text that
     /// ran; `resume --rig` needs the same overrides.
@@ -61,6 +66,11 @@ pub struct ResumeArgs {
     /// `meta.host`) as done, without asking: for scripts on a rig set up beforehand.
     #[arg(long)]
     pub yes: bool,
+    /// Clear an emergency stop the device has latched (Ctrl-C, `lightrig stop`, its stop
+    /// input) without asking: a person has seen to the rig. Without it the stop is cleared
+    /// only when a person answers at the terminal (`--yes` does not clear it).
+    #[arg(long)]
+    pub clear_stop: bool,
     /// Go on even though the journal is damaged inside (intact records after the damage):
     /// drop it from the first damaged line, keeping the dropped bytes in
     /// journal.jsonl.dropped.N. Without it such a session is refused, to be looked at first.
@@ -192,6 +202,11 @@ pub struct OperatorPrompt {
     pub virtual_rig: bool,
     /// `--yes`.
     pub assume_done: bool,
+    /// `--clear-stop`.
+    pub clear_stop: bool,
+    /// Bringing a lost device back mid-run: an emergency stop found then was meant for this
+    /// run (another terminal's `lightrig stop`, the board's stop input) and is never cleared.
+    pub reconnecting: bool,
     /// Ctrl-C: the client stops the device.
     pub interrupt: Option<Arc<Interrupt>>,
 }
@@ -244,11 +259,20 @@ impl BringUpHooks for OperatorPrompt {
     }
 
     fn may_clear(&mut self, cause: &FaultCause) -> bool {
-        if self.virtual_rig || !acquire::needs_a_person(cause) {
+        let stop = *cause == FaultCause::EmergencyStop;
+        if !acquire::needs_a_person(cause) || (self.virtual_rig && !stop) {
             return true;
         }
         eprintln!("the device has latched a fault: {}", describe_fault(cause));
-        if self.assume_done {
+        if stop && self.reconnecting {
+            eprintln!("  (found while bringing the lost device back: it stops this run)");
+            return false;
+        }
+        if stop && self.clear_stop {
+            eprintln!("  (--clear-stop: a person has seen to the rig; clearing it)");
+            return true;
+        }
+        if self.assume_done && !stop {
             eprintln!("  (--yes: taken as seen to; clearing it)");
             return true;
         }
@@ -264,29 +288,50 @@ impl BringUpHooks for OperatorPrompt {
 }
 
 /// Ctrl-C during `acquire` or `resume`: the first asks the client to send `EmergencyStop` and
-/// lets the run end (its step abandoned, to be acquired again by `lightrig resume`); if the
-/// run has not ended 5 s after the stop went out (a prompt waiting on the terminal), or at a
-/// second Ctrl-C, the process ends at once with code 130. The device is safe either way.
+/// lets the run end (its step abandoned, to be acquired again by `lightrig resume`, which asks
+/// a person before it clears the stop). If the run has not ended 5 s after the stop went out
+/// (a prompt waiting on the terminal), the process ends with code 130; a second Ctrl-C ends it
+/// at once, but only once the stop has gone out. The device is safe either way.
 pub(crate) fn on_ctrl_c() -> Option<Arc<Interrupt>> {
-    let interrupt = Arc::new(Interrupt::default());
+    on_ctrl_c_of(Arc::new(Interrupt::default()))
+}
+
+/// [`on_ctrl_c`] asking `interrupt`, which other stop requests (the control socket) share: a
+/// stop from there ends the process on the same terms.
+pub(crate) fn on_ctrl_c_of(interrupt: Arc<Interrupt>) -> Option<Arc<Interrupt>> {
     let i = interrupt.clone();
     let installed = ctrlc::set_handler(move || {
-        if i.requested() {
+        if i.requested() && i.stopped() {
             std::process::exit(130);
         }
-        eprintln!("\nCtrl-C: stopping the device (EmergencyStop)…");
+        if i.requested() {
+            eprintln!(
+                "
+Ctrl-C: still sending the stop to the device…"
+            );
+            return;
+        }
+        eprintln!(
+            "
+Ctrl-C: stopping the device (EmergencyStop)…"
+        );
         i.request();
-        let i = i.clone();
-        std::thread::spawn(move || {
-            for _ in 0..40 {
-                if i.stopped() {
-                    break;
-                }
-                std::thread::sleep(std::time::Duration::from_millis(50));
+    });
+    let i = interrupt.clone();
+    std::thread::spawn(move || {
+        let tick = std::time::Duration::from_millis(20);
+        while !i.requested() {
+            std::thread::sleep(tick);
+        }
+        // The run's next turn of the link sends the stop (at most one heartbeat wait away).
+        for _ in 0..100 {
+            if i.stopped() {
+                break;
             }
-            std::thread::sleep(std::time::Duration::from_secs(5));
-            std::process::exit(130);
-        });
+            std::thread::sleep(tick);
+        }
+        std::thread::sleep(std::time::Duration::from_secs(5));
+        std::process::exit(130);
     });
     installed.is_ok().then_some(interrupt)
 }
@@ -378,7 +423,8 @@ fn run(
     // A real device that goes away (unplug, port reset) is waited for and brought up again;
     // the virtual one lives in this process and cannot.
     let attempts = if *spec == Connect::Virtual { 0 } else { RECONNECT_ATTEMPTS };
-    let mut hooks = prep.clone();
+    let mut hooks = OperatorPrompt { reconnecting: true, ..prep.clone() };
+    let interrupt = prep.interrupt.clone();
     // Tunable filters the rig file gives ports for are tuned by the host, the rest asked (on
     // the virtual rig without ports, its instruments follow the step's meta by themselves).
     let filters = lightrig_host::filter::from_rig(rig).map_err(|e| err(INPUT, e.to_string()))?;
@@ -391,9 +437,16 @@ fn run(
     };
     let mut reconnect = |old: Option<Box<dyn Transport>>, k: u32| {
         drop(old); // close the old port before opening it again
-        std::thread::sleep(std::time::Duration::from_millis(reconnect_backoff_ms(k)));
+                   // The wait ends early at Ctrl-C: bring-up then sends the stop the lost link could not.
+        let until = std::time::Instant::now() + std::time::Duration::from_millis(reconnect_backoff_ms(k));
+        while std::time::Instant::now() < until && !interrupt.as_ref().is_some_and(|i| i.requested()) {
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
         let (t, _) = open(rig, spec).map_err(|e| client_error(spec, e))?;
-        bring_up_with(rig, t, &mut hooks).map_err(|e| client_error(spec, e.into()))
+        bring_up_with(rig, t, &mut hooks).map_err(|e| match e {
+            lightrig_host::bringup::BringUpError::Client(e) => e,
+            other => client_error(spec, other.into()),
+        })
     };
     let r = acquire::run_reconnecting(
         client,
@@ -537,14 +590,20 @@ pub fn rig_with(path: &Path, overrides: &[Override]) -> Result<(String, RigFile)
     Ok((text, rig))
 }
 
-/// `lightrig acquire RIG --session DIR [--yes] [--set KEY=VALUE …]`.
-pub fn acquire(
-    rig_path: &Path,
-    dir: &Path,
-    over: Option<&Connect>,
-    assume_done: bool,
-    overrides: &[Override],
-) -> Result<(), CliError> {
+/// What the operator said on the command line a run may take as done.
+#[derive(Debug, Clone, Copy)]
+struct Consent {
+    /// `--yes`.
+    yes: bool,
+    /// `--clear-stop`.
+    clear_stop: bool,
+}
+
+/// `lightrig acquire RIG --session DIR [--yes] [--clear-stop] [--set KEY=VALUE …]`.
+pub fn acquire(args: &AcquireArgs) -> Result<(), CliError> {
+    let (rig_path, dir, over, overrides) =
+        (args.rig.as_path(), args.session.as_path(), args.connect.as_ref(), &args.overrides[..]);
+    let consent = Consent { yes: args.yes, clear_stop: args.clear_stop };
     let (text, rig) = rig_with(rig_path, overrides)?;
     lightrig_host::response::check(&rig).map_err(|e| err(INPUT, e))?;
     if dir.join("manifest.json").exists() {
@@ -553,7 +612,7 @@ pub fn acquire(
             format!("{} already holds a session; continue it with `lightrig resume {0}`", dir.display()),
         ));
     }
-    let ready = bring_up(&rig, over, assume_done)?;
+    let ready = bring_up(&rig, over, consent, "acquire", dir)?;
     let manifest = Manifest::new(text, ready.client.info(), plan_summary(&ready.plan));
     let mut session = Session::create(dir, manifest).map_err(|e| err(INPUT, e.to_string()))?;
     lightrig_host::response::attach(&rig, dir).map_err(|e| err(INPUT, e))?;
@@ -564,8 +623,8 @@ pub fn acquire(
 /// manifest; `rig` says where the original lives, for its relative paths, and must be
 /// unchanged), planned again and checked against the manifest, then the steps not yet done.
 pub fn resume(args: &ResumeArgs) -> Result<(), CliError> {
-    let (dir, rig_path, over, assume_done) =
-        (args.session.as_path(), args.rig.as_deref(), args.connect.as_ref(), args.yes);
+    let (dir, rig_path, over) = (args.session.as_path(), args.rig.as_deref(), args.connect.as_ref());
+    let consent = Consent { yes: args.yes, clear_stop: args.clear_stop };
     let opened = if args.drop_damaged_tail { Session::open_dropping_damage(dir) } else { Session::open(dir) };
     let (mut session, recovery) = opened.map_err(|e| err(INPUT, e.to_string()))?;
     eprintln!("resuming {}: {recovery}", dir.display());
@@ -609,7 +668,7 @@ pub fn resume(args: &ResumeArgs) -> Result<(), CliError> {
         None => PathBuf::from("rig.toml"),
     };
     let rig = RigFile::parse(&text, &base).map_err(|e| err(INPUT, e.to_string()))?;
-    let ready = bring_up(&rig, over, assume_done)?;
+    let ready = bring_up(&rig, over, consent, "resume", dir)?;
     if !same_steps(&plan_summary(&ready.plan).steps, &session.manifest().plan.steps) {
         return Err(err(
             INPUT,
@@ -632,19 +691,79 @@ struct Ready {
     client: Client<Box<dyn Transport>>,
     timeline: Option<Timeline>,
     plan: Plan,
+    /// Served as long as the run lasts.
+    _control: Control,
 }
 
 /// Checks the rig's frame sources, connects where `over` (else the rig file) says, brings the
 /// device up and plans.
-fn bring_up(rig: &RigFile, over: Option<&Connect>, assume_done: bool) -> Result<Ready, CliError> {
+fn bring_up(
+    rig: &RigFile,
+    over: Option<&Connect>,
+    consent: Consent,
+    run: &str,
+    session: &Path,
+) -> Result<Ready, CliError> {
     check_sources(rig)?;
     let spec = connect_spec(rig, over);
-    let mut prep =
-        OperatorPrompt { virtual_rig: spec == Connect::Virtual, assume_done, interrupt: on_ctrl_c() };
+    // Ctrl-C here and `lightrig stop` from another terminal (through the control socket) ask
+    // the same stop.
+    let interrupt = Arc::new(Interrupt::default());
+    let mut prep = OperatorPrompt {
+        virtual_rig: spec == Connect::Virtual,
+        assume_done: consent.yes,
+        clear_stop: consent.clear_stop,
+        reconnecting: false,
+        interrupt: on_ctrl_c_of(interrupt.clone()).or(Some(interrupt.clone())),
+    };
     let (transport, timeline) = open(rig, &spec)?;
+    let control = serve_control(&spec, interrupt, run, session);
     let client = bring_up_with(rig, transport, &mut prep)?;
     let plan = from_rig::plan(rig, client.info()).map_err(|e| err(INPUT, e.to_string()))?;
-    Ok(Ready { spec, prep, client, timeline, plan })
+    Ok(Ready { spec, prep, client, timeline, plan, _control: control })
+}
+
+/// The names under which `lightrig stop` finds the run holding the device `spec` names.
+pub(crate) fn control_keys(spec: &Connect) -> Vec<String> {
+    match spec {
+        #[cfg(unix)]
+        Connect::Serial { path, .. } => lightrig_host::control::port_keys(path),
+        #[cfg(not(unix))]
+        Connect::Serial { path, .. } => vec![path.clone()],
+        // One in-process virtual rig per process.
+        Connect::Virtual => vec![format!("virtual:{}", std::process::id())],
+        Connect::Usb { serial } => vec![format!("usb:{}", serial.as_deref().unwrap_or(""))],
+    }
+}
+
+/// The run's control socket ([`lightrig_host::control`]); a run without one still stops at
+/// Ctrl-C, and says that `lightrig stop` will not reach it.
+#[cfg(unix)]
+type Control = Option<lightrig_host::control::ControlServer>;
+#[cfg(not(unix))]
+type Control = Option<()>;
+
+fn serve_control(spec: &Connect, interrupt: Arc<Interrupt>, run: &str, session: &Path) -> Control {
+    #[cfg(unix)]
+    {
+        let about =
+            format!("lightrig {run} (pid {}) on {spec}, session {}", std::process::id(), session.display());
+        match lightrig_host::control::ControlServer::serve(&control_keys(spec), interrupt, about) {
+            Ok(c) => Some(c),
+            Err(e) => {
+                eprintln!(
+                    "warning: no control socket ({e}): `lightrig stop` from another terminal cannot reach this \
+                     run; Ctrl-C here still stops it"
+                );
+                None
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = (spec, interrupt, run, session);
+        None
+    }
 }
 
 impl Ready {

@@ -65,9 +65,16 @@ fn update_json(c: &mut Client<Box<dyn Transport>>) -> serde_json::Value {
 
 fn info_json(c: &mut Client<Box<dyn Transport>>) -> serde_json::Value {
     let update = update_json(c);
+    // The device's link counters since it started (§5.3): frames, rejections, retransmissions,
+    // the datagrams it dropped.
+    let link = match c.request(Command::GetStatus) {
+        Ok(Reply::Status(s)) => serde_json::to_value(s.link).unwrap_or_default(),
+        _ => serde_json::Value::Null,
+    };
     let i = c.info();
     serde_json::json!({
         "update": update,
+        "link": link,
         "device": c.transport().describe(),
         "board": format!("{:?}", i.board),
         "firmware": format!("{}.{}.{}", i.firmware.major, i.firmware.minor, i.firmware.patch),
@@ -171,6 +178,7 @@ pub fn info(args: &InfoArgs) -> ExitCode {
                                 "{k:<16} not over the link (no bootloader: flash through the debug probe)"
                             )
                         }
+                        "link" => println!("{k:<16} {}", link_in_words(val)),
                         "update" => println!(
                             "{k:<16} running {}, fallback {}, {}, slot {} bytes",
                             val["running"].as_str().unwrap_or("unknown"),
@@ -188,6 +196,23 @@ pub fn info(args: &InfoArgs) -> ExitCode {
             eprintln!("error: {e}");
             ExitCode::from(code)
         }
+    }
+}
+
+/// The device's link counters (`info_json`'s `link`), in words.
+fn link_in_words(val: &serde_json::Value) -> String {
+    match serde_json::from_value::<lightrig_protocol::link::LinkStats>(val.clone()) {
+        Ok(s) => format!(
+            "since the device started: frames sent {}, received {}, rejected {}, resent {}; epochs started {}; \
+             datagrams dropped {}",
+            s.frames_sent,
+            s.frames_received,
+            s.rejected(),
+            s.retransmits,
+            s.syncs,
+            s.datagrams_dropped
+        ),
+        Err(_) => "not read (the device did not answer GetStatus)".into(),
     }
 }
 
@@ -214,16 +239,28 @@ pub fn capabilities_in_words(c: &Capabilities) -> String {
 /// Arguments of `lightrig stop`.
 #[derive(Debug, clap::Args)]
 pub struct StopArgs {
-    /// The device: `serial:PATH[@BAUD]`, `usb` or `usb:SERIAL`.
+    /// The device: `serial:PATH[@BAUD]`, `usb` or `usb:SERIAL`. Without it, every running
+    /// `lightrig acquire`/`resume` of this user is stopped.
     #[arg(long)]
-    pub connect: Connect,
+    pub connect: Option<Connect>,
 }
 
-/// `lightrig stop --connect SPEC`: an emergency stop from another terminal. The device turns
+/// `lightrig stop [--connect SPEC]`: an emergency stop from another terminal. The device turns
 /// its lasers off, stops its motors without deceleration, parks its galvos and latches the
-/// fault until a run clears it.
+/// fault until a person clears it (`lightrig resume` asks). A device that a running
+/// `lightrig acquire` or `resume` holds is reached through that run's control socket (the
+/// port is the run's alone); any other directly.
 pub fn stop(args: &StopArgs) -> ExitCode {
-    let mut client = match connect(&args.connect) {
+    let Some(spec) = &args.connect else { return stop_every_run() };
+    #[cfg(unix)]
+    for key in super::acquire::control_keys(spec) {
+        match lightrig_host::control::ask(&lightrig_host::control::socket_for(&key), "stop") {
+            Ok(Some(reply)) => return said_by_run(&reply),
+            Ok(None) => {}
+            Err(e) => eprintln!("warning: the control socket of {key}: {e}; trying the port itself"),
+        }
+    }
+    let mut client = match connect(spec) {
         Ok(c) => c,
         Err((code, e)) => {
             eprintln!("error: {e}");
@@ -241,11 +278,60 @@ pub fn stop(args: &StopArgs) -> ExitCode {
         _ => "state not read".into(),
     };
     println!(
-        "{}: emergency stop sent and answered ({state}); the fault stays latched until `lightrig acquire` or \
-         `lightrig resume` clears it",
+        "{}: emergency stop sent and answered ({state}); the stop stays latched until a person clears it: \
+         `lightrig resume` at a terminal asks (or --clear-stop)",
         client.transport().describe()
     );
     ExitCode::SUCCESS
+}
+
+/// A run's answer to `stop`: printed; success only if the device answered the stop.
+#[cfg(unix)]
+fn said_by_run(reply: &str) -> ExitCode {
+    if let Some(rest) = reply.strip_prefix("stopped: ") {
+        println!("{rest} (the run that holds the port sent it; it now ends)");
+        ExitCode::SUCCESS
+    } else {
+        eprintln!("error: {}", reply.trim_start_matches("unconfirmed: ").trim_start_matches("error: "));
+        ExitCode::from(DEVICE)
+    }
+}
+
+/// `lightrig stop` with no device named: every run serving a control socket.
+fn stop_every_run() -> ExitCode {
+    #[cfg(unix)]
+    {
+        let runs = lightrig_host::control::running();
+        if runs.is_empty() {
+            eprintln!(
+                "error: no running `lightrig acquire` or `resume` of this user was found (in {}); name the \
+                 device with --connect serial:PATH to stop it directly",
+                lightrig_host::control::socket_dir().display()
+            );
+            return ExitCode::from(USAGE);
+        }
+        let mut code = ExitCode::SUCCESS;
+        for (socket, _) in runs {
+            match lightrig_host::control::ask(&socket, "stop") {
+                Ok(Some(reply)) => {
+                    if said_by_run(&reply) != ExitCode::SUCCESS {
+                        code = ExitCode::from(DEVICE);
+                    }
+                }
+                Ok(None) => {}
+                Err(e) => {
+                    eprintln!("error: {}: {e}", socket.display());
+                    code = ExitCode::from(DEVICE);
+                }
+            }
+        }
+        code
+    }
+    #[cfg(not(unix))]
+    {
+        eprintln!("error: name the device with --connect");
+        ExitCode::from(USAGE)
+    }
 }
 
 /// `lightrig schema`.

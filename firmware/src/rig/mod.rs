@@ -383,7 +383,9 @@ impl<B: Board> Rig<B> {
         let hard = matches!(cause, FaultCause::EmergencyStop | FaultCause::Limit { .. });
         warn!("safe state at tick {}", now);
         // Latch first: stopping a homing seek below would otherwise report a second fault.
-        if self.fault.is_none() {
+        // The first cause stays, but an emergency stop replaces it: a person asked for the
+        // stop, and a host must not clear it as it may clear the other (a lapsed heartbeat).
+        if self.fault.is_none() || cause == FaultCause::EmergencyStop {
             self.fault = Some(cause);
         }
         self.armed = 0;

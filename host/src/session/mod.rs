@@ -32,7 +32,7 @@ mod syncer;
 
 use std::collections::HashSet;
 use std::fmt;
-use std::fs::{self, File, OpenOptions};
+use std::fs::{self, File};
 use std::io::{self, Read, Write};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -118,12 +118,14 @@ pub enum SessionError {
         /// Why.
         detail: String,
     },
-    /// Something in the session directory does not belong in one: a symbolic link where its
-    /// own file or folder must be.
+    /// Something in the session directory does not belong in one, where the session reads or
+    /// writes its own files: a symbolic link (never followed to write), a journal with a second
+    /// name (a hard link), a file that is not a regular one, a file where a folder must be.
+    /// Nothing was written through it.
     Foreign {
         /// The path.
         path: PathBuf,
-        /// What is wrong.
+        /// What is wrong, and what to do.
         detail: String,
     },
     /// The journal is damaged inside, with intact records after the damage: not a torn write
@@ -176,11 +178,7 @@ impl fmt::Display for SessionError {
             ),
             SessionError::Refused { detail } => write!(f, "record refused: {detail}"),
             SessionError::NotWritable { detail } => write!(f, "session not writable: {detail}"),
-            SessionError::Foreign { path, detail } => write!(
-                f,
-                "{}: {detail}; a session's files must be its own: put the file or folder itself there",
-                path.display()
-            ),
+            SessionError::Foreign { path, detail } => write!(f, "{}: {detail}", path.display()),
             SessionError::Damaged { path, line, bytes, intact_after } => write!(
                 f,
                 "{} line {line}: damaged, and {intact_after} intact-looking line(s) follow in the {bytes} bytes from \
@@ -300,8 +298,6 @@ pub struct Session {
     unsynced: bool,
     /// Set when a write failed: the journal's end is unknown.
     poisoned: Option<String>,
-    /// Frame directories known to exist durably.
-    dirs: HashSet<PathBuf>,
     /// Fsyncs for event records, off the caller's thread.
     syncer: Option<syncer::Syncer>,
     /// Extra time every fsync takes, µs ([`Session::simulate_slow_disk`]).
@@ -329,9 +325,15 @@ impl Session {
             let leftovers = fs::read_dir(&dir).map_err(io_at(&dir))?;
             for e in leftovers {
                 let e = e.map_err(io_at(&dir))?;
-                // A create that stopped before its manifest was in place.
+                // A create that stopped before its manifest was in place: replaced if a regular
+                // file, refused before anything is written if not.
                 if e.file_name() != fsutil::partial_path(Path::new(MANIFEST)).as_os_str() {
                     return Err(SessionError::Exists { dir });
+                }
+                let p = e.path();
+                match fsutil::entry(&p)? {
+                    fsutil::Entry::File => {}
+                    found => return Err(fsutil::foreign(&p, &found, fsutil::REMOVE)),
                 }
             }
         } else {
@@ -340,12 +342,10 @@ impl Session {
                 fsutil::sync_dir(parent).map_err(io_at(parent))?;
             }
         }
-        let frames = dir.join(FRAMES);
-        fs::create_dir_all(&frames).map_err(io_at(&frames))?;
+        fsutil::ensure_dirs(&dir, Path::new(FRAMES))?;
         let mut json = serde_json::to_vec_pretty(&manifest).expect("a manifest serializes");
         json.push(b'\n');
-        let path = dir.join(MANIFEST);
-        fsutil::write_atomic(&path, &json).map_err(io_at(&path))?;
+        fsutil::write_atomic(&dir.join(MANIFEST), &json)?;
         let (mut session, _) = Self::load(dir, Load::Write { drop_damage: false })?;
         session.sync()?;
         Ok(session)
@@ -385,18 +385,18 @@ impl Session {
     fn load(dir: PathBuf, how: Load) -> Result<(Session, Recovery)> {
         let write = how != Load::Read;
         // Writing through a link would change files elsewhere (a linked journal truncated, a
-        // linked frames/ filled): the session's own files only.
+        // linked frames/ filled): the session's own files only. (The journal's open below does
+        // not follow a link either, whatever is planted meanwhile; a FIFO would block reading.)
         for name in [MANIFEST, JOURNAL, FRAMES] {
             let p = dir.join(name);
-            if fs::symlink_metadata(&p).is_ok_and(|m| m.file_type().is_symlink()) {
-                return Err(SessionError::Foreign { path: p, detail: "a symbolic link".into() });
+            if let found @ (fsutil::Entry::Link(_) | fsutil::Entry::Other) = fsutil::entry(&p)? {
+                return Err(fsutil::foreign(&p, &found, fsutil::OWN));
             }
         }
         let manifest = read_manifest(&dir)?;
         let path = dir.join(JOURNAL);
         let file = if write {
-            let f =
-                OpenOptions::new().read(true).append(true).create(true).open(&path).map_err(io_at(&path))?;
+            let f = fsutil::open_journal(&path)?;
             // A child process this one spawns holds a copy of the descriptor (and so the lock)
             // between its fork and its exec: a short wait rides that out.
             let deadline = Instant::now() + Duration::from_secs(1);
@@ -409,10 +409,15 @@ impl Session {
             fsutil::sync_dir(&dir).map_err(io_at(&dir))?;
             Some(f)
         } else {
-            match File::open(&path) {
+            match fsutil::open_read(&path) {
                 Ok(f) => Some(f),
                 Err(e) if e.kind() == io::ErrorKind::NotFound => None,
-                Err(e) => return Err(io_at(&path)(e)),
+                Err(e) => match fsutil::entry(&path)? {
+                    found @ fsutil::Entry::Link(_) => {
+                        return Err(fsutil::foreign(&path, &found, fsutil::OWN))
+                    }
+                    _ => return Err(io_at(&path)(e)),
+                },
             }
         };
         let mut state = State::default();
@@ -460,7 +465,6 @@ impl Session {
             last_sync: Instant::now(),
             unsynced: false,
             poisoned: None,
-            dirs: HashSet::new(),
             syncer: None,
             slow_disk: Default::default(),
         };
@@ -500,6 +504,9 @@ impl Session {
             let name = rel_string(&rel);
             if name.ends_with(PARTIAL_SUFFIX) {
                 if write {
+                    // Its folders were walked as real ones; checked again right before (one
+                    // swapped for a link would have this remove a file elsewhere).
+                    fsutil::check_dirs(&self.dir, rel.parent().unwrap_or(Path::new("")))?;
                     let path = self.dir.join(&rel);
                     fs::remove_file(&path).map_err(io_at(&path))?;
                 }
@@ -625,11 +632,15 @@ impl Session {
         if self.manifest.format >= FORMAT_VERSION {
             return Ok(());
         }
-        self.manifest.format = FORMAT_VERSION;
+        let old = std::mem::replace(&mut self.manifest.format, FORMAT_VERSION);
         let mut json = serde_json::to_vec_pretty(&self.manifest).expect("a manifest serializes");
         json.push(b'\n');
-        let path = self.dir.join(MANIFEST);
-        fsutil::write_atomic(&path, &json).map_err(io_at(&path))
+        let written = fsutil::write_atomic(&self.dir.join(MANIFEST), &json);
+        if written.is_err() {
+            // Not raised on disk: nor are the records it would allow written.
+            self.manifest.format = old;
+        }
+        written
     }
 
     /// Steps whose completed attempt recorded missing frames, in plan order, with a line saying
@@ -903,11 +914,11 @@ impl Session {
             Record::FrameExtra(x) => &x.file,
             _ => unreachable!(),
         };
-        let path = self.dir.join(file);
-        let parent = path.parent().expect("in a directory").to_path_buf();
-        self.ensure_dir(&parent)?;
+        // Every folder on the way a real one of the session's, created if missing: checked on
+        // every file, as a folder may be replaced by a link while the session is open.
+        fsutil::ensure_dirs(&self.dir, Path::new(file).parent().expect("in a folder"))?;
         syncer::slow_disk(&self.slow_disk);
-        fsutil::write_atomic(&path, data).map_err(io_at(&path))?;
+        fsutil::write_atomic(&self.dir.join(file), data)?;
         self.append(record).map(|_| ())
     }
 
@@ -916,25 +927,6 @@ impl Session {
     pub fn simulate_slow_disk(&mut self, delay: Duration) {
         let us = u64::try_from(delay.as_micros()).unwrap_or(u64::MAX);
         self.slow_disk.store(us, std::sync::atomic::Ordering::Relaxed);
-    }
-
-    /// Creates `dir` (inside the session) and its missing parents durably.
-    fn ensure_dir(&mut self, dir: &Path) -> Result<()> {
-        if self.dirs.contains(dir) {
-            return Ok(());
-        }
-        if !dir.exists() {
-            let parent = dir.parent().expect("inside the session");
-            self.ensure_dir(parent)?;
-            match fs::create_dir(dir) {
-                Ok(()) => {}
-                Err(e) if e.kind() == io::ErrorKind::AlreadyExists => {}
-                Err(e) => return Err(io_at(dir)(e)),
-            }
-            fsutil::sync_dir(parent).map_err(io_at(parent))?;
-        }
-        self.dirs.insert(dir.to_path_buf());
-        Ok(())
     }
 
     /// Records a trigger whose frame never came (fsynced).
@@ -997,12 +989,14 @@ impl Session {
         self.writable()?;
         let mut removed = Vec::new();
         for (step, attempt) in self.state.superseded() {
-            let dir = self.dir.join(attempt_dir(step, attempt));
-            if dir.exists() {
+            let rel = attempt_dir(step, attempt);
+            // Each folder on the way, and the attempt's own, a real one of the session's:
+            // removing through a link would delete files elsewhere.
+            if fsutil::check_dirs(&self.dir, Path::new(&rel))? {
+                let dir = self.dir.join(rel);
                 fs::remove_dir_all(&dir).map_err(io_at(&dir))?;
                 let parent = dir.parent().expect("inside the session");
                 fsutil::sync_dir(parent).map_err(io_at(parent))?;
-                self.dirs.remove(&dir);
                 removed.push(dir);
             }
         }
@@ -1116,13 +1110,32 @@ fn save_tail(dir: &Path, journal: &File, from: u64) -> Result<PathBuf> {
     let mut n = 1;
     let out = loop {
         let p = dir.join(format!("{JOURNAL}.dropped.{n}"));
-        if !p.exists() {
+        // Anything at the name (an earlier drop's file, a link) is left alone, never written.
+        if fsutil::entry(&p)? == fsutil::Entry::Absent {
             break p;
         }
         n += 1;
     };
-    fsutil::write_atomic(&out, &tail).map_err(io_at(&out))?;
+    fsutil::write_atomic(&out, &tail)?;
     Ok(out)
+}
+
+/// Writes `bytes` as the file `name` (a plain file name) of the session in `dir`, atomically
+/// and durably, as the session writes its own files: a link or anything but a regular file at
+/// `name` or at its temporary name (`name.partial`) is refused ([`SessionError::Foreign`]),
+/// never written through. For the files beside the journal that other parts of lightrig keep
+/// in a session (a camera's response copy).
+pub fn write_session_file(dir: impl AsRef<Path>, name: &str, bytes: &[u8]) -> Result<()> {
+    let mut parts = Path::new(name).components();
+    if !matches!((parts.next(), parts.next()), (Some(std::path::Component::Normal(_)), None))
+        || name.ends_with(PARTIAL_SUFFIX)
+        || [MANIFEST, JOURNAL].contains(&name)
+    {
+        return Err(SessionError::Refused {
+            detail: format!("{name:?}: not a name for a file of its own beside the session's journal"),
+        });
+    }
+    fsutil::write_atomic(&dir.as_ref().join(name), bytes)
 }
 
 /// Files under `dir/rel`, as paths relative to `dir`.
@@ -1138,10 +1151,9 @@ fn walk(dir: &Path, rel: &Path, out: &mut Vec<PathBuf>) -> Result<()> {
         let e = e.map_err(io_at(&abs))?;
         let kind = e.file_type().map_err(io_at(&abs))?;
         if kind.is_symlink() {
-            return Err(SessionError::Foreign {
-                path: abs.join(e.file_name()),
-                detail: "a symbolic link".into(),
-            });
+            let path = abs.join(e.file_name());
+            let found = fsutil::Entry::Link(fs::read_link(&path).unwrap_or_default());
+            return Err(fsutil::foreign(&path, &found, fsutil::OWN));
         }
         names.push((e.file_name(), kind.is_dir()));
     }

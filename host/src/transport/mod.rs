@@ -10,7 +10,7 @@ use std::io;
 mod serial;
 mod usb;
 
-pub use serial::SerialTransport;
+pub use serial::{holders, SerialTransport};
 pub use usb::{usb_devices, UsbTransport, USB_EP_IN, USB_EP_OUT, USB_INTERFACE, USB_PID, USB_VID};
 
 /// Bytes to and from a device.
@@ -119,9 +119,19 @@ impl Connect {
                 ))
             }
             Connect::Serial { path, baud } => Box::new(SerialTransport::open(path, *baud).map_err(|e| {
-                io::Error::other(format!(
-                    "serial {path}: {e}; check the path (`lightrig devices`) and permissions (dialout group)"
-                ))
+                let held: Vec<String> =
+                    holders(path).into_iter().map(|(pid, cmd)| format!("pid {pid} (`{cmd}`)")).collect();
+                if held.is_empty() {
+                    io::Error::other(format!(
+                        "serial {path}: {e}; check the path (`lightrig devices`) and permissions (dialout group)"
+                    ))
+                } else {
+                    io::Error::other(format!(
+                        "serial {path}: {e}: the port is held by {}; close that program first (a lightrig run \
+                         on it is stopped by `lightrig stop`)",
+                        held.join(", ")
+                    ))
+                }
             })?),
             Connect::Usb { serial } => Box::new(UsbTransport::open(serial.as_deref())?),
         })

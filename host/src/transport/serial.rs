@@ -39,6 +39,9 @@ impl Transport for SerialTransport {
         match self.port.read(buf) {
             Ok(n) => Ok(n),
             Err(e) if e.kind() == io::ErrorKind::TimedOut => Ok(0),
+            // A signal (Ctrl-C) cut the wait short: nothing arrived, the port is fine. The
+            // client's next turn sees what the signal asked for.
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => Ok(0),
             Err(e) => Err(e),
         }
     }
@@ -50,4 +53,31 @@ impl Transport for SerialTransport {
     fn describe(&self) -> String {
         format!("serial {}", self.path)
     }
+}
+
+/// The processes other than this one that have `path` open (pid and command line), as far as
+/// the OS tells (`/proc` on Linux; empty elsewhere, or for another user's processes).
+pub fn holders(path: &str) -> Vec<(u32, String)> {
+    let Ok(target) = std::fs::canonicalize(path) else { return Vec::new() };
+    let Ok(procs) = std::fs::read_dir("/proc") else { return Vec::new() };
+    let me = std::process::id();
+    let mut out = Vec::new();
+    for p in procs.flatten() {
+        let Some(pid) = p.file_name().to_str().and_then(|n| n.parse::<u32>().ok()) else { continue };
+        if pid == me {
+            continue;
+        }
+        let Ok(fds) = std::fs::read_dir(p.path().join("fd")) else { continue };
+        if fds.flatten().any(|fd| std::fs::read_link(fd.path()).is_ok_and(|l| l == target)) {
+            let cmd = std::fs::read(p.path().join("cmdline")).unwrap_or_default();
+            let words: Vec<String> = cmd
+                .split(|&b| b == 0)
+                .filter(|w| !w.is_empty())
+                .map(|w| String::from_utf8_lossy(w).into_owned())
+                .collect();
+            out.push((pid, words.join(" ")));
+        }
+    }
+    out.sort();
+    out
 }
