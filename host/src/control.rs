@@ -214,12 +214,17 @@ pub fn ask_port(port: &str, request: &str) -> io::Result<Option<String>> {
 /// Every run of this user that serves a control socket: its socket and `status` answer.
 pub fn running() -> Vec<(PathBuf, String)> {
     let Ok(entries) = std::fs::read_dir(socket_dir()) else { return Vec::new() };
-    let mut out: Vec<(PathBuf, String)> = entries
-        .flatten()
-        .map(|e| e.path())
-        .filter(|p| p.extension().is_some_and(|x| x == "sock"))
-        .filter_map(|p| ask(&p, "status").ok().flatten().map(|s| (p, s)))
-        .collect();
+    let mut out: Vec<(PathBuf, String)> = Vec::new();
+    for p in entries.flatten().map(|e| e.path()).filter(|p| p.extension().is_some_and(|x| x == "sock")) {
+        match ask(&p, "status") {
+            Ok(Some(s)) => out.push((p, s)),
+            // Left by a run that ended without tidying up (killed, or its Ctrl-C timer).
+            Ok(None) => {
+                let _ = std::fs::remove_file(&p);
+            }
+            Err(_) => {}
+        }
+    }
     out.sort();
     // A run serves its port under two names (the link and where it leads): once each.
     let mut seen = std::collections::HashSet::new();
@@ -255,6 +260,11 @@ mod tests {
         assert!(reply.starts_with("unconfirmed: test run"), "{reply}");
         let listed = running();
         assert!(listed.iter().any(|(_, s)| s == "running: test run"), "{listed:?}");
+        // A dead run's socket beside it is tidied away by the listing.
+        let dead = socket_for("/dev/test-port-dead");
+        drop(UnixListener::bind(&dead).unwrap());
+        let listed = running();
+        assert!(listed.iter().all(|(p, _)| *p != dead) && !dead.exists(), "{listed:?}");
         let paths = server.paths().to_vec();
         drop(server);
         assert!(paths.iter().all(|p| !p.exists()), "the socket files go with the run");
