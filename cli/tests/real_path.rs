@@ -219,6 +219,19 @@ fn wait_for_a_lit_trigger(session: &Path, run: &mut Run) {
     }
 }
 
+/// A scratch directory, the gantry of `positions` positions on `lightrig sim --pty`, and
+/// `lightrig acquire --yes` on it, once a lit trigger is journaled: (dir, sim, session, run).
+fn lit_acquisition(name: &str, positions: u32) -> (Scratch, Sim, PathBuf, Run) {
+    let dir = Scratch::new("real-path", name);
+    let rig = gantry(&dir, positions, false);
+    let sim = Sim::start(&rig, &dir);
+    let session = dir.join("session");
+    let (r, s, c) = (rig.to_str().unwrap(), session.to_str().unwrap(), sim.connect());
+    let mut run = spawn(&dir, &["acquire", r, "--session", s, "--connect", &c, "--yes"], Stdio::null());
+    wait_for_a_lit_trigger(&session, &mut run);
+    (dir, sim, session, run)
+}
+
 fn records(session: &Path) -> Vec<Record> {
     journal_records(session).unwrap()
 }
@@ -259,13 +272,8 @@ fn terminal_with(answer: &str) -> (serialport::TTYPort, Stdio) {
 /// to clear it; `resume` at a terminal whose person says yes completes the session.
 #[test]
 fn ctrl_c_in_a_lit_step_stops_the_device_for_good_and_only_a_person_clears_it() {
-    let dir = Scratch::new("real-path", "ctrl-c");
-    let rig = gantry(&dir, 8, false);
-    let sim = Sim::start(&rig, &dir);
-    let session = dir.join("session");
-    let (r, s, c) = (rig.to_str().unwrap(), session.to_str().unwrap(), sim.connect());
-    let mut run = spawn(&dir, &["acquire", r, "--session", s, "--connect", &c, "--yes"], Stdio::null());
-    wait_for_a_lit_trigger(&session, &mut run);
+    let (dir, sim, session, run) = lit_acquisition("ctrl-c", 8);
+    let (s, c) = (session.to_str().unwrap(), sim.connect());
     run.ctrl_c();
     let (code, said) = run.end();
     assert_eq!(code, Some(130), "{said}");
@@ -341,13 +349,8 @@ fn ctrl_c_at_a_prompt_stops_the_device_and_ends_the_run() {
 /// the run through the run's control socket; the run stops the device and ends with 130.
 #[test]
 fn lightrig_stop_from_another_terminal_reaches_the_running_acquisition() {
-    let dir = Scratch::new("real-path", "stop");
-    let rig = gantry(&dir, 8, false);
-    let sim = Sim::start(&rig, &dir);
-    let session = dir.join("session");
-    let (r, s, c) = (rig.to_str().unwrap(), session.to_str().unwrap(), sim.connect());
-    let mut run = spawn(&dir, &["acquire", r, "--session", s, "--connect", &c, "--yes"], Stdio::null());
-    wait_for_a_lit_trigger(&session, &mut run);
+    let (dir, sim, session, run) = lit_acquisition("stop", 8);
+    let c = sim.connect();
     let (code, out, err) = lightrig(&dir, &["stop", "--connect", &c]);
     assert_eq!(code, Some(0), "{out}{err}");
     assert!(out.contains("the device answered the emergency stop"), "{out}");
@@ -370,13 +373,7 @@ fn lightrig_stop_from_another_terminal_reaches_the_running_acquisition() {
 /// `lightrig stop` with no device named stops every running acquisition of this user.
 #[test]
 fn lightrig_stop_alone_stops_the_running_acquisition() {
-    let dir = Scratch::new("real-path", "stop-alone");
-    let rig = gantry(&dir, 8, false);
-    let sim = Sim::start(&rig, &dir);
-    let session = dir.join("session");
-    let (r, s, c) = (rig.to_str().unwrap(), session.to_str().unwrap(), sim.connect());
-    let mut run = spawn(&dir, &["acquire", r, "--session", s, "--connect", &c, "--yes"], Stdio::null());
-    wait_for_a_lit_trigger(&session, &mut run);
+    let (dir, sim, _session, run) = lit_acquisition("stop-alone", 8);
     let (code, out, err) = lightrig(&dir, &["stop"]);
     assert_eq!(code, Some(0), "{out}{err}");
     assert!(out.contains("the device answered the emergency stop"), "{out}");
@@ -417,21 +414,15 @@ fn info_then_acquire_completes_and_leaves_the_device_disarmed() {
     assert_eq!(sim.status(), (DeviceState::Ready, 0, 0));
 }
 
-/// Unplugged mid-step (the controller's terminal closes with it) and plugged back 2.5 s later,
-/// after the host's first reconnection attempt has failed: the run rides it out, acquires the
+/// Unplugged mid-step (the controller's terminal closes with it) and plugged back once the
+/// host's first reconnection attempt has failed: the run rides it out, acquires the
 /// interrupted step again, whole, and leaves the new controller ready and dark.
 #[test]
 fn acquire_rides_out_an_unplug_and_replug() {
-    let dir = Scratch::new("real-path", "unplug");
-    let rig = gantry(&dir, 5, false);
-    let mut sim = Sim::start(&rig, &dir);
-    let session = dir.join("session");
-    let (r, s, c) = (rig.to_str().unwrap(), session.to_str().unwrap(), sim.connect());
-    let mut run = spawn(&dir, &["acquire", r, "--session", s, "--connect", &c, "--yes"], Stdio::null());
-    wait_for_a_lit_trigger(&session, &mut run);
+    let (dir, mut sim, session, mut run) = lit_acquisition("unplug", 5);
     drop(sim);
     run.wait_for("reconnection 1/12 failed");
-    sim = Sim::start(&rig, &dir);
+    sim = Sim::start(&dir.join("lls-gantry.toml"), &dir);
     let (code, said) = run.end();
     assert_eq!(code, Some(0), "{said}");
     assert!(said.contains("device lost"), "{said}");
