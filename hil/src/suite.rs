@@ -2,7 +2,7 @@
 //! running the real firmware. Every check is exact (ticks, counters, error values). Pin-level
 //! checks need the emulated board's recorder and are skipped on a real board.
 
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use lightrig_firmware::record::Output;
 use lightrig_host::client::{Client, ClientError, EventRecord};
@@ -15,8 +15,8 @@ use lightrig_protocol::message::Status;
 use lightrig_protocol::sequence::{Action, Chunk, Item, StartAt};
 use lightrig_protocol::session::DeviceInfo;
 use lightrig_protocol::{
-    Command, ConfigError, ConfigField, DeviceMsg, Error, Event, HostMsg, InvalidReason, Reply, MAX_FRAME,
-    MAX_PACKET, PROTOCOL_VERSION, SCHEMA_HASH,
+    Command, ConfigError, ConfigField, DeviceMsg, Error, Event, HostMsg, InvalidReason, Reply,
+    MAX_CHUNK_ITEMS, MAX_FRAME, MAX_PACKET, PROTOCOL_VERSION, SCHEMA_HASH,
 };
 
 use crate::debug::{only, DebugPort};
@@ -44,6 +44,48 @@ pub struct Suite {
     info: Option<DeviceInfo>,
     /// Every event index seen, to check that none is lost or repeated.
     last_index: Option<u32>,
+    /// The longest the host has been seen to take, in device ticks, from the clock reading a
+    /// start tick is fixed from to the device's processing of `SequenceStart` (the loading
+    /// between them). Leads are at least twice this: see [`lead_for`].
+    load_ticks: u64,
+    /// Starts refused `StartInPast` and made again later, since the suite began (not counting
+    /// the one `slow_host_start_is_moved_later` forces).
+    restarts: u32,
+    /// A pause before each chunk loaded ahead of a start: a slow host, simulated
+    /// (`LIGHTRIG_HIL_LOAD_DELAY_MS`, and the `slow_host_start_is_moved_later` test).
+    load_delay: Duration,
+}
+
+/// Sets [`Suite::load_delay`] for the whole suite: a pause of this many milliseconds before
+/// each chunk that is loaded before a sequence starts, as on a slow or busy host.
+pub const LOAD_DELAY_ENV: &str = "LIGHTRIG_HIL_LOAD_DELAY_MS";
+
+/// Attempts at starting one sequence: the first at the test's lead (or twice the loading seen
+/// so far), each later one at twice the loading the refused one measured.
+const START_ATTEMPTS: u32 = 3;
+
+/// The lead (ticks from the clock reading to the start) for a sequence: the test's own `base`,
+/// or twice the longest loading seen, `load` (a busy host's next loading may well take longer
+/// than its last), whichever is longer. On a quiet host the base is longer and the ticks are
+/// the ones the test always used.
+fn lead_for(base: u64, load: u64) -> u64 {
+    base.max(load.saturating_mul(2))
+}
+
+/// `items`, calling `pause` before each chunk's first item among the first `ahead` (those the
+/// host loads before it starts the sequence): the host's client takes a chunk's items from the
+/// iterator just before it loads the chunk.
+fn paced<I: Iterator<Item = Item>>(
+    items: I,
+    ahead: usize,
+    mut pause: impl FnMut(usize),
+) -> impl Iterator<Item = Item> {
+    items.enumerate().map(move |(k, item)| {
+        if k < ahead && k % MAX_CHUNK_ITEMS == 0 {
+            pause(k);
+        }
+        item
+    })
 }
 
 fn nonce() -> u32 {
@@ -84,11 +126,13 @@ macro_rules! ensure {
 }
 
 /// Ticks between markers in the streaming test, and between triggers in the long run: event
-/// rates (500/s) that the emulated UART sustains with room to spare when the host machine is
-/// busy (QEMU feeds the UART one byte per turn of its main loop; a stalled harness lets the
-/// device's 64-event queue fill).
-const MARKER_GAP: u32 = 2000;
-const TRIGGER_GAP: u32 = 2000;
+/// rates (200/s) that the emulated UART sustains when the host machine is busy. QEMU feeds the
+/// UART one byte per turn of its main loop, and the device moves an event into its link only
+/// as acknowledgements free the window, so a host slow to answer lets the device's 64-event
+/// queue fill (`EventOverflow`): at 500/s that happened in most runs with load 3 on 2 cores
+/// (`hil/README.md`).
+const MARKER_GAP: u32 = 5000;
+const TRIGGER_GAP: u32 = 5000;
 /// Items streamed through the 256-item buffer.
 const STREAMED: u32 = 600;
 
@@ -124,17 +168,28 @@ fn galvo() -> GalvoConfig {
 impl Suite {
     /// A suite against `target`.
     pub fn new(target: Target) -> Self {
-        Self { target, client: None, info: None, last_index: None }
+        let load_delay = std::env::var(LOAD_DELAY_ENV)
+            .ok()
+            .and_then(|v| v.trim().parse::<u64>().ok())
+            .map_or(Duration::ZERO, Duration::from_millis);
+        if !load_delay.is_zero() {
+            println!(
+                "lightrig-hil: {LOAD_DELAY_ENV}: pausing {} ms before each chunk loaded ahead of a start",
+                load_delay.as_millis()
+            );
+        }
+        Self { target, client: None, info: None, last_index: None, load_ticks: 0, restarts: 0, load_delay }
     }
 
     /// Runs every test; returns how many failed.
     pub fn run(&mut self, only_tests: &[String]) -> usize {
         type Test = fn(&mut Suite) -> Check;
-        let tests: [(&str, Test); 9] = [
+        let tests: [(&str, Test); 10] = [
             ("handshake_and_schema", Suite::handshake),
             ("configuration_errors", Suite::configuration_errors),
             ("sequence_triggers_and_events", Suite::sequence_with_triggers),
             ("flow_control_and_underrun", Suite::flow_control_and_underrun),
+            ("slow_host_start_is_moved_later", Suite::slow_host),
             ("heartbeat_loss_turns_lasers_off", Suite::heartbeat_loss),
             ("interlock_opening_turns_lasers_off", Suite::interlock),
             ("damaged_frames_are_rejected_and_counted", Suite::damaged_frames),
@@ -159,6 +214,14 @@ impl Suite {
                     self.client = None;
                 }
             }
+        }
+        if let Some(info) = self.info {
+            let ms = self.load_ticks * 1000 / u64::from(info.tick_hz).max(1);
+            println!(
+                "lightrig-hil: loading ahead of a start took at most {ms} ms of device time; {} start(s) refused \
+                 StartInPast and made later (besides the one slow_host_start_is_moved_later forces)",
+                self.restarts
+            );
         }
         failed
     }
@@ -239,31 +302,128 @@ impl Suite {
         }
     }
 
-    /// Streams a sequence through the client, tracking its events.
-    fn stream(
-        &mut self,
-        id: u32,
-        items: impl IntoIterator<Item = Item>,
-        start: u64,
-    ) -> Result<(u64, Vec<Event>), String> {
-        let mut got = Vec::new();
-        let outcome = self
-            .client()?
-            .run_sequence(id, items, StartAt::Tick(start), |e| got.push((e.index, e.event.clone())))
-            .map_err(err)?;
-        let _ = outcome.items;
-        let mut events = Vec::new();
-        for (index, e) in got {
-            if self.track(index)? {
-                events.push(e);
+    /// Streams `items` as sequence `id` through the client, tracking its events, started at
+    /// least `lead_ms` after the clock reading it is fixed from. Returns the start tick used
+    /// (every tick the test expects is relative to it), the `SequenceDone` tick and the new
+    /// events.
+    ///
+    /// The client loads as much as the device's buffer holds and only then sends
+    /// `SequenceStart`, so the lead must cover the loading, which takes as long as the host
+    /// and the link make it (a busy lab PC, QEMU on a loaded CI runner). The lead is therefore
+    /// the test's, or twice the longest loading measured so far ([`lead_for`]); the loading of
+    /// every started sequence is measured by the tick of its `State { Running }` event. If
+    /// the device still refuses the start `StartInPast { now }`, `now` measures this loading:
+    /// the loaded sequence is aborted and streamed again with twice that lead, and the suite
+    /// says so.
+    fn stream(&mut self, id: u32, items: &[Item], lead_ms: u64) -> Result<(u64, u64, Vec<Event>), String> {
+        let base = u64::from(self.ticks_ms(lead_ms)?);
+        let ahead = usize::from(self.client()?.info().capabilities.sequence_buffer);
+        let hz = u64::from(self.client()?.info().tick_hz);
+        let ms = |ticks: u64| ticks * 1000 / hz.max(1);
+        let mut last = String::new();
+        for _ in 0..START_ATTEMPTS {
+            let lead = lead_for(base, self.load_ticks);
+            let fixed = self.now()?;
+            let start = fixed + lead;
+            let mut got = Vec::new();
+            let delay = self.load_delay;
+            let pause = move |_| {
+                if !delay.is_zero() {
+                    std::thread::sleep(delay)
+                }
+            };
+            let result = self.client()?.run_sequence(
+                id,
+                paced(items.iter().cloned(), ahead, pause),
+                StartAt::Tick(start),
+                |e| got.push((e.index, e.event.clone())),
+            );
+            let mut events = Vec::new();
+            for (index, e) in got {
+                if self.track(index)? {
+                    events.push(e);
+                }
+            }
+            let outcome = match result {
+                Ok(outcome) => outcome,
+                Err(ClientError::Refused { error: Error::StartInPast { now }, .. }) => {
+                    let took = now.saturating_sub(fixed);
+                    self.load_ticks = self.load_ticks.max(took);
+                    self.restarts += 1;
+                    // Refused, the sequence stays loaded (and never ran): clear it.
+                    self.request(Command::SequenceAbort { sequence: id })?;
+                    last = format!(
+                        "sequence {id}: the start at tick {start}, {} ms after the clock reading, was refused \
+                         StartInPast {{ now: {now} }}: loading took {} ms of device time",
+                        ms(lead),
+                        ms(took)
+                    );
+                    println!(
+                        "      ({last}; streaming it again with a {} ms lead)",
+                        ms(lead_for(base, self.load_ticks))
+                    );
+                    continue;
+                }
+                Err(e) => return Err(err(e)),
+            };
+            // How long the loading took, for the leads of the sequences after this one.
+            let started = events.iter().find_map(|e| match *e {
+                Event::State { state: DeviceState::Running { sequence }, tick, .. } if sequence == id => {
+                    Some(tick)
+                }
+                _ => None,
+            });
+            if let Some(tick) = started {
+                ensure!(tick <= start, "sequence {id} started at {start} but was running at {tick}");
+                self.load_ticks = self.load_ticks.max(tick.saturating_sub(fixed));
+            }
+            let done = events.iter().find_map(|e| match *e {
+                Event::SequenceDone { sequence, items, tick } if sequence == id => Some((items, tick)),
+                _ => None,
+            });
+            ensure_eq!(done, Some((outcome.items, outcome.tick)));
+            return Ok((start, outcome.tick, events));
+        }
+        Err(format!("{START_ATTEMPTS} starts refused; the last: {last}"))
+    }
+
+    /// Starts the loaded sequence `id` at least `lead_ms` after the clock reading it is fixed
+    /// from, as [`Self::stream`] does: later, and saying so, if the device refuses the start
+    /// `StartInPast` (a refused start leaves the sequence loaded). Returns the start tick.
+    fn start_loaded(&mut self, id: u32, lead_ms: u64) -> Result<u64, String> {
+        let base = u64::from(self.ticks_ms(lead_ms)?);
+        let hz = u64::from(self.client()?.info().tick_hz);
+        let ms = |ticks: u64| ticks * 1000 / hz.max(1);
+        let mut last = String::new();
+        for _ in 0..START_ATTEMPTS {
+            let lead = lead_for(base, self.load_ticks);
+            let fixed = self.now()?;
+            let start = fixed + lead;
+            match self.client()?.request(Command::SequenceStart { sequence: id, at: StartAt::Tick(start) }) {
+                Ok(_) => return Ok(start),
+                Err(ClientError::Refused { error: Error::StartInPast { now }, .. }) => {
+                    let took = now.saturating_sub(fixed);
+                    self.load_ticks = self.load_ticks.max(took);
+                    self.restarts += 1;
+                    last = format!(
+                        "sequence {id}: the start at tick {start}, {} ms after the clock reading, was refused \
+                         StartInPast {{ now: {now} }} ({} ms later)",
+                        ms(lead),
+                        ms(took)
+                    );
+                    println!("      ({last}; starting it later)");
+                }
+                Err(e) => return Err(err(e)),
             }
         }
-        let done = events.iter().find_map(|e| match *e {
-            Event::SequenceDone { sequence, items, tick } if sequence == id => Some((items, tick)),
-            _ => None,
-        });
-        ensure_eq!(done.map(|d| d.0), Some(outcome.items));
-        Ok((outcome.tick, events))
+        Err(format!("{START_ATTEMPTS} starts refused; the last: {last}"))
+    }
+
+    /// Microseconds of host time to wait for an event due `ticks` from now, beyond the usual
+    /// timeouts: device ticks at least, twice that for an emulated device that runs slower.
+    fn lead_us(&mut self, ticks: u64) -> Result<u64, String> {
+        let hz = u64::from(self.client()?.info().tick_hz).max(1);
+        Ok(ticks.saturating_mul(2_000_000) / hz)
     }
 
     /// Drops the connection after everything the device sent was acknowledged, so that the
@@ -457,8 +617,7 @@ impl Suite {
         );
         items.push(Item { delta: 500, action: Action::Laser { channel: 0, on: false } });
         items.push(Item { delta: 0, action: Action::Marker { id: 77 } });
-        let start = self.now()? + u64::from(self.ticks_ms(200)?);
-        let (last_tick, events) = self.stream(5, items, start)?;
+        let (start, last_tick, events) = self.stream(5, &items, 200)?;
         let end = start + 100 + 10 * 1000 + 500;
         ensure_eq!(last_tick, end);
         let triggers: Vec<_> = events
@@ -541,9 +700,9 @@ impl Suite {
         self.request(Command::SequenceAbort { sequence: 30 })?;
 
         // Streaming under credit: more items than the buffer holds, every one on its tick.
-        let start = self.now()? + u64::from(self.ticks_ms(100)?);
-        let items = (0..STREAMED).map(|i| Item { delta: MARKER_GAP, action: Action::Marker { id: i } });
-        let (last_tick, events) = self.stream(31, items, start)?;
+        let items: Vec<_> =
+            (0..STREAMED).map(|i| Item { delta: MARKER_GAP, action: Action::Marker { id: i } }).collect();
+        let (start, last_tick, events) = self.stream(31, &items, 100)?;
         ensure_eq!(last_tick, start + u64::from(STREAMED) * u64::from(MARKER_GAP));
         let marks: Vec<_> = events
             .iter()
@@ -580,9 +739,9 @@ impl Suite {
             last: false,
             items: markers(10),
         }))?;
-        let start = self.now()? + u64::from(self.ticks_ms(50)?);
-        self.request(Command::SequenceStart { sequence: 32, at: StartAt::Tick(start) })?;
-        let events = self.events_until(2_000_000, |e| matches!(e, Event::Fault { .. }))?;
+        let start = self.start_loaded(32, 50)?;
+        let wait = 2_000_000 + self.lead_us(lead_for(0, self.load_ticks))?;
+        let events = self.events_until(wait, |e| matches!(e, Event::Fault { .. }))?;
         let dry = start + 10 * 1000;
         ensure!(
             events.contains(&Event::Underrun { sequence: 32, item: 10, tick: dry }),
@@ -606,6 +765,41 @@ impl Suite {
             );
         }
         self.reset_state()
+    }
+
+    /// A slow host: a pause before each chunk loaded ahead of the start makes the loading
+    /// (3 × 100 ms) outlast the lead (10 ms). The device refuses the start `StartInPast`, and
+    /// the sequence is streamed again, started later by twice the loading measured; every
+    /// marker comes exactly at its tick from the start used. This is what a busy host does to
+    /// every streamed sequence, made to happen.
+    fn slow_host(&mut self) -> Check {
+        const ITEMS: u32 = 3 * MAX_CHUNK_ITEMS as u32;
+        self.reset_state()?;
+        let (load, restarts, delay) = (self.load_ticks, self.restarts, self.load_delay);
+        // The loading this host was seen to need would lengthen the first lead: not here.
+        self.load_ticks = 0;
+        self.load_delay = Duration::from_millis(100);
+        let items: Vec<_> =
+            (0..ITEMS).map(|i| Item { delta: 1000, action: Action::Marker { id: i } }).collect();
+        let result = self.stream(33, &items, 10);
+        // The simulated slowness is not this host's: later tests lead by what they did before.
+        let (measured, forced) = (self.load_ticks, self.restarts - restarts);
+        self.load_ticks = load;
+        self.load_delay = delay;
+        self.restarts = restarts;
+        let (start, last_tick, events) = result?;
+        ensure!(forced > 0, "a start 10 ms ahead was not refused though loading took {measured} ticks");
+        ensure_eq!(last_tick, start + u64::from(ITEMS) * 1000);
+        let marks: Vec<_> = events
+            .iter()
+            .filter_map(|e| match *e {
+                Event::Marker { sequence: 33, item, id, tick } => Some((item, id, tick)),
+                _ => None,
+            })
+            .collect();
+        let expected: Vec<_> = (0..ITEMS).map(|i| (i, i, start + 1000 * (u64::from(i) + 1))).collect();
+        ensure_eq!(marks, expected);
+        self.drain()
     }
 
     fn heartbeat_loss(&mut self) -> Check {
@@ -834,10 +1028,10 @@ impl Suite {
         if let Some(d) = self.debug() {
             d.mark()?;
         }
-        let start = self.now()? + u64::from(self.ticks_ms(100)?);
-        let items =
-            (0..N).map(|_| Item { delta: TRIGGER_GAP, action: Action::Trigger { camera: 0, exposure: 0 } });
-        let (last_tick, events) = self.stream(40, items, start)?;
+        let items: Vec<_> = (0..N)
+            .map(|_| Item { delta: TRIGGER_GAP, action: Action::Trigger { camera: 0, exposure: 0 } })
+            .collect();
+        let (start, last_tick, events) = self.stream(40, &items, 100)?;
         ensure_eq!(last_tick, start + u64::from(TRIGGER_GAP) * u64::from(N));
         let triggers: Vec<_> = events
             .iter()
@@ -950,5 +1144,29 @@ impl Raw {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_lead_is_the_tests_or_twice_the_loading_seen() {
+        assert_eq!(lead_for(100_000, 0), 100_000);
+        assert_eq!(lead_for(100_000, 40_000), 100_000);
+        assert_eq!(lead_for(100_000, 130_000), 260_000);
+        assert_eq!(lead_for(10, u64::MAX), u64::MAX);
+    }
+
+    #[test]
+    fn a_slow_host_pauses_only_before_chunks_loaded_ahead_of_the_start() {
+        let items: Vec<_> =
+            (0..100u32).map(|i| Item { delta: 1, action: Action::Marker { id: i } }).collect();
+        let mut paused = Vec::new();
+        let out: Vec<_> = paced(items.iter().cloned(), 64, |k| paused.push(k)).collect();
+        assert_eq!(out, items);
+        // Before items 0 and 32 (the chunks loaded before the start), not 64 and 96.
+        assert_eq!(paused, [0, 32]);
     }
 }
