@@ -1,6 +1,7 @@
 //! How a command fails: a message and the exit code that tells scripts what kind of failure
 //! it was (0 done, 1 failure, 2 usage, 3 device unreachable or refusing, 4 rig file or session
-//! problem, 130 stopped by Ctrl-C or `lightrig stop`).
+//! problem, 5 session complete with frames missing, 130 stopped by Ctrl-C or
+//! `lightrig stop`).
 
 use lightrig_host::bringup::BringUpError;
 
@@ -26,6 +27,8 @@ pub const USAGE: u8 = 2;
 pub const DEVICE: u8 = 3;
 /// Exit code: the rig file or the session is wrong.
 pub const INPUT: u8 = 4;
+/// Exit code: the session is complete but frames are missing (`resume --retake-missing`).
+pub const INCOMPLETE: u8 = 5;
 /// Exit code: stopped by Ctrl-C (128 + SIGINT, as shells report it) or `lightrig stop`.
 pub const INTERRUPTED: u8 = 130;
 

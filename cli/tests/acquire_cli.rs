@@ -65,6 +65,57 @@ fn acquire(rig: &Path, session: &Path) -> Session {
     s
 }
 
+/// A camera whose frames never come (its directory stays empty): the run says so as the step
+/// ends, finishes the session with them recorded missing, and exits 5, naming the step and
+/// `resume --retake-missing`; `resume` on the finished session says the same.
+#[test]
+fn a_run_that_lost_frames_says_so_and_exits_incomplete() {
+    let dir = scratch("lost");
+    let frames = dir.join("frames");
+    std::fs::create_dir_all(&frames).unwrap();
+    let source = format!(
+        "source = {{ kind = \"directory\", path = \"{}\", pattern = \"img_{{frame:06}}.png\" }}",
+        frames.display()
+    );
+    let rig = example(
+        &dir,
+        "lls-gantry.toml",
+        &[
+            ("source", &source),
+            ("pass_mm", "pass_mm = [-2, 2]"),
+            ("step_mm", "step_mm = 2"),
+            ("passes", "passes = [\"reflectance\"]"),
+            ("exposures_us", "exposures_us = [500]"),
+        ],
+    );
+    let session = dir.join("session");
+    let out = lightrig(&["acquire", rig.to_str().unwrap(), "--session", session.to_str().unwrap()]);
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(5), "{said}");
+    assert!(
+        said.contains("warning: step 0 (pass reflectance): 3 of 3 frames missing (camera 0 frame 0: "),
+        "warned as the step ended: {said}"
+    );
+    assert!(said.contains("3 MISSING"), "the progress line counts them: {said}");
+    assert!(
+        said.contains("session complete") && said.contains("0 frames paired with their triggers, 3 missing")
+    );
+    assert!(
+        said.contains(&format!(
+            "acquire those steps again with `lightrig resume {} --retake-missing`",
+            session.display()
+        )),
+        "{said}"
+    );
+    let (s, _) = Session::read(&session).unwrap();
+    assert!(s.is_done());
+    assert_eq!(s.steps_missing_frames().len(), 1);
+    let again = lightrig(&["resume", session.to_str().unwrap()]);
+    let said = String::from_utf8_lossy(&again.stderr);
+    assert_eq!(again.status.code(), Some(5), "{said}");
+    assert!(said.contains("with frames missing in 1 step(s)"), "{said}");
+}
+
 #[test]
 fn a_missing_camera_response_is_refused_before_the_session_starts() {
     let dir = scratch("response");

@@ -110,7 +110,6 @@ fn a_whole_acquisition_through_gige_vision() {
     let session = dir.join("session");
     let out = acquire(&session, 6);
     let said = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "{said}");
     let (s, _) = Session::read(&session).unwrap();
     assert!(s.is_done());
     let frames = s.frame_index();
@@ -118,6 +117,7 @@ fn a_whole_acquisition_through_gige_vision() {
     // for the payload the loopback loses about one frame in a few hundred (measured: 1 of 200
     // at 20 Hz); such a frame is named by its id, never shifts the others.
     let reasons = missing_reasons(&session);
+    assert_eq!(out.status.code(), Some(if reasons.is_empty() { 0 } else { 5 }), "{said}");
     assert_eq!(frames.len() + reasons.len(), 18, "{said}");
     assert!(reasons.len() <= 1, "{reasons:?}");
     for r in &reasons {
@@ -159,10 +159,11 @@ fn frames_lost_on_the_wire_are_named_by_their_frame_id() {
     let session = dir.join("session");
     let out = acquire(&session, 10);
     let said = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "{said}");
     let (s, _) = Session::read(&session).unwrap();
     let reasons = missing_reasons(&session);
     assert!(!reasons.is_empty(), "some frames lost: {said}");
+    assert_eq!(out.status.code(), Some(5), "complete, frames missing: {said}");
+    assert!(said.contains("warning: step 0 (") && said.contains("--retake-missing"), "{said}");
     // A frame whose leader packet is dropped never reaches Aravis at all (about one run in
     // ten has one): its trigger is missing for want of a frame; the others are named by the
     // camera's frame id.
@@ -207,9 +208,9 @@ fn software_triggers_faster_than_the_camera_are_fired_one_frame_at_a_time() {
     args.extend(["--set".into(), "camera[0].min_interval_us=30000".into()]);
     let out = lightrig(&args);
     let said = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "{said}");
     let (s, _) = Session::read(&session).unwrap();
     let reasons = missing_reasons(&session);
+    assert_eq!(out.status.code(), Some(if reasons.is_empty() { 0 } else { 5 }), "{said}");
     assert!(reasons.len() <= 1, "{reasons:?}");
     for r in &reasons {
         assert!(r.contains("the camera delivered frame id"), "only a frame lost on the wire: {r}");

@@ -414,7 +414,7 @@ pub fn plan_summary(plan: &Plan) -> PlanSummary {
 }
 
 /// Progress of a run, for a progress bar.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Progress {
     /// Steps done (including earlier runs).
     pub steps_done: usize,
@@ -427,6 +427,10 @@ pub struct Progress {
     pub triggered: u64,
     /// Triggers of the steps this run had to do when it began.
     pub to_trigger: u64,
+    /// Frames recorded missing in this run (in steps stored with them, after their retries).
+    pub missing: u64,
+    /// A step just stored with frames missing: which, and why, in words (to warn at once).
+    pub missing_now: Option<String>,
 }
 
 /// How long to wait for a step's next frame after its sequence ended, µs: the step's frames
@@ -506,7 +510,7 @@ fn run_steps<T: Transport>(
         .filter(|s| !done_before.contains(&s.id))
         .flat_map(|s| s.triggers.iter().map(|t| u64::from(t.1)))
         .sum();
-    let mut triggered = 0u64;
+    let (mut triggered, mut missing) = (0u64, 0u64);
     for step in &plan.steps {
         if session.steps_done().contains(&step.id) {
             continue;
@@ -533,19 +537,30 @@ fn run_steps<T: Transport>(
         let step_start = triggered;
         let mut within = |n: u64| {
             triggered = step_start + n;
-            progress(Progress { steps_done, steps: total, frames, triggered, to_trigger });
+            progress(Progress {
+                steps_done,
+                steps: total,
+                frames,
+                triggered,
+                to_trigger,
+                missing,
+                missing_now: None,
+            });
         };
         let mut prepared = prepared_by.map(|by| (by, requests));
         let mut tries = 0;
-        frames += loop {
+        let stored = loop {
             let retry = tries < plan.lost_retries;
             match run_step(client, session, step, input, prepared.take(), retry, &mut within)? {
-                Stepped::Stored(n) => break n,
+                Stepped::Stored(stored) => break stored,
                 // Its lost frames are acquired again with the whole step: the triggers count
                 // from the step's start.
                 Stepped::Lost => tries += 1,
             }
         };
+        frames += stored.frames;
+        missing += stored.missing.len() as u64;
+        let missing_now = (!stored.missing.is_empty()).then(|| missing_words(step, &stored.missing));
         // A step's shots all fired (an abandoned attempt's are not counted twice).
         triggered = step_start + step.triggers.iter().map(|t| u64::from(t.1)).sum::<u64>();
         progress(Progress {
@@ -554,6 +569,8 @@ fn run_steps<T: Transport>(
             frames,
             triggered,
             to_trigger,
+            missing,
+            missing_now,
         });
     }
     client.request(Command::Disarm).map_err(AcquireError::Device)?;
@@ -690,7 +707,7 @@ fn lasers_used(plan: &Plan) -> u8 {
 /// How an attempt at a step ended.
 enum Stepped {
     /// Done: its frames stored, the frames it lost recorded missing.
-    Stored(u64),
+    Stored(Stored),
     /// Abandoned because it lost frames: to be acquired again.
     Lost,
 }
@@ -877,6 +894,28 @@ fn shifted_reason(pairing: &Pairing, arrivals: &[Captured]) -> Option<String> {
 /// How the reason of an attempt abandoned for its lost frames begins.
 pub const LOST_PREFIX: &str = "lost";
 
+/// A stored step attempt: the frames stored, and those recorded missing with why.
+struct Stored {
+    frames: u64,
+    missing: Vec<(u8, u32, String)>,
+}
+
+/// A step's missing frames in words: how many, the first few by camera and frame with why.
+fn missing_words(step: &Step, missing: &[(u8, u32, String)]) -> String {
+    let named: Vec<String> =
+        missing.iter().take(3).map(|(c, f, why)| format!("camera {c} frame {f}: {why}")).collect();
+    let more = missing.len().saturating_sub(named.len());
+    let more = if more > 0 { format!("; {more} more") } else { String::new() };
+    format!(
+        "step {} ({}): {} of {} frames missing ({}{more})",
+        step.id,
+        step.name,
+        missing.len(),
+        step.shot_count(),
+        named.join("; ")
+    )
+}
+
 /// Stores a step attempt's paired frames, records the missing ones and the extra ones, and
 /// closes the attempt; returns the frames stored.
 fn store(
@@ -884,16 +923,18 @@ fn store(
     pairing: &Pairing,
     arrivals: &[Captured],
     lost: &[(u8, u32, String)],
-) -> Result<u64, AcquireError> {
-    let mut stored = 0;
+) -> Result<Stored, AcquireError> {
+    let mut stored = Stored { frames: 0, missing: Vec::new() };
     for p in &pairing.pairs {
         let c = &arrivals[p.arrival];
         session.store_frame_stamped(p, &c.ext, &c.data, c.stamp)?;
-        stored += 1;
+        stored.frames += 1;
     }
     for m in &pairing.missing {
         let why = lost.iter().find(|(c, f, _)| (*c, *f) == (m.camera, m.frame)).map(|(_, _, w)| w.as_str());
-        session.frame_missing(m, why.unwrap_or("no frame arrived within the wait"))?;
+        let why = why.unwrap_or("no frame arrived within the wait");
+        session.frame_missing(m, why)?;
+        stored.missing.push((m.camera, m.frame, why.to_string()));
     }
     for x in &pairing.extra {
         let c = &arrivals[x.arrival];

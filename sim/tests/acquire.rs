@@ -151,11 +151,20 @@ fn a_run_stores_one_frame_per_trigger_and_records_missing_and_duplicate_frames()
     let mut session = new_session(&dir, &plan);
     let mut client = connect(SimBoard::default());
     let mut cam = TestCamera { drop: vec![5], duplicate: vec![30], ..Default::default() };
-    let mut updates = Vec::new();
+    let (mut updates, mut warned) = (Vec::new(), Vec::new());
     acquire::run(&mut client, &mut session, &plan, &mut cam, |p| {
-        updates.push((p.steps_done, p.triggered, p.to_trigger))
+        updates.push((p.steps_done, p.triggered, p.to_trigger));
+        warned.extend(p.missing_now.map(|w| (p.steps_done, p.missing, w)));
     })
     .unwrap();
+    // The lost frame is said as its step is stored, with its camera, frame and why.
+    assert_eq!(warned.len(), 1, "{warned:?}");
+    let (steps_done, missing, what) = &warned[0];
+    assert_eq!((*steps_done, *missing), (1, 1));
+    assert!(
+        what.starts_with("step 0 (") && what.contains("1 of 21 frames missing (camera 0 frame 5: "),
+        "{what}"
+    );
     // Progress at every trigger within a step (21 each), then at the step's end.
     let ends: Vec<usize> = updates.windows(2).filter(|w| w[1].0 > w[0].0).map(|w| w[1].0).collect();
     assert_eq!(ends, [1, 2, 3]);

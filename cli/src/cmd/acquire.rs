@@ -22,7 +22,7 @@ use lightrig_sim::scenes::scene_for;
 use lightrig_sim::timeline::Timeline;
 use lightrig_sim::transport::connect_for_camera;
 
-use crate::error::{err, CliError, DEVICE, FAILURE, INPUT, INTERRUPTED};
+use crate::error::{err, CliError, DEVICE, FAILURE, INCOMPLETE, INPUT, INTERRUPTED};
 
 /// Arguments of `lightrig acquire`.
 #[derive(Debug, clap::Args)]
@@ -384,9 +384,13 @@ fn print_summary(plan: &Plan, info: &DeviceInfo) {
 fn progress_printer(start: std::time::Instant) -> impl FnMut(Progress) {
     let mut last: Option<std::time::Instant> = None;
     move |p: Progress| {
+        // Frames gone missing are said at once, on a line of their own.
+        if let Some(what) = &p.missing_now {
+            eprintln!("\nwarning: {what}");
+        }
         let now = std::time::Instant::now();
         let recent = last.is_some_and(|l| now.duration_since(l).as_millis() < 100);
-        if recent && p.triggered < p.to_trigger {
+        if recent && p.triggered < p.to_trigger && p.missing_now.is_none() {
             return;
         }
         last = Some(now);
@@ -395,8 +399,9 @@ fn progress_printer(start: std::time::Instant) -> impl FnMut(Progress) {
         let left = p.to_trigger.saturating_sub(p.triggered);
         let eta = if rate > 0.0 { format!("{:.0} s", left as f64 / rate) } else { "–".into() };
         let bar = (20 * p.triggered / p.to_trigger.max(1)).min(20) as usize;
+        let missing = if p.missing > 0 { format!(", {} MISSING", p.missing) } else { String::new() };
         eprint!(
-            "\r[{}{}] step {}/{}  {}/{} triggers  {} frames  {:.1} frames/s  ETA {}   ",
+            "\r[{}{}] step {}/{}  {}/{} triggers  {} frames{missing}  {:.1} frames/s  ETA {}   ",
             "=".repeat(bar),
             " ".repeat(20 - bar),
             p.steps_done,
@@ -471,7 +476,27 @@ fn run(
     }
     eprintln!("session complete: {}", session.dir().display());
     eprintln!("{}", tally(session));
-    Ok(())
+    incomplete(session)
+}
+
+/// A finished session that still misses frames is no success: exit code [`INCOMPLETE`], the
+/// steps named, and how to acquire them again.
+fn incomplete(session: &Session) -> Result<(), CliError> {
+    let missing = session.steps_missing_frames();
+    if missing.is_empty() {
+        return Ok(());
+    }
+    Err(err(
+        INCOMPLETE,
+        format!(
+            "{}: the session is complete, with frames missing in {} step(s):\n{}\nacquire those steps again \
+             with `lightrig resume {} --retake-missing`",
+            session.dir().display(),
+            missing.len(),
+            missing.iter().map(|(s, why)| format!("  step {s}: {why}")).collect::<Vec<_>>().join("\n"),
+            session.dir().display()
+        ),
+    ))
 }
 
 /// What the session holds, in words: frames, missing frames, and frames without a trigger by
@@ -636,15 +661,7 @@ pub fn resume(args: &ResumeArgs) -> Result<(), CliError> {
             return Ok(());
         }
         if !retake {
-            eprintln!(
-                "{}: the session is complete, with frames missing in {} step(s):\n{}\nacquire those steps \
-                 again with `lightrig resume {} --retake-missing`",
-                dir.display(),
-                missing.len(),
-                missing.iter().map(|(s, why)| format!("  step {s}: {why}")).collect::<Vec<_>>().join("\n"),
-                dir.display()
-            );
-            return Ok(());
+            return incomplete(&session);
         }
     }
     let text = session.manifest().rig.clone();
