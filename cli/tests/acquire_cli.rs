@@ -163,6 +163,13 @@ fn overrides_shape_the_run_and_resume_asks_for_the_same_ones() {
     let out = lightrig(&["resume", s, "--rig", r]);
     let said = String::from_utf8_lossy(&out.stderr);
     assert!(said.contains("already complete"), "a complete session is not re-checked: {said}");
+    // A misspelt plan key is refused before anything connects or moves, not ignored.
+    let typo = dir.join("s3");
+    let bad = lightrig(&["acquire", r, "--session", typo.to_str().unwrap(), "--set", "plan.step_m=4"]);
+    let said = String::from_utf8_lossy(&bad.stderr);
+    assert_eq!(bad.status.code(), Some(4), "{said}");
+    assert!(said.contains("plan.step_m: unknown key; did you mean \"step_mm\"?"), "{said}");
+    assert!(!said.contains("homing") && !typo.exists(), "refused before bring-up: {said}");
     let bad =
         lightrig(&["acquire", r, "--session", dir.join("s2").to_str().unwrap(), "--set", "plan.nope.x="]);
     let said = String::from_utf8_lossy(&bad.stderr);

@@ -1520,6 +1520,18 @@ impl RigFile {
         line_of(&self.lines, key)
     }
 
+    /// `key` (a dotted path) is no key of its table: the error, with the closest of `valid`
+    /// as a suggestion, as serde's unknown keys elsewhere in the file are reported.
+    pub fn unknown_key(&self, key: &str, valid: &[&str]) -> RigError {
+        let word = key.rsplit('.').next().unwrap_or(key);
+        let list = valid.join(", ");
+        let message = match suggest(word, valid.iter().copied()) {
+            Some(s) => format!("unknown key; did you mean \"{s}\"? Valid keys here: {list}"),
+            None => format!("unknown key; valid keys here: {list}"),
+        };
+        self.error(key, message)
+    }
+
     /// An error about `key` of this file (for the planners checking `[plan]`).
     pub fn error(&self, key: &str, message: impl Into<String>) -> RigError {
         RigError {

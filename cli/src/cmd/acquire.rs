@@ -630,6 +630,7 @@ pub fn acquire(args: &AcquireArgs) -> Result<(), CliError> {
         (args.rig.as_path(), args.session.as_path(), args.connect.as_ref(), &args.overrides[..]);
     let consent = Consent { yes: args.yes, clear_stop: args.clear_stop };
     let (text, rig) = rig_with(rig_path, overrides)?;
+    from_rig::check_keys(&rig).map_err(|e| err(INPUT, e.to_string()))?;
     lightrig_host::response::check(&rig).map_err(|e| err(INPUT, e))?;
     if dir.join("manifest.json").exists() {
         return Err(err(

@@ -199,6 +199,7 @@ impl DemoRig {
         std::fs::write(&rig_path, &text).map_err(io(&rig_path))?;
         let rig = RigFile::parse(&text, &rig_path).map_err(|e| err(INPUT, e.to_string()))?;
         let info = virtual_device_info();
+        from_rig::check_keys(&rig).map_err(|e| err(INPUT, e.to_string()))?;
         let plan = from_rig::plan(&rig, &info).map_err(|e| err(INPUT, e.to_string()))?;
         Ok(Self { text, rig, plan, info })
     }

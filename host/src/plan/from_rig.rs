@@ -57,6 +57,117 @@ pub fn plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
     Ok(plan)
 }
 
+/// `[plan]` keys every planner reads.
+const COMMON_KEYS: &[&str] =
+    &["cameras", "frame_bytes", "lost_frame_retries", "readout_us", "tunable_filter"];
+
+/// `[plan]` keys the planner and fit of `method` read, besides [`COMMON_KEYS`].
+fn method_keys(method: Method) -> &'static [&'static str] {
+    match method {
+        Method::LinearLightSource => &["exposures_us", "fit", "pass_mm", "passes", "settle_ms", "step_mm"],
+        Method::Disco => &[
+            "camera_positions",
+            "exposure_us",
+            "fit",
+            "frames_per_spot",
+            "lasers",
+            "registration",
+            "spot_grid",
+            "spot_window_deg",
+            "views",
+            "white_balance",
+        ],
+        // `camera_filter` and `immersion_liquid`: the lab's notes of what the tank holds, kept
+        // with the session (the shipped rig file documents them so).
+        Method::FluorescentImmersion => &[
+            "calibration",
+            "calibration_targets",
+            "camera_filter",
+            "exposure_us",
+            "fit",
+            "immersion_liquid",
+            "laser",
+            "sheet_positions",
+            "sweep_codes",
+            "views",
+        ],
+        Method::BrdfDisplay => &[
+            "alphas",
+            "calibrate",
+            "calibration",
+            "captures",
+            "coils",
+            "exposure_us",
+            "liquid",
+            "patterns",
+            "ramp_ms",
+            "screen_mrad_per_px",
+            "settle_ms",
+        ],
+        Method::Bispectral => &["exposures_us", "fit", "gonio", "pairs", "sample", "steer"],
+    }
+}
+
+/// Keys of the `[plan]` sub-tables read key by key (the fits' `[plan.fit]` tables that are
+/// read whole are checked by the fit, with every field named): `(method or all, table, keys)`.
+const TABLE_KEYS: &[(Option<Method>, &str, &[&str])] = &[
+    (
+        None,
+        "tunable_filter",
+        &[
+            "baud",
+            "camera_port",
+            "camera_range_nm",
+            "decimals",
+            "error",
+            "excitation_range_nm",
+            "light_port",
+            "light_range_nm",
+            // The filter's make and model: a note for the session.
+            "model",
+            "ok",
+            "range_nm",
+            "settle_ms",
+            "step_nm",
+            "timeout_ms",
+            "tune",
+        ],
+    ),
+    (Some(Method::Bispectral), "gonio", &["light_angles", "sample_angles"]),
+    (Some(Method::Bispectral), "steer", &["dense_angles", "select"]),
+    (
+        Some(Method::Bispectral),
+        "fit",
+        &["bins", "detection", "pca_angles", "select", "spectralon", "specular_deg"],
+    ),
+    (Some(Method::BrdfDisplay), "calibrate", &["drive"]),
+];
+
+/// Refuses a key of `[plan]` (or of a sub-table read key by key) that nothing reads, with the
+/// closest valid key: a misspelt key is otherwise silently ignored and the run goes on with
+/// its default. Needs no device: `acquire` checks before connecting.
+pub fn check_keys(rig: &RigFile) -> Result<(), RigError> {
+    let mut valid: Vec<&str> = COMMON_KEYS.iter().chain(method_keys(rig.method)).copied().collect();
+    valid.sort_unstable();
+    for key in rig.plan.keys() {
+        if !valid.contains(&key.as_str()) {
+            return Err(rig.unknown_key(&format!("plan.{key}"), &valid));
+        }
+    }
+    for (method, table, keys) in TABLE_KEYS {
+        if method.is_some_and(|m| m != rig.method) {
+            continue;
+        }
+        let Some(t) = rig.plan.get(*table).and_then(|v| v.as_table()) else { continue };
+        for key in t.keys() {
+            if !keys.contains(&key.as_str()) {
+                return Err(rig.unknown_key(&format!("plan.{table}.{key}"), keys));
+            }
+        }
+    }
+    Ok(())
+}
+
 /// `[plan] lost_frame_retries`: a whole number of retries, [`LOST_RETRIES`] without it.
 fn lost_retries(rig: &RigFile) -> Result<u32, RigError> {
     let n = num(rig, "lost_frame_retries", Some(f64::from(LOST_RETRIES)))?;
@@ -857,6 +968,45 @@ fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn shipped(name: &str) -> String {
+        std::fs::read_to_string(format!("{}/../docs/rigs/{name}", env!("CARGO_MANIFEST_DIR"))).unwrap()
+    }
+
+    #[test]
+    fn every_shipped_rigs_plan_keys_are_known() {
+        for name in [
+            "lls-gantry.toml",
+            "disco.toml",
+            "fluorescent-immersion.toml",
+            "bispectral.toml",
+            "brdf-display.toml",
+        ] {
+            let rig = RigFile::parse(&shipped(name), std::path::Path::new(name)).unwrap();
+            assert_eq!(check_keys(&rig), Ok(()), "{name}");
+        }
+    }
+
+    #[test]
+    fn a_misspelt_plan_key_is_refused_at_its_line_with_the_key_meant() {
+        let text = shipped("lls-gantry.toml").replace("step_mm = 0.5", "step_m = 4");
+        let line = text.lines().position(|l| l.starts_with("step_m =")).unwrap() + 1;
+        let rig = RigFile::parse(&text, std::path::Path::new("lls-gantry.toml")).unwrap();
+        let e = check_keys(&rig).unwrap_err();
+        assert_eq!((e.line, e.key.as_str()), (Some(line), "plan.step_m"));
+        assert!(e.message.starts_with("unknown key; did you mean \"step_mm\"? Valid keys here: "), "{e}");
+        // A key of another method's planner: LLS takes a bracket of exposures, not one.
+        let text = shipped("lls-gantry.toml").replace("step_mm = 0.5", "step_mm = 0.5\nexposure_us = 500");
+        let rig = RigFile::parse(&text, std::path::Path::new("lls-gantry.toml")).unwrap();
+        let e = check_keys(&rig).unwrap_err();
+        assert!(e.message.contains("did you mean \"exposures_us\"?"), "{e}");
+        // Inside a sub-table read key by key.
+        let text = shipped("bispectral.toml").replace("\nrange_nm = ", "\nrang_nm = ");
+        let rig = RigFile::parse(&text, std::path::Path::new("bispectral.toml")).unwrap();
+        let e = check_keys(&rig).unwrap_err();
+        assert_eq!(e.key, "plan.tunable_filter.rang_nm", "{e}");
+        assert!(e.message.contains("did you mean \"range_nm\"?"), "{e}");
+    }
 
     fn rig_with(targets: &str) -> RigFile {
         RigFile::parse(&rig_text(targets), std::path::Path::new("rig.toml")).unwrap()
