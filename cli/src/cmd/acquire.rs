@@ -305,16 +305,10 @@ pub(crate) fn on_ctrl_c_of(interrupt: Arc<Interrupt>) -> Option<Arc<Interrupt>> 
             std::process::exit(130);
         }
         if i.requested() {
-            eprintln!(
-                "
-Ctrl-C: still sending the stop to the device…"
-            );
+            eprintln!("\nCtrl-C: still sending the stop to the device…");
             return;
         }
-        eprintln!(
-            "
-Ctrl-C: stopping the device (EmergencyStop)…"
-        );
+        eprintln!("\nCtrl-C: stopping the device (EmergencyStop)…");
         i.request();
     });
     let i = interrupt.clone();
@@ -441,8 +435,9 @@ fn run(
         &mut tuned
     };
     let mut reconnect = |old: Option<Box<dyn Transport>>, k: u32| {
-        drop(old); // close the old port before opening it again
-                   // The wait ends early at Ctrl-C: bring-up then sends the stop the lost link could not.
+        // Close the old port before opening it again. The wait ends early at Ctrl-C: bring-up
+        // then sends the stop the lost link could not.
+        drop(old);
         let until = std::time::Instant::now() + std::time::Duration::from_millis(reconnect_backoff_ms(k));
         while std::time::Instant::now() < until && !interrupt.as_ref().is_some_and(|i| i.requested()) {
             std::thread::sleep(std::time::Duration::from_millis(20));
