@@ -57,6 +57,13 @@ pub trait FrameInput: Send {
     }
     /// Frames that arrived since the last call.
     fn poll(&mut self, now_us: f64) -> io::Result<Vec<Captured>>;
+    /// Frames ready now, without waiting or reading anything slow: called while a sequence
+    /// runs (the link is not kept alive meanwhile), for those watching the run. A source that
+    /// cannot answer so quickly gives none; its frames come from [`Self::poll`] after the
+    /// sequence as always.
+    fn poll_now(&mut self, _now_us: f64) -> io::Result<Vec<Captured>> {
+        Ok(Vec::new())
+    }
     /// Whether its frames' timestamps follow the trigger ticks (a camera triggered by the
     /// controller's line, stamping each frame by its own clock): the engine then checks each
     /// step's frames against their triggers' ticks, and acquires a step again when the stamps
@@ -217,6 +224,14 @@ impl FrameInput for Cameras {
         self.0.iter_mut().try_for_each(|c| c.on_trigger(trigger, host_us))
     }
 
+    fn poll_now(&mut self, now_us: f64) -> io::Result<Vec<Captured>> {
+        let mut out = Vec::new();
+        for c in &mut self.0 {
+            out.extend(c.poll_now(now_us)?);
+        }
+        Ok(out)
+    }
+
     fn poll(&mut self, now_us: f64) -> io::Result<Vec<Captured>> {
         let mut out = Vec::new();
         for c in &mut self.0 {
@@ -227,6 +242,11 @@ impl FrameInput for Cameras {
 
     fn lost(&mut self) -> Vec<(u8, u32, String)> {
         self.0.iter_mut().flat_map(|c| c.lost()).collect()
+    }
+
+    fn stamps_follow_triggers(&self) -> bool {
+        // The step's stamps are checked when every camera stamps by its trigger line.
+        !self.0.is_empty() && self.0.iter().all(|c| c.stamps_follow_triggers())
     }
 }
 
@@ -340,6 +360,14 @@ impl FrameInput for Background {
         self.gather(&mut out, Self::POLL_WAIT)?;
         Ok(out)
     }
+
+    fn poll_now(&mut self, now_us: f64) -> io::Result<Vec<Captured>> {
+        // What the thread answered to earlier calls; this one's answer comes with a later call.
+        self.send(Call::Poll(now_us))?;
+        let mut out = Vec::new();
+        self.gather(&mut out, std::time::Duration::ZERO)?;
+        Ok(out)
+    }
 }
 
 impl Drop for Background {
@@ -438,6 +466,8 @@ pub struct Progress {
 pub const FRAME_WAIT_US: u64 = 2_000_000;
 /// A frame later than this after its trigger is flagged late (still paired), µs.
 pub const LATE_US: f64 = 1_000_000.0;
+/// While a sequence runs and someone watches, frames are looked for this often, µs of host time.
+const LOOK_EVERY_US: f64 = 100_000.0;
 
 /// Device sequence id of a step attempt: unique within a session.
 pub fn sequence_id(step: StepId, attempt: u32) -> u32 {
@@ -480,6 +510,9 @@ pub fn run_prepared<T: Transport>(
     client.busy(|| {
         cleared.iter().try_for_each(|c| session.fault_cleared(info.boot_id, c, needs_a_person(c)))
     })?;
+    if let Some(live) = client.live() {
+        live.started();
+    }
     let result = run_steps(client, session, plan, input, prep, &mut progress);
     if result.is_err() {
         // Whatever stopped the run, the lasers are left disarmed where the device still
@@ -498,9 +531,22 @@ fn run_steps<T: Transport>(
     progress: &mut impl FnMut(Progress),
 ) -> Result<(), AcquireError> {
     let lasers = lasers_used(plan);
+    let live = client.live().cloned();
+    let armed = |mask: u8| {
+        if let Some(l) = &live {
+            l.lasers(mask)
+        }
+    };
     if lasers != 0 {
         client.request(Command::Arm { lasers }).map_err(AcquireError::Device)?;
+        armed(lasers);
     }
+    let mut progress = |p: Progress| {
+        if let Some(l) = &live {
+            l.progress(&p);
+        }
+        progress(p)
+    };
     let total = plan.steps.len();
     let mut frames = 0u64;
     let done_before = session.steps_done();
@@ -511,9 +557,24 @@ fn run_steps<T: Transport>(
         .flat_map(|s| s.triggers.iter().map(|t| u64::from(t.1)))
         .sum();
     let (mut triggered, mut missing) = (0u64, 0u64);
-    for step in &plan.steps {
+    if let Some(l) = &live {
+        // Those watching see the run's size before its first trigger.
+        l.progress(&Progress {
+            steps_done: done_before.len(),
+            steps: total,
+            frames,
+            triggered,
+            to_trigger,
+            missing,
+            missing_now: None,
+        });
+    }
+    for (number, step) in plan.steps.iter().enumerate() {
         if session.steps_done().contains(&step.id) {
             continue;
+        }
+        if let Some(l) = live.as_ref().filter(|l| l.pause_requested()) {
+            pause_here(client, l, lasers)?;
         }
         // A step decided now (the PCA-steered plan's chosen pairs), from what the session holds.
         let dir = session.dir().to_path_buf();
@@ -526,10 +587,12 @@ fn run_steps<T: Transport>(
             // A person may be at the rig: lasers disarmed until they are done, the link kept
             // alive meanwhile so the device does not time the host out.
             client.request(Command::Disarm).map_err(AcquireError::Device)?;
+            armed(0);
             let done = client.busy(|| prep.prepare(step, &requests));
             let by = done.map_err(AcquireError::Preparation)?;
             if lasers != 0 {
                 client.request(Command::Arm { lasers }).map_err(AcquireError::Device)?;
+                armed(lasers);
             }
             Some(by)
         };
@@ -551,13 +614,17 @@ fn run_steps<T: Transport>(
         let mut tries = 0;
         let stored = loop {
             let retry = tries < plan.lost_retries;
-            match run_step(client, session, step, input, prepared.take(), retry, &mut within)? {
+            let place = (number + 1, total);
+            match run_step(client, session, step, place, input, prepared.take(), retry, &mut within)? {
                 Stepped::Stored(stored) => break stored,
                 // Its lost frames are acquired again with the whole step: the triggers count
                 // from the step's start.
                 Stepped::Lost => tries += 1,
             }
         };
+        if let Some(l) = &live {
+            l.step_stored();
+        }
         frames += stored.frames;
         missing += stored.missing.len() as u64;
         let missing_now = (!stored.missing.is_empty()).then(|| missing_words(step, &stored.missing));
@@ -574,7 +641,34 @@ fn run_steps<T: Transport>(
         });
     }
     client.request(Command::Disarm).map_err(AcquireError::Device)?;
+    armed(0);
     client.busy(|| session.finish())?;
+    Ok(())
+}
+
+/// A pause asked for by those watching the run ([`crate::live::Live::pause`]), at a step
+/// boundary: lasers disarmed, the link kept alive, until a resume (lasers armed again) or a
+/// stop (the client's interrupt ends the wait with `Interrupted`).
+fn pause_here<T: Transport>(
+    client: &mut Client<T>,
+    live: &crate::live::Live,
+    lasers: u8,
+) -> Result<(), AcquireError> {
+    client.request(Command::Disarm).map_err(AcquireError::Device)?;
+    live.lasers(0);
+    live.set_paused(true);
+    while live.pause_requested() {
+        if !client.transport().runs_alone() {
+            // A device whose time waits for the host: wait in real time here instead.
+            live.wait_unpaused(std::time::Duration::from_millis(50));
+        }
+        client.idle(50_000).map_err(AcquireError::Device)?;
+    }
+    live.set_paused(false);
+    if lasers != 0 {
+        client.request(Command::Arm { lasers }).map_err(AcquireError::Device)?;
+        live.lasers(lasers);
+    }
     Ok(())
 }
 
@@ -670,6 +764,10 @@ pub fn run_reconnecting<T: Transport>(
             other => return other,
         };
         notify(&format!("device lost: {lost}"));
+        let live = client.live().cloned();
+        if let Some(l) = &live {
+            l.device(crate::live::DeviceState::Lost, Some(lost.to_string()));
+        }
         let mut old = Some(client.into_transport());
         let mut last = lost;
         let mut back = None;
@@ -694,6 +792,11 @@ pub fn run_reconnecting<T: Transport>(
             Some(c) => {
                 notify("device back; going on from the interrupted step");
                 client = c;
+                if let Some(l) = live {
+                    if client.live().is_none() {
+                        client.set_live(l);
+                    }
+                }
             }
             None => return Err(AcquireError::Device(last)),
         }
@@ -719,6 +822,7 @@ fn run_step<T: Transport>(
     client: &mut Client<T>,
     session: &mut Session,
     step: &Step,
+    (number, of): (usize, usize),
     input: &mut dyn FrameInput,
     prepared: Option<(String, Vec<String>)>,
     retry: bool,
@@ -726,6 +830,7 @@ fn run_step<T: Transport>(
 ) -> Result<Stepped, AcquireError> {
     let attempt = session.next_attempt(step.id);
     let seq = sequence_id(step.id, attempt);
+    let live = client.live().cloned();
     // Frames still on their way from an attempt that was cut short belong to nobody now: drain
     // them, and below ignore anything stamped before this attempt began.
     let start_us = client.transport().now_us() as f64;
@@ -738,6 +843,9 @@ fn run_step<T: Transport>(
         }
     })?;
     input.begin_step(step).map_err(AcquireError::Frames)?;
+    if let Some(l) = &live {
+        l.step_started(number, of, step, attempt, seq);
+    }
     // Built now, dropped when the attempt ends: a plan holds no step's items for long.
     let items = step.items();
     let mut triggers = Vec::new();
@@ -746,6 +854,11 @@ fn run_step<T: Transport>(
     // Sequence ids repeat across host sessions: an earlier session's triggers of the same id
     // (still queued on the device) are stamped before this tick (docs/protocol.md §6.4).
     let fence = client.fence().map_err(AcquireError::Device)?;
+    // Frames are looked for while the sequence runs only for those watching it: quickly
+    // ([`FrameInput::poll_now`]) on a device in real time, whose link must not wait; fully on
+    // one whose time waits for the host.
+    let mut looked_us = start_us;
+    let waits_for_us = !client.transport().runs_alone();
     let result = client.run_sequence(seq, items, StartAt::Now, |e| {
         if failure.is_some() {
             return;
@@ -760,10 +873,31 @@ fn run_step<T: Transport>(
                 triggered(triggers.len() as u64);
                 if let Err(err) = input.on_trigger(t, e.host_us) {
                     failure = Some(AcquireError::Frames(err));
+                    return;
+                }
+                if let Some(l) = &live {
+                    l.triggered(Trigger::from_event(t, e.host_us));
+                    let now = e.host_us.unwrap_or(looked_us);
+                    if now >= looked_us + LOOK_EVERY_US {
+                        looked_us = now;
+                        let got = if waits_for_us { input.poll(now) } else { input.poll_now(now) };
+                        match got {
+                            Ok(got) => {
+                                let fresh: Vec<Captured> =
+                                    got.into_iter().filter(|c| c.host_us >= start_us).collect();
+                                l.arrived(&fresh);
+                                arrivals.extend(fresh);
+                            }
+                            Err(err) => failure = Some(AcquireError::Frames(err)),
+                        }
+                    }
                 }
             }
         }
     });
+    if let Some(l) = &live {
+        l.sequence_done();
+    }
     if let Some(f) = failure {
         return Err(f);
     }
@@ -782,7 +916,11 @@ fn run_step<T: Transport>(
         let before = arrivals.len();
         // Reading whole files may take a while: the link stays alive meanwhile.
         let polled = client.busy(|| input.poll(now)).map_err(AcquireError::Frames)?;
-        arrivals.extend(polled.into_iter().filter(|c| c.host_us >= start_us));
+        let fresh: Vec<Captured> = polled.into_iter().filter(|c| c.host_us >= start_us).collect();
+        if let Some(l) = &live {
+            l.arrived(&fresh);
+        }
+        arrivals.extend(fresh);
         if arrivals.len() > before {
             wait_until = client.transport().now_us() + FRAME_WAIT_US;
         }

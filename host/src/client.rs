@@ -31,6 +31,8 @@ const RTO_US: u64 = 20_000;
 const BUSY_POLL_US: u64 = 10_000;
 /// How often a client with an [`Interrupt`] looks whether a stop was asked, µs.
 const STOP_POLL_US: u64 = 50_000;
+/// How often those watching the run hear the link's counters, µs.
+const LIVE_EVERY_US: u64 = 250_000;
 
 /// A link nonce for one run of a host program: the OS's random source (through the standard
 /// library's hasher keys) mixed with the time and the process id, so two runs, even started
@@ -272,6 +274,10 @@ pub struct Client<T: Transport> {
     /// Device tick before which events are from an earlier attempt ([`Self::fence`]).
     fence_tick: u64,
     interrupt: Option<Arc<Interrupt>>,
+    /// Those watching the run ([`Self::set_live`]), and when the link's counters were last
+    /// told them (transport µs).
+    live: Option<Arc<crate::live::Live>>,
+    live_at: u64,
     /// The handshake is done: a `HandshakeRequired` from now on means the session was lost.
     open: bool,
     /// Faults the host cleared on this device, for the session to journal.
@@ -348,6 +354,8 @@ impl<T: Transport> Client<T> {
             pending: None,
             fence_tick: 0,
             interrupt: None,
+            live: None,
+            live_at: 0,
             open: false,
             cleared: Vec::new(),
             hello: (version, schema),
@@ -424,6 +432,18 @@ impl<T: Transport> Client<T> {
     /// sends `EmergencyStop` and fails the call in progress ([`ClientError::Interrupted`]).
     pub fn set_interrupt(&mut self, interrupt: Arc<Interrupt>) {
         self.interrupt = Some(interrupt);
+    }
+
+    /// From now on `live` hears the link's counters, the clock mapping (4 times a second) and
+    /// the device's faults.
+    pub fn set_live(&mut self, live: Arc<crate::live::Live>) {
+        live.set_device(&self.transport.describe(), self.info.boot_id);
+        self.live = Some(live);
+    }
+
+    /// Those watching the run, if any ([`Self::set_live`]).
+    pub fn live(&self) -> Option<&Arc<crate::live::Live>> {
+        self.live.as_ref()
     }
 
     /// Whether a stop was asked of this client ([`Self::set_interrupt`]): from then on every
@@ -609,6 +629,10 @@ impl<T: Transport> Client<T> {
         for d in got {
             self.deliver(d, at)?;
         }
+        if let Some(live) = self.live.as_ref().filter(|_| at >= self.live_at + LIVE_EVERY_US) {
+            live.link(self.link.stats(), &self.clock);
+            self.live_at = at;
+        }
         Ok(())
     }
 
@@ -663,6 +687,9 @@ impl<T: Transport> Client<T> {
                 }
                 self.last_event = Some(index);
                 let host_us = event_tick(&event).and_then(|t| self.clock.host_us(t));
+                if let (Some(live), Event::Fault { cause, .. }) = (&self.live, &event) {
+                    live.device(crate::live::DeviceState::Faulted, Some(describe_fault(cause)));
+                }
                 self.events.push_back(EventRecord { index, boot_id: self.info.boot_id, event, host_us });
             }
             Delivery::Message(DeviceMsg::Rejected { seq, reason }) => {

@@ -11,6 +11,7 @@
 //! - [`frames`]: frame sources (a watched directory of numbered files).
 //! - [`session`]: the session directory: manifest, journal, frames, resume, pairing.
 //! - [`acquire`]: the acquisition engine: plan steps → device → journaled, paired frames.
+//! - [`live`]: a running acquisition's state for those watching it from elsewhere.
 //! - [`steer`]: the PCA-steered bispectral plan's choice of pairs, made inside the session.
 //! - [`fit`]: per-rig session readers feeding `lightrig_pipelines` (`fit::lls`, `fit::firs`).
 
@@ -25,6 +26,7 @@ pub mod filter;
 pub mod fit;
 pub mod flash;
 pub mod frames;
+pub mod live;
 pub mod overrides;
 pub mod plan;
 pub mod response;

@@ -850,3 +850,42 @@ fn a_session_refuses_links_and_frame_paths_that_lead_out_of_it() {
     fs::remove_dir_all(&dir).unwrap();
     fs::remove_dir_all(&elsewhere).unwrap();
 }
+
+#[test]
+fn a_tap_hears_every_record_this_process_writes_as_its_journal_line_says() {
+    let dir = scratch("tap", true);
+    let mut s = Session::create(&dir, manifest(plan(2, 1, 2))).unwrap();
+    let heard = std::sync::Arc::new(std::sync::Mutex::new(Vec::<Vec<u8>>::new()));
+    let h = heard.clone();
+    // Set after the session was created: SessionStarted is heard first all the same.
+    s.set_tap(Some(std::sync::Arc::new(move |json: &[u8]| h.lock().unwrap().push(json.to_vec()))));
+    let mut info = virtual_device_info();
+    info.boot_id = 7;
+    s.device_connected(&info).unwrap();
+    let step = s.manifest().plan.steps[0].clone();
+    let step_id = step.id;
+    s.start_step(step.id, 1000).unwrap();
+    let triggers = triggers_of(&step, 1000);
+    assert!(s.record_event(&event_record(7, 0, trigger_event(&triggers[0]))).unwrap());
+    // Refused or repeated records are not written, and not heard.
+    assert!(!s.record_event(&event_record(7, 0, trigger_event(&triggers[0]))).unwrap());
+    drop(s);
+    let text = fs::read(dir.join(JOURNAL)).unwrap();
+    let lines: Vec<Vec<u8>> =
+        text.split_inclusive(|&b| b == b'\n').map(|l| decode_line(l).unwrap().to_vec()).collect();
+    assert_eq!(*heard.lock().unwrap(), lines, "heard byte for byte as journaled");
+    assert_eq!(lines.len(), 4);
+
+    // A resumed session: its Resumed record first, nothing of the earlier process's.
+    let (mut s, _) = Session::open(&dir).unwrap();
+    let again = std::sync::Arc::new(std::sync::Mutex::new(Vec::<Vec<u8>>::new()));
+    let a = again.clone();
+    s.set_tap(Some(std::sync::Arc::new(move |json: &[u8]| a.lock().unwrap().push(json.to_vec()))));
+    let heard: Vec<Record> =
+        again.lock().unwrap().iter().map(|j| serde_json::from_slice(j).unwrap()).collect();
+    // Opening closed the step the first process left open: heard too.
+    assert!(
+        matches!(heard.as_slice(), [Record::Resumed { attempt: 1, .. }, Record::StepAbandoned { step, .. }] if *step == step_id),
+        "{heard:?}"
+    );
+}

@@ -140,6 +140,17 @@ pub fn read_gray8(path: impl AsRef<Path>) -> Result<Gray8, IoError> {
     Ok(Gray8 { width, height, data: grey.into_raw() })
 }
 
+/// Decodes a PNG, TIFF or EXR file's `bytes` held in memory (a frame as a camera delivered it),
+/// as [`read_with`] reads the file; `name` names it in errors. Also returns its bits per sample
+/// (8, 16, 16 for half, 32 for float).
+pub fn decode(bytes: &[u8], name: impl AsRef<Path>, opts: ReadOptions) -> Result<(Image, u8), IoError> {
+    let path = name.as_ref();
+    match sniff_bytes(bytes, path)? {
+        Format::Exr => exr_io::decode_single(bytes, path),
+        format => raster::decode(bytes, path, format, opts),
+    }
+}
+
 /// Reads one file; also returns the bits per sample on disk (8, 16, 16 for half, 32 for float).
 fn read_inner(path: &Path, opts: ReadOptions) -> Result<(Image, u8), IoError> {
     let format = sniff(path)?;
@@ -163,7 +174,13 @@ fn sniff(path: &Path) -> Result<Format, IoError> {
             Err(source) => return Err(IoError::Open { path: path.into(), source }),
         }
     }
-    let m = &magic[..n];
+    sniff_bytes(&magic[..n], path)
+}
+
+/// [`sniff`] of a file's first bytes (`m`, up to 8).
+fn sniff_bytes(m: &[u8], path: &Path) -> Result<Format, IoError> {
+    let n = m.len().min(8);
+    let m = &m[..n];
     if m.starts_with(b"\x89PNG\r\n\x1a\n") {
         return Ok(Format::Png);
     }
@@ -178,7 +195,7 @@ fn sniff(path: &Path) -> Result<Format, IoError> {
     }
     let ext = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
     let known = matches!(ext.as_deref(), Some("png" | "tif" | "tiff" | "exr"));
-    if n < magic.len() && known {
+    if n < 8 && known {
         return Err(IoError::Truncated {
             path: path.into(),
             detail: format!("only {n} bytes, too short for a file signature"),

@@ -3,9 +3,9 @@
 use std::path::PathBuf;
 
 use lightrig_imaging::io::{
-    linear_to_srgb, read, read_exr_layers, read_exr_rows, read_rows, read_stack, read_with, srgb_to_linear,
-    write_exr, write_exr_layers, write_png, write_png_with, write_tiff, write_tiff_with, BitDepth, Encoding,
-    ExrPrecision, Image, IoError, Layer, ReadOptions, WriteOptions,
+    decode, linear_to_srgb, read, read_exr_layers, read_exr_rows, read_rows, read_stack, read_with,
+    srgb_to_linear, write_exr, write_exr_layers, write_png, write_png_with, write_tiff, write_tiff_with,
+    BitDepth, Encoding, ExrPrecision, Image, IoError, Layer, ReadOptions, WriteOptions,
 };
 
 /// A fresh directory per test under the system temp dir.
@@ -532,4 +532,29 @@ fn corrupted_files_give_errors_not_panics() {
             }
         }
     }
+}
+
+#[test]
+fn a_file_decoded_from_its_bytes_is_the_file_read() {
+    let dir = temp_dir("decode");
+    let wide = srgb(ramp(31, 7, 3, 65535));
+    let png = dir.join("f.png");
+    write_png(&png, &wide, BitDepth::Sixteen).unwrap();
+    let tif = dir.join("f.tif");
+    write_tiff(&tif, &srgb(ramp(9, 4, 1, 255)), BitDepth::Eight).unwrap();
+    let exr = dir.join("f.exr");
+    let linear = Image::from_fn(13, 5, 1, |x, y, _| x as f32 * 0.25 + y as f32);
+    write_exr(&exr, &linear, ExrPrecision::Half).unwrap();
+    for (path, bits) in [(&png, 16), (&tif, 8), (&exr, 16)] {
+        let bytes = std::fs::read(path).unwrap();
+        let (image, got_bits) = decode(&bytes, path, ReadOptions::default()).unwrap();
+        assert_eq!(image, read(path).unwrap(), "{}", path.display());
+        assert_eq!(got_bits, bits, "{}", path.display());
+    }
+    // Damaged bytes are an error naming the frame, not a panic.
+    let bytes = std::fs::read(&exr).unwrap();
+    let e = decode(&bytes[..bytes.len() / 2], "cam0/frame-7.exr", ReadOptions::default()).unwrap_err();
+    assert!(e.to_string().contains("cam0/frame-7.exr"), "{e}");
+    let e = decode(b"P5 2 2 255\n", "x.pgm", ReadOptions::default()).unwrap_err();
+    assert!(e.to_string().contains("unrecognised format"), "{e}");
 }

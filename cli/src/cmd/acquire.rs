@@ -49,6 +49,10 @@ pub struct AcquireArgs {
     /// ran; `resume --rig` needs the same overrides.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub overrides: Vec<Override>,
+    /// Serve the run's live page and API (docs/live-api.md) on ADDR, by default
+    /// 127.0.0.1:7878; an address other than loopback needs the token printed at start.
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = lightrig_serve::DEFAULT_ADDR)]
+    pub serve: Option<String>,
 }
 
 /// Arguments of `lightrig resume`.
@@ -84,6 +88,10 @@ pub struct ResumeArgs {
     /// journal, superseded.
     #[arg(long)]
     pub retake_missing: bool,
+    /// Serve the run's live page and API (docs/live-api.md) on ADDR, by default
+    /// 127.0.0.1:7878; an address other than loopback needs the token printed at start.
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = lightrig_serve::DEFAULT_ADDR)]
+    pub serve: Option<String>,
 }
 
 pub(crate) fn connect_spec(rig: &RigFile, over: Option<&Connect>) -> Connect {
@@ -341,6 +349,12 @@ impl FrameInput for Boxed<'_> {
     }
     fn poll(&mut self, now: f64) -> std::io::Result<Vec<Captured>> {
         self.0.poll(now)
+    }
+    fn poll_now(&mut self, now: f64) -> std::io::Result<Vec<Captured>> {
+        self.0.poll_now(now)
+    }
+    fn stamps_follow_triggers(&self) -> bool {
+        self.0.stamps_follow_triggers()
     }
     fn lost(&mut self) -> Vec<(u8, u32, String)> {
         self.0.lost()
@@ -633,7 +647,7 @@ pub fn acquire(args: &AcquireArgs) -> Result<(), CliError> {
             format!("{} already holds a session; continue it with `lightrig resume {0}`", dir.display()),
         ));
     }
-    let ready = bring_up(&rig, over, consent, "acquire", dir)?;
+    let ready = bring_up(&rig, over, consent, "acquire", dir, args.serve.as_deref())?;
     let manifest = Manifest::new(text, ready.client.info(), plan_summary(&ready.plan));
     let mut session = Session::create(dir, manifest).map_err(|e| err(INPUT, e.to_string()))?;
     lightrig_host::response::attach(&rig, dir).map_err(|e| err(INPUT, e))?;
@@ -681,7 +695,7 @@ pub fn resume(args: &ResumeArgs) -> Result<(), CliError> {
         None => PathBuf::from("rig.toml"),
     };
     let rig = RigFile::parse(&text, &base).map_err(|e| err(INPUT, e.to_string()))?;
-    let ready = bring_up(&rig, over, consent, "resume", dir)?;
+    let ready = bring_up(&rig, over, consent, "resume", dir, args.serve.as_deref())?;
     if !same_steps(&plan_summary(&ready.plan).steps, &session.manifest().plan.steps) {
         return Err(err(
             INPUT,
@@ -706,6 +720,8 @@ struct Ready {
     plan: Plan,
     /// Served as long as the run lasts.
     _control: Control,
+    /// `--serve`: the live endpoint, as long as the run lasts.
+    served: Option<super::live::Served>,
 }
 
 /// Checks the rig's frame sources, connects where `over` (else the rig file) says, brings the
@@ -716,6 +732,7 @@ fn bring_up(
     consent: Consent,
     run: &str,
     session: &Path,
+    serve: Option<&str>,
 ) -> Result<Ready, CliError> {
     check_sources(rig)?;
     let spec = connect_spec(rig, over);
@@ -729,11 +746,18 @@ fn bring_up(
         reconnecting: false,
         interrupt: on_ctrl_c_of(interrupt.clone()).or(Some(interrupt.clone())),
     };
+    let served = match serve {
+        Some(addr) => Some(super::live::serve(addr, run, session, &spec.to_string(), interrupt.clone())?),
+        None => None,
+    };
     let (transport, timeline) = open(rig, &spec)?;
-    let control = serve_control(&spec, interrupt, run, session);
+    let control = serve_control(&spec, interrupt, run, session, served.as_ref().map(|s| s.url.as_str()));
     let client = bring_up_with(rig, transport, &mut prep)?;
     let plan = from_rig::plan(rig, client.info()).map_err(|e| err(INPUT, e.to_string()))?;
-    Ok(Ready { spec, prep, client, timeline, plan, _control: control })
+    if let Some(s) = &served {
+        s.live.set_method(&plan.method);
+    }
+    Ok(Ready { spec, prep, client, timeline, plan, _control: control, served })
 }
 
 /// The names under which `lightrig stop` finds the run holding the device `spec` names.
@@ -756,11 +780,20 @@ type Control = Option<lightrig_host::control::ControlServer>;
 #[cfg(not(unix))]
 type Control = Option<()>;
 
-fn serve_control(spec: &Connect, interrupt: Arc<Interrupt>, run: &str, session: &Path) -> Control {
+fn serve_control(
+    spec: &Connect,
+    interrupt: Arc<Interrupt>,
+    run: &str,
+    session: &Path,
+    live: Option<&str>,
+) -> Control {
     #[cfg(unix)]
     {
-        let about =
+        let mut about =
             format!("lightrig {run} (pid {}) on {spec}, session {}", std::process::id(), session.display());
+        if let Some(url) = live {
+            about += &format!(", live {url}");
+        }
         match lightrig_host::control::ControlServer::serve(&control_keys(spec), interrupt, about) {
             Ok(c) => Some(c),
             Err(e) => {
@@ -774,7 +807,7 @@ fn serve_control(spec: &Connect, interrupt: Arc<Interrupt>, run: &str, session: 
     }
     #[cfg(not(unix))]
     {
-        let _ = (spec, interrupt, run, session);
+        let _ = (spec, interrupt, run, session, live);
         None
     }
 }
@@ -785,7 +818,14 @@ impl Ready {
         print_summary(&self.plan, self.client.info());
         let tick_hz = self.client.info().tick_hz;
         let mut input = frame_input(rig, session.dir(), self.timeline.take(), tick_hz)?;
-        run(self.client, rig, &self.spec, session, &self.plan, input.as_mut(), &mut self.prep)
+        if let Some(s) = &self.served {
+            s.attach(session, &mut self.client);
+        }
+        let result = run(self.client, rig, &self.spec, session, &self.plan, input.as_mut(), &mut self.prep);
+        if let Some(s) = &self.served {
+            s.ended(&result);
+        }
+        result
     }
 }
 

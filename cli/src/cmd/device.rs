@@ -241,16 +241,50 @@ pub fn capabilities_in_words(c: &Capabilities) -> String {
 pub struct StopArgs {
     /// The device: `serial:PATH[@BAUD]`, `usb` or `usb:SERIAL`. Without it, every running
     /// `lightrig acquire`/`resume` of this user is stopped.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "url")]
     pub connect: Option<Connect>,
+    /// A run's live endpoint (`acquire --serve`), as it printed it: `http://HOST:PORT/`, from
+    /// this machine or another (docs/live-api.md).
+    #[arg(long)]
+    pub url: Option<String>,
+    /// The endpoint's token, if it was not given in `--url` (an endpoint off loopback).
+    #[arg(long, requires = "url")]
+    pub token: Option<String>,
 }
 
-/// `lightrig stop [--connect SPEC]`: an emergency stop from another terminal. The device turns
+/// `lightrig stop --url URL`: the stop through a run's live endpoint; success once the device
+/// answered it.
+fn stop_through_endpoint(url: &str, token: Option<&str>) -> ExitCode {
+    let reply = lightrig_serve::client::Endpoint::parse(url, token).and_then(|e| e.post_json("/api/v1/stop"));
+    match reply {
+        Ok((200, v)) if v["stop"]["answered"] == true => {
+            println!("{url}: {} (the run sent it; it now ends)", v["message"].as_str().unwrap_or("stopped"));
+            ExitCode::SUCCESS
+        }
+        Ok((200, v)) => {
+            eprintln!("error: {url}: {}", v["message"].as_str().unwrap_or("the stop was not confirmed"));
+            ExitCode::from(DEVICE)
+        }
+        Ok((code, v)) => {
+            eprintln!("error: {url}: {code}: {}", v["error"].as_str().unwrap_or("refused"));
+            ExitCode::from(if code == 401 || code == 403 { USAGE } else { DEVICE })
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(DEVICE)
+        }
+    }
+}
+
+/// `lightrig stop [--connect SPEC | --url URL]`: an emergency stop from another terminal. The device turns
 /// its lasers off, stops its motors without deceleration, parks its galvos and latches the
 /// fault until a person clears it (`lightrig resume` asks). A device that a running
 /// `lightrig acquire` or `resume` holds is reached through that run's control socket (the
 /// port is the run's alone); any other directly.
 pub fn stop(args: &StopArgs) -> ExitCode {
+    if let Some(url) = &args.url {
+        return stop_through_endpoint(url, args.token.as_deref());
+    }
     let Some(spec) = &args.connect else { return stop_every_run() };
     #[cfg(unix)]
     for key in super::acquire::control_keys(spec) {

@@ -8,6 +8,7 @@ pub mod fit;
 pub mod flash;
 pub mod flash_probe;
 pub mod hdr;
+pub(crate) mod live;
 pub mod selfcheck;
 pub mod sim;
 pub mod soak;

@@ -61,11 +61,19 @@ pub struct Args {
     /// an exposure series, names it in the rig file, and the fit merges through it.
     #[arg(long)]
     pub camera_gamma: Option<f64>,
+    /// Serve the acquisition's live page and API (docs/live-api.md) on ADDR, by default
+    /// 127.0.0.1:7878 (`127.0.0.1:0`: any free port, printed at start).
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = lightrig_serve::DEFAULT_ADDR)]
+    pub serve: Option<String>,
 }
+
+/// `--serve`'s address, for every acquisition of this demo.
+static SERVE: std::sync::OnceLock<Option<String>> = std::sync::OnceLock::new();
 
 /// Runs `lightrig demo [METHOD]`: the demo's output in `out/<method>/`; with `check`, a
 /// missed accuracy target is a failure.
 pub fn run(args: &Args) -> ExitCode {
+    let _ = SERVE.set(args.serve.clone());
     let firs = args.method == "firs" || args.method == "fluorescent-immersion";
     if let Some(step) = args.step_mm.filter(|_| firs) {
         eprintln!("error: --step-mm {step}: the firs demo has no gantry; it is for `lightrig demo lls`");
@@ -228,6 +236,19 @@ impl DemoRig {
         let mut client = bring_up_on(&self.rig, transport)?;
         let manifest = Manifest::new(self.text.clone(), client.info(), plan_summary(&self.plan));
         let mut session = Session::create(&session_dir, manifest).map_err(failure)?;
+        let served = match SERVE.get().and_then(|s| s.as_deref()) {
+            Some(addr) => {
+                // Stop from the page stops this virtual device as Ctrl-C stops a real one.
+                let interrupt = std::sync::Arc::new(lightrig_host::client::Interrupt::default());
+                client.set_interrupt(interrupt.clone());
+                let device = client.transport().describe();
+                let s = crate::cmd::live::serve(addr, "demo", &session_dir, &device, interrupt)?;
+                s.live.set_method(&self.plan.method);
+                s.attach(&mut session, &mut client);
+                Some(s)
+            }
+            None => None,
+        };
         lightrig_host::response::attach(&self.rig, &session_dir)
             .map_err(|e| crate::error::err(crate::error::INPUT, e))?;
         let mut camera = VirtualCamera::new(&self.rig, 0, scene, sensor, self.info.tick_hz, &camera_dir)
@@ -235,8 +256,17 @@ impl DemoRig {
         camera.follow(timeline);
         let bar = progress.clone();
         camera.on_frame(move |n| bar.set_position(n));
-        acquire::run(&mut client, &mut session, &self.plan, &mut camera, |_| {}).map_err(failure)?;
-        Ok(camera)
+        let result =
+            acquire::run(&mut client, &mut session, &self.plan, &mut camera, |_| {}).map_err(|e| match e {
+                acquire::AcquireError::Device(lightrig_host::client::ClientError::Interrupted { .. }) => {
+                    err(crate::error::INTERRUPTED, e.to_string())
+                }
+                other => failure(other),
+            });
+        if let Some(s) = &served {
+            s.ended(&result);
+        }
+        result.map(|()| camera)
     }
 }
 

@@ -302,7 +302,17 @@ pub struct Session {
     syncer: Option<syncer::Syncer>,
     /// Extra time every fsync takes, µs ([`Session::simulate_slow_disk`]).
     slow_disk: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    /// Hears every record written ([`Session::set_tap`]).
+    tap: Option<JournalTap>,
+    /// Records this process wrote before a tap was set (the first few), for the tap to hear.
+    untapped: Vec<Vec<u8>>,
 }
+
+/// Records kept for a tap set late ([`Session::set_tap`]).
+const UNTAPPED_KEPT: usize = 64;
+
+/// Hears each record's JSON as it is written to the journal (the live endpoint's feed).
+pub type JournalTap = std::sync::Arc<dyn Fn(&[u8]) + Send + Sync>;
 
 impl fmt::Debug for Session {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
@@ -467,6 +477,8 @@ impl Session {
             poisoned: None,
             syncer: None,
             slow_disk: Default::default(),
+            tap: None,
+            untapped: Vec::new(),
         };
         if let Some(f) = session.journal.as_ref().filter(|_| write) {
             let syncer = syncer::Syncer::new(f.try_clone().map_err(io_at(&session.dir.join(JOURNAL)))?);
@@ -710,7 +722,8 @@ impl Session {
         if !self.state.check(rec, &self.manifest).map_err(|detail| SessionError::Refused { detail })? {
             return Ok(false);
         }
-        let line = encode_line(&serde_json::to_vec(rec).expect("a record serializes"));
+        let json = serde_json::to_vec(rec).expect("a record serializes");
+        let line = encode_line(&json);
         let path = self.dir.join(JOURNAL);
         let file = self.journal.as_mut().expect("writable");
         if let Err(e) = file.write_all(&line) {
@@ -719,6 +732,11 @@ impl Session {
         }
         self.state.apply(rec, &self.manifest).expect("checked");
         self.unsynced = true;
+        match &self.tap {
+            Some(tap) => tap(&json),
+            None if self.untapped.len() < UNTAPPED_KEPT => self.untapped.push(json),
+            None => {}
+        }
         let event = matches!(rec, Record::Event { .. });
         if !event {
             self.sync()?;
@@ -731,6 +749,18 @@ impl Session {
             self.last_sync = Instant::now();
         }
         Ok(true)
+    }
+
+    /// From now on `tap` hears every record written, as its JSON (what follows the CRC and tab
+    /// of its journal line), after it was written; first the records this process wrote
+    /// before (opening or creating the session: `SessionStarted`, `Resumed`, …).
+    pub fn set_tap(&mut self, tap: Option<JournalTap>) {
+        if let Some(t) = &tap {
+            for json in self.untapped.drain(..) {
+                t(&json);
+            }
+        }
+        self.tap = tap;
     }
 
     /// Fsyncs the journal: every record appended so far is durable when this returns.

@@ -163,12 +163,20 @@ pub fn write_exr_layers(
 /// convention, else alphabetical. Layers of more than 4 channels or subsampled channels are
 /// [`IoError::Unsupported`].
 pub fn read_exr_layers(path: impl AsRef<Path>) -> Result<Vec<Layer>, IoError> {
-    read_layers(path.as_ref()).map(|(layers, _)| layers)
+    read_layers(path.as_ref(), None).map(|(layers, _)| layers)
 }
 
 /// Reads a single-image EXR for [`super::read`]; also returns its bits per sample (16 or 32).
 pub(super) fn read_single(path: &Path) -> Result<(Image, u8), IoError> {
-    let (mut layers, bits) = read_layers(path)?;
+    single(path, read_layers(path, None)?)
+}
+
+/// [`read_single`] of a file's bytes in memory; `path` names it in errors.
+pub(super) fn decode_single(bytes: &[u8], path: &Path) -> Result<(Image, u8), IoError> {
+    single(path, read_layers(path, Some(bytes))?)
+}
+
+fn single(path: &Path, (mut layers, bits): (Vec<Layer>, u8)) -> Result<(Image, u8), IoError> {
     if layers.len() != 1 {
         let names: Vec<_> = layers.iter().map(|l| format!("`{}`", l.name)).collect();
         return Err(IoError::Unsupported {
@@ -190,10 +198,17 @@ const MAX_EXPANSION: u64 = 1100;
 /// Decoded size always allowed, whatever the file size.
 const MIN_BUDGET: u64 = 64 << 20;
 
-fn read_layers(path: &Path) -> Result<(Vec<Layer>, u8), IoError> {
-    let meta = x::MetaData::read_from_file(path, false).map_err(|e| map_exr_error(path, e))?;
-    let file_len =
-        std::fs::metadata(path).map_err(|source| IoError::Open { path: path.into(), source })?.len();
+/// The layers of the EXR at `path`, or of its `bytes` if given (`path` then only names it).
+fn read_layers(path: &Path, bytes: Option<&[u8]>) -> Result<(Vec<Layer>, u8), IoError> {
+    let meta = match bytes {
+        Some(b) => x::MetaData::read_from_buffered(std::io::Cursor::new(b), false),
+        None => x::MetaData::read_from_file(path, false),
+    }
+    .map_err(|e| map_exr_error(path, e))?;
+    let file_len = match bytes {
+        Some(b) => b.len() as u64,
+        None => std::fs::metadata(path).map_err(|source| IoError::Open { path: path.into(), source })?.len(),
+    };
     let decoded: u64 = meta
         .headers
         .iter()
@@ -212,7 +227,7 @@ fn read_layers(path: &Path) -> Result<(Vec<Layer>, u8), IoError> {
         return Err(IoError::Unsupported { path: path.into(), what: "deep EXR data".into() });
     }
     // The decoder is third-party code fed untrusted bytes: a panic in it is a bad file, not a crash.
-    let file = std::panic::catch_unwind(|| read_file(path))
+    let file = std::panic::catch_unwind(|| read_file(path, bytes))
         .map_err(|_| IoError::Decode {
             path: path.into(),
             detail: "EXR decoder failed (corrupt file?)".into(),
@@ -286,14 +301,13 @@ type ChannelGroup<'a> = (String, Vec<(String, &'a AnyChannel<FlatSamples>)>);
 
 type ExrFile = x::Image<x::Layers<AnyChannels<FlatSamples>>>;
 
-fn read_file(path: &Path) -> x::Result<ExrFile> {
-    x::read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .all_layers()
-        .all_attributes()
-        .from_file(path)
+fn read_file(path: &Path, bytes: Option<&[u8]>) -> x::Result<ExrFile> {
+    let read =
+        x::read().no_deep_data().largest_resolution_level().all_channels().all_layers().all_attributes();
+    match bytes {
+        Some(b) => read.from_buffered(std::io::Cursor::new(b)),
+        None => read.from_file(path),
+    }
 }
 
 /// Sort key: the recorded order if the name is in it, else the conventional rank, else alphabetical.

@@ -158,15 +158,30 @@ fn quantise(v: f32, max: f32) -> f32 {
 /// Reads an integer or float PNG/TIFF; returns the image and its bits per sample.
 pub(super) fn read(path: &Path, format: Format, opts: ReadOptions) -> Result<(Image, u8), IoError> {
     let file = File::open(path).map_err(|source| IoError::Open { path: path.into(), source })?;
+    read_from(BufReader::new(file), path, format, opts)
+}
+
+/// [`read`] of a file's bytes in memory; `path` names it in errors.
+pub(super) fn decode(
+    bytes: &[u8],
+    path: &Path,
+    format: Format,
+    opts: ReadOptions,
+) -> Result<(Image, u8), IoError> {
+    read_from(std::io::Cursor::new(bytes), path, format, opts)
+}
+
+fn read_from<R: std::io::BufRead + std::io::Seek + std::panic::UnwindSafe>(
+    reader: R,
+    path: &Path,
+    format: Format,
+    opts: ReadOptions,
+) -> Result<(Image, u8), IoError> {
     let image_format = if format == Format::Png { ImageFormat::Png } else { ImageFormat::Tiff };
     // Third-party decoder fed untrusted bytes: a panic in it is a bad file, not a crash.
-    let dynamic =
-        std::panic::catch_unwind(|| ImageReader::with_format(BufReader::new(file), image_format).decode())
-            .map_err(|_| IoError::Decode {
-                path: path.into(),
-                detail: "decoder failed (corrupt file?)".into(),
-            })?
-            .map_err(|e| map_decode_error(path, e))?;
+    let dynamic = std::panic::catch_unwind(|| ImageReader::with_format(reader, image_format).decode())
+        .map_err(|_| IoError::Decode { path: path.into(), detail: "decoder failed (corrupt file?)".into() })?
+        .map_err(|e| map_decode_error(path, e))?;
     let (w, h) = (dynamic.width(), dynamic.height());
     let int8 = |raw: &[u8], ch: u8| (raw.iter().map(|&v| f32::from(v) / 255.0).collect(), ch, 8);
     let int16 = |raw: &[u16], ch: u8| (raw.iter().map(|&v| f32::from(v) / 65535.0).collect(), ch, 16);
