@@ -64,6 +64,12 @@ pub trait FrameInput: Send {
     fn poll_now(&mut self, _now_us: f64) -> io::Result<Vec<Captured>> {
         Ok(Vec::new())
     }
+    /// Triggers heard and not yet worked through (a source making its frames on a thread of
+    /// its own): after a step's sequence its frames are waited for while this shrinks, however
+    /// long past [`FRAME_WAIT_US`], until it has not shrunk for [`STUCK_US`].
+    fn backlog(&self) -> usize {
+        0
+    }
     /// Whether its frames' timestamps follow the trigger ticks (a camera triggered by the
     /// controller's line, stamping each frame by its own clock): the engine then checks each
     /// step's frames against their triggers' ticks, and acquires a step again when the stamps
@@ -244,6 +250,10 @@ impl FrameInput for Cameras {
         self.0.iter_mut().flat_map(|c| c.lost()).collect()
     }
 
+    fn backlog(&self) -> usize {
+        self.0.iter().map(|c| c.backlog()).sum()
+    }
+
     fn stamps_follow_triggers(&self) -> bool {
         // The step's stamps are checked when every camera stamps by its trigger line.
         !self.0.is_empty() && self.0.iter().all(|c| c.stamps_follow_triggers())
@@ -261,6 +271,8 @@ impl FrameInput for Cameras {
 /// until every earlier call is done, and drops frames the thread produced for no one (an
 /// attempt cut short), as the contract of `begin_step` says.
 pub struct Background {
+    /// Triggers sent to the thread and not yet handled by it.
+    backlog: std::sync::Arc<std::sync::atomic::AtomicUsize>,
     calls: Option<std::sync::mpsc::Sender<Call>>,
     results: std::sync::mpsc::Receiver<Answer>,
     worker: Option<std::thread::JoinHandle<()>>,
@@ -285,6 +297,8 @@ impl Background {
     pub fn new(mut inner: Box<dyn FrameInput + Send>) -> Background {
         let (calls, inbox) = std::sync::mpsc::channel::<Call>();
         let (outbox, results) = std::sync::mpsc::channel::<Answer>();
+        let backlog = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let left = backlog.clone();
         let worker = std::thread::spawn(move || {
             for call in inbox {
                 let answer = match call {
@@ -292,10 +306,14 @@ impl Background {
                         let r = inner.poll(f64::NEG_INFINITY).and_then(|_stale| inner.begin_step(&step));
                         Answer::Begun(r)
                     }
-                    Call::Trigger(t, host_us) => match inner.on_trigger(&t, host_us) {
-                        Ok(()) => continue,
-                        Err(e) => Answer::Frames(Err(e)),
-                    },
+                    Call::Trigger(t, host_us) => {
+                        let r = inner.on_trigger(&t, host_us);
+                        left.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
+                        match r {
+                            Ok(()) => continue,
+                            Err(e) => Answer::Frames(Err(e)),
+                        }
+                    }
                     Call::Poll(now_us) => Answer::Frames(inner.poll(now_us)),
                 };
                 if outbox.send(answer).is_err() {
@@ -303,7 +321,7 @@ impl Background {
                 }
             }
         });
-        Background { calls: Some(calls), results, worker: Some(worker) }
+        Background { backlog, calls: Some(calls), results, worker: Some(worker) }
     }
 
     fn send(&self, call: Call) -> io::Result<()> {
@@ -351,7 +369,14 @@ impl FrameInput for Background {
     }
 
     fn on_trigger(&mut self, trigger: &TriggerEvent, host_us: Option<f64>) -> io::Result<()> {
-        self.send(Call::Trigger(trigger.clone(), host_us))
+        self.backlog.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        self.send(Call::Trigger(trigger.clone(), host_us)).inspect_err(|_| {
+            self.backlog.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
+        })
+    }
+
+    fn backlog(&self) -> usize {
+        self.backlog.load(std::sync::atomic::Ordering::SeqCst)
     }
 
     fn poll(&mut self, now_us: f64) -> io::Result<Vec<Captured>> {
@@ -466,6 +491,9 @@ pub struct Progress {
 pub const FRAME_WAIT_US: u64 = 2_000_000;
 /// A frame later than this after its trigger is flagged late (still paired), µs.
 pub const LATE_US: f64 = 1_000_000.0;
+/// A frame source whose backlog ([`FrameInput::backlog`]) has not shrunk for this long is
+/// taken as stuck, µs.
+pub const STUCK_US: u64 = 30_000_000;
 /// While a sequence runs and someone watches, frames are looked for this often, µs of host time.
 const LOOK_EVERY_US: f64 = 100_000.0;
 
@@ -911,6 +939,9 @@ fn run_step<T: Transport>(
     // camera still delivering a backlog is given the time it needs).
     let expected = step.shot_count();
     let mut wait_until = client.transport().now_us() + FRAME_WAIT_US;
+    // A source still working through the step's triggers (a camera rendering or converting
+    // on its own thread, slower than the trigger rate) is waited for as long as it gets on.
+    let mut backlog = (input.backlog(), client.transport().now_us());
     loop {
         let now = client.transport().now_us() as f64;
         let before = arrivals.len();
@@ -921,10 +952,16 @@ fn run_step<T: Transport>(
             l.arrived(&fresh);
         }
         arrivals.extend(fresh);
+        let at = client.transport().now_us();
         if arrivals.len() > before {
-            wait_until = client.transport().now_us() + FRAME_WAIT_US;
+            wait_until = at + FRAME_WAIT_US;
         }
-        if arrivals.len() >= expected || client.transport().now_us() >= wait_until {
+        let busy = input.backlog();
+        if busy < backlog.0 {
+            backlog = (busy, at);
+        }
+        let working = busy > 0 && at < backlog.1 + STUCK_US;
+        if arrivals.len() >= expected || at >= wait_until && !working {
             break;
         }
         client.idle(10_000).map_err(AcquireError::Device)?;

@@ -233,6 +233,53 @@ fn a_slow_disk_does_not_time_the_host_out() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// A camera that makes its first frame of each step slowly, longer than the engine's wait
+/// for a frame ([`acquire::FRAME_WAIT_US`]), then keeps up (a render or a conversion that
+/// falls behind the trigger rate), run on a thread of its own as the CLI runs its cameras.
+struct LaggingCamera {
+    inner: SlowCamera,
+    first: bool,
+}
+
+impl FrameInput for LaggingCamera {
+    fn begin_step(&mut self, step: &Step) -> std::io::Result<()> {
+        self.first = true;
+        self.inner.begin_step(step)
+    }
+    fn on_trigger(&mut self, t: &TriggerEvent, host_us: Option<f64>) -> std::io::Result<()> {
+        if std::mem::take(&mut self.first) {
+            std::thread::sleep(Duration::from_micros(acquire::FRAME_WAIT_US * 3 / 2));
+        }
+        self.inner.on_trigger(t, host_us)
+    }
+    fn poll(&mut self, now: f64) -> std::io::Result<Vec<Captured>> {
+        self.inner.poll(now)
+    }
+}
+
+#[test]
+fn a_camera_behind_the_triggers_is_waited_for_while_it_works_through_them() {
+    let rig = RealTimeRig::start();
+    let dir = temp_dir("lagging");
+    let mut p = common::lls_params();
+    p.count = 3;
+    let mut plan = lls::plan(&p).unwrap();
+    // Its frames are lost for good at the first try (no retry), if they are lost.
+    plan.lost_retries = 0;
+    plan.steps.truncate(1);
+    let mut client = connect(&rig);
+    let mut session =
+        Session::create(&dir, Manifest::new("# test rig", client.info(), plan_summary(&plan))).unwrap();
+    let camera = LaggingCamera { inner: SlowCamera { quick: true, ..Default::default() }, first: false };
+    let mut input = acquire::Background::new(Box::new(camera));
+    acquire::run(&mut client, &mut session, &plan, &mut input, |_| {}).unwrap();
+    // The sequence was over long before the first frame came, and no frame came for longer
+    // than the wait: the backlog kept the engine waiting, and every frame is there.
+    assert_eq!(session.steps_missing_frames(), vec![], "no frame missing");
+    assert_eq!(session.frames_of(plan.steps[0].id).len(), plan.steps[0].shot_count());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// A gantry that homes in well under a second, with the shipped LLS rig's 200 ms heartbeat.
 const QUICK_RIG: &str = include_str!("support/prompting-gantry.toml");
 

@@ -356,6 +356,9 @@ impl FrameInput for Boxed<'_> {
     fn stamps_follow_triggers(&self) -> bool {
         self.0.stamps_follow_triggers()
     }
+    fn backlog(&self) -> usize {
+        self.0.backlog()
+    }
     fn lost(&mut self) -> Vec<(u8, u32, String)> {
         self.0.lost()
     }
