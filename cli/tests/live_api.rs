@@ -230,3 +230,40 @@ fn a_pause_waits_at_a_step_boundary_disarmed_and_a_resume_finishes_the_run() {
     assert!(written.iter().any(|r| kind(r) == "SessionDone"));
     assert_eq!(sim.status(), (DeviceState::Ready, 0, 0), "left ready and disarmed");
 }
+
+#[test]
+fn a_demo_serves_its_acquisition_pauses_in_process_and_stops_from_the_endpoint() {
+    let dir = Scratch::new("live-api", "demo");
+    let out = dir.join("demo");
+    let o = out.to_str().unwrap();
+    let mut run =
+        spawn(&dir, &["demo", "lls", "--quick", "--out", o, "--serve", "127.0.0.1:0"], Stdio::null());
+    let e = endpoint_of(&mut run);
+    // Paused at the first step boundary it reaches (the virtual rig's time waits meanwhile).
+    let (code, v) = e.post_json("/api/v1/pause").unwrap();
+    assert_eq!(code, 200, "{v}");
+    let rx = feed(&e, 0);
+    let mut seen = Vec::new();
+    let paused = until(&rx, &mut seen, "paused", |m| m["type"] == "status" && m["state"] == "paused");
+    assert_eq!(paused["run"]["command"], "demo");
+    assert_eq!(paused["run"]["method"], "linear-light-source");
+    assert_eq!(paused["device"]["lasers_armed"], 0, "{paused}");
+    let session = out.join("lls/session");
+    let written = journal(&session);
+    let started = written.iter().filter(|r| kind(r) == "StepStarted").count();
+    assert_eq!(started, written.iter().filter(|r| kind(r) == "StepDone").count(), "paused between steps");
+    // Stopped while paused: the run ends, stopped, the demo's exit says so.
+    let (code, v) = e.post_json("/api/v1/stop").unwrap();
+    assert_eq!(code, 200);
+    assert_eq!(v["stop"]["answered"], true, "{v}");
+    let end = until(&rx, &mut seen, "the end", |m| m["type"] == "end");
+    assert_eq!(end["state"], "stopped", "{end}");
+    let (code, said) = run.end();
+    assert_eq!(code, Some(130), "{said}");
+    let after = journal(&session);
+    assert_eq!(
+        after.iter().filter(|r| kind(r) == "StepStarted").count(),
+        started,
+        "no step began after the pause"
+    );
+}

@@ -687,8 +687,14 @@ impl<T: Transport> Client<T> {
                 }
                 self.last_event = Some(index);
                 let host_us = event_tick(&event).and_then(|t| self.clock.host_us(t));
-                if let (Some(live), Event::Fault { cause, .. }) = (&self.live, &event) {
-                    live.device(crate::live::DeviceState::Faulted, Some(describe_fault(cause)));
+                if let Some(live) = &self.live {
+                    match &event {
+                        Event::Fault { cause, .. } => {
+                            live.device(crate::live::DeviceState::Faulted, Some(describe_fault(cause)))
+                        }
+                        Event::State { state, armed, .. } => live.reported(state, *armed),
+                        _ => {}
+                    }
                 }
                 self.events.push_back(EventRecord { index, boot_id: self.info.boot_id, event, host_us });
             }

@@ -254,6 +254,24 @@ impl Live {
         });
     }
 
+    /// The device said its state and armed lasers (a `State` event).
+    pub fn reported(&self, state: &lightrig_protocol::event::DeviceState, armed: u8) {
+        use lightrig_protocol::event::DeviceState as D;
+        let (word, fault) = match state {
+            D::AwaitingHello => (DeviceState::Connecting, None),
+            D::Ready => (DeviceState::Ready, None),
+            D::Running { .. } => (DeviceState::Running, None),
+            D::Faulted(cause) => (DeviceState::Faulted, Some(crate::client::describe_fault(cause))),
+        };
+        self.update(|s| {
+            s.device = word;
+            s.lasers = armed;
+            if word == DeviceState::Faulted || word == DeviceState::Ready {
+                s.fault = fault;
+            }
+        });
+    }
+
     /// The lasers the host has armed now (bit `i`: laser `i`).
     pub fn lasers(&self, mask: u8) {
         self.update(|s| s.lasers = mask);
@@ -717,6 +735,26 @@ mod tests {
         assert_eq!(st["step"]["frames"], 1);
         assert_eq!(st["step"]["number"], 2);
         assert_eq!(st["device"]["state"], "running");
+    }
+
+    #[test]
+    fn the_devices_own_state_events_say_its_state_and_armed_lasers() {
+        use lightrig_protocol::event::{DeviceState as D, FaultCause};
+        let (live, _, _) = clocked();
+        live.reported(&D::Running { sequence: 3 }, 0b101);
+        assert_eq!(
+            live.status()["device"],
+            serde_json::json!({"state": "running", "fault": null, "lasers_armed": 5, "boot_id": null})
+        );
+        live.reported(&D::Faulted(FaultCause::EmergencyStop), 0);
+        let st = live.status();
+        assert_eq!(
+            (st["device"]["state"].as_str(), st["device"]["lasers_armed"].as_u64()),
+            (Some("faulted"), Some(0))
+        );
+        assert!(st["device"]["fault"].as_str().is_some_and(|f| !f.is_empty()), "{st}");
+        live.reported(&D::Ready, 0);
+        assert!(live.status()["device"]["fault"].is_null(), "cleared with the fault");
     }
 
     #[test]

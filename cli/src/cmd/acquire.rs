@@ -49,10 +49,14 @@ pub struct AcquireArgs {
     /// ran; `resume --rig` needs the same overrides.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub overrides: Vec<Override>,
-    /// Serve the run's live page and API (docs/live-api.md) on ADDR, by default
-    /// 127.0.0.1:7878; an address other than loopback needs the token printed at start.
+    /// Where the run's live page and API (docs/live-api.md) are served: by default on
+    /// 127.0.0.1:7878 (another free port if that one is taken, printed at start); an address
+    /// other than loopback needs the token printed at start.
     #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = lightrig_serve::DEFAULT_ADDR)]
     pub serve: Option<String>,
+    /// Serve no live page or API.
+    #[arg(long, conflicts_with = "serve")]
+    pub no_serve: bool,
 }
 
 /// Arguments of `lightrig resume`.
@@ -88,10 +92,14 @@ pub struct ResumeArgs {
     /// journal, superseded.
     #[arg(long)]
     pub retake_missing: bool,
-    /// Serve the run's live page and API (docs/live-api.md) on ADDR, by default
-    /// 127.0.0.1:7878; an address other than loopback needs the token printed at start.
+    /// Where the run's live page and API (docs/live-api.md) are served: by default on
+    /// 127.0.0.1:7878 (another free port if that one is taken, printed at start); an address
+    /// other than loopback needs the token printed at start.
     #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = lightrig_serve::DEFAULT_ADDR)]
     pub serve: Option<String>,
+    /// Serve no live page or API.
+    #[arg(long, conflicts_with = "serve")]
+    pub no_serve: bool,
 }
 
 pub(crate) fn connect_spec(rig: &RigFile, over: Option<&Connect>) -> Connect {
@@ -650,7 +658,7 @@ pub fn acquire(args: &AcquireArgs) -> Result<(), CliError> {
             format!("{} already holds a session; continue it with `lightrig resume {0}`", dir.display()),
         ));
     }
-    let ready = bring_up(&rig, over, consent, "acquire", dir, args.serve.as_deref())?;
+    let ready = bring_up(&rig, over, consent, "acquire", dir, serving(&args.serve, args.no_serve))?;
     let manifest = Manifest::new(text, ready.client.info(), plan_summary(&ready.plan));
     let mut session = Session::create(dir, manifest).map_err(|e| err(INPUT, e.to_string()))?;
     lightrig_host::response::attach(&rig, dir).map_err(|e| err(INPUT, e))?;
@@ -698,7 +706,7 @@ pub fn resume(args: &ResumeArgs) -> Result<(), CliError> {
         None => PathBuf::from("rig.toml"),
     };
     let rig = RigFile::parse(&text, &base).map_err(|e| err(INPUT, e.to_string()))?;
-    let ready = bring_up(&rig, over, consent, "resume", dir, args.serve.as_deref())?;
+    let ready = bring_up(&rig, over, consent, "resume", dir, serving(&args.serve, args.no_serve))?;
     if !same_steps(&plan_summary(&ready.plan).steps, &session.manifest().plan.steps) {
         return Err(err(
             INPUT,
@@ -711,6 +719,16 @@ pub fn resume(args: &ResumeArgs) -> Result<(), CliError> {
         eprintln!("retaking {} step(s) with missing frames: {steps:?}", steps.len());
     }
     ready.run(&rig, &mut session)
+}
+
+/// Where to serve the live endpoint, and whether the address was asked for (else the default,
+/// which gives way to a free port when taken); `None` with `--no-serve`.
+fn serving(serve: &Option<String>, no_serve: bool) -> Option<(&str, bool)> {
+    match serve {
+        _ if no_serve => None,
+        Some(addr) => Some((addr.as_str(), true)),
+        None => Some((lightrig_serve::DEFAULT_ADDR, false)),
+    }
 }
 
 /// A rig brought up for `acquire` or `resume`: the device connected, configured and homed,
@@ -735,7 +753,7 @@ fn bring_up(
     consent: Consent,
     run: &str,
     session: &Path,
-    serve: Option<&str>,
+    serve: Option<(&str, bool)>,
 ) -> Result<Ready, CliError> {
     check_sources(rig)?;
     let spec = connect_spec(rig, over);
@@ -750,7 +768,20 @@ fn bring_up(
         interrupt: on_ctrl_c_of(interrupt.clone()).or(Some(interrupt.clone())),
     };
     let served = match serve {
-        Some(addr) => Some(super::live::serve(addr, run, session, &spec.to_string(), interrupt.clone())?),
+        Some((addr, asked)) => {
+            match super::live::serve(addr, run, session, &spec.to_string(), interrupt.clone()) {
+                Ok(s) => Some(s),
+                Err(e) if asked => return Err(e),
+                // The default port taken (another run serves there): any free one.
+                Err(_) => Some(super::live::serve(
+                    "127.0.0.1:0",
+                    run,
+                    session,
+                    &spec.to_string(),
+                    interrupt.clone(),
+                )?),
+            }
+        }
         None => None,
     };
     let (transport, timeline) = open(rig, &spec)?;
