@@ -35,10 +35,7 @@ fn kind(record: &Value) -> &str {
 
 /// Reads stderr until the run says where it serves: its endpoint.
 fn endpoint_of(run: &mut Run) -> Endpoint {
-    run.wait_for("live: http://");
-    let url =
-        run.all.lines().find_map(|l| l.split_once("live: ").map(|(_, u)| u.trim().to_string())).unwrap();
-    Endpoint::parse(&url, None).unwrap()
+    Endpoint::parse(&live_url(run), None).unwrap()
 }
 
 /// The WebSocket feed from `since`, its messages on a channel (read on a thread of its own).
@@ -153,17 +150,8 @@ fn the_feed_is_the_journal_and_the_last_status_its_tally_on_the_virtual_rig() {
 
 #[test]
 fn a_stop_through_the_endpoint_stops_the_device_on_a_real_port() {
-    let dir = Scratch::new("live-api", "stop");
-    let rig = gantry(&dir, 41, false);
-    let sim = Sim::start(&rig, &dir);
-    let session = dir.join("session");
-    let (r, s, c) = (rig.to_str().unwrap(), session.to_str().unwrap(), sim.connect());
-    let mut run = spawn(
-        &dir,
-        &["acquire", r, "--session", s, "--connect", &c, "--yes", "--serve", "127.0.0.1:0"],
-        Stdio::null(),
-    );
-    let e = endpoint_of(&mut run);
+    let (dir, sim, session, mut run, url) = served_acquisition("live-api", "stop", 41);
+    let e = Endpoint::parse(&url, None).unwrap();
     wait_for_a_lit_trigger(&session, &mut run);
     // The journal first, then the status: the status has at least what the journal had.
     let written = journal(&session);
@@ -197,17 +185,8 @@ fn a_stop_through_the_endpoint_stops_the_device_on_a_real_port() {
 
 #[test]
 fn a_pause_waits_at_a_step_boundary_disarmed_and_a_resume_finishes_the_run() {
-    let dir = Scratch::new("live-api", "pause");
-    let rig = gantry(&dir, 9, false);
-    let sim = Sim::start(&rig, &dir);
-    let session = dir.join("session");
-    let (r, s, c) = (rig.to_str().unwrap(), session.to_str().unwrap(), sim.connect());
-    let mut run = spawn(
-        &dir,
-        &["acquire", r, "--session", s, "--connect", &c, "--yes", "--serve", "127.0.0.1:0"],
-        Stdio::null(),
-    );
-    let e = endpoint_of(&mut run);
+    let (_dir, sim, session, run, url) = served_acquisition("live-api", "pause", 9);
+    let e = Endpoint::parse(&url, None).unwrap();
     let (code, v) = e.post_json("/api/v1/pause").unwrap();
     assert_eq!(code, 200, "{v}");
     let rx = feed(&e, 0);

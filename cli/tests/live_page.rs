@@ -19,7 +19,6 @@ use serde_json::{json, Value};
 
 mod common;
 mod rig_on_pty;
-use common::Scratch;
 use rig_on_pty::*;
 
 const CHROMIUM: &str = "/usr/bin/chromium";
@@ -159,19 +158,7 @@ fn the_page_shows_progress_and_a_frame_and_its_stop_button_stops_the_device() {
         eprintln!("skipped: no {CHROMIUM} and {CHROMEDRIVER} (apt install chromium chromium-driver)");
         return;
     }
-    let dir = Scratch::new("live-page", "stop");
-    let rig = gantry(&dir, 81, false);
-    let sim = Sim::start(&rig, &dir);
-    let session = dir.join("session");
-    let (r, s, c) = (rig.to_str().unwrap(), session.to_str().unwrap(), sim.connect());
-    let mut run = spawn(
-        &dir,
-        &["acquire", r, "--session", s, "--connect", &c, "--yes", "--serve", "127.0.0.1:0"],
-        Stdio::null(),
-    );
-    run.wait_for("live: http://");
-    let url =
-        run.all.lines().find_map(|l| l.split_once("live: ").map(|(_, u)| u.trim().to_string())).unwrap();
+    let (dir, sim, _session, run, url) = served_acquisition("live-page", "stop", 81);
     let browser = Browser::start(&dir.join("chromium-profile"));
     browser.go(&url);
 

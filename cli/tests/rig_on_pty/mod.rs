@@ -224,3 +224,24 @@ pub fn lit_acquisition(name: &str, positions: u32) -> (Scratch, Sim, PathBuf, Ru
     wait_for_a_lit_trigger(&session, &mut run);
     (dir, sim, session, run)
 }
+
+/// A scratch directory, the gantry of `positions` positions on `lightrig sim --pty`, and
+/// `lightrig acquire --yes` on it serving its live endpoint on a free port, once it said where:
+/// (dir, sim, session, run, the endpoint's address).
+pub fn served_acquisition(test: &str, name: &str, positions: u32) -> (Scratch, Sim, PathBuf, Run, String) {
+    let dir = Scratch::new(test, name);
+    let rig = gantry(&dir, positions, false);
+    let sim = Sim::start(&rig, &dir);
+    let session = dir.join("session");
+    let (r, s, c) = (rig.to_str().unwrap(), session.to_str().unwrap(), sim.connect());
+    let args = ["acquire", r, "--session", s, "--connect", &c, "--yes", "--serve", "127.0.0.1:0"];
+    let mut run = spawn(&dir, &args, Stdio::null());
+    let url = live_url(&mut run);
+    (dir, sim, session, run, url)
+}
+
+/// Reads the run's stderr until it says where it serves its live endpoint: that address.
+pub fn live_url(run: &mut Run) -> String {
+    run.wait_for("live: http://");
+    run.all.lines().find_map(|l| l.split_once("live: ").map(|(_, u)| u.trim().to_string())).unwrap()
+}
