@@ -767,21 +767,11 @@ fn bring_up(
         reconnecting: false,
         interrupt: on_ctrl_c_of(interrupt.clone()).or(Some(interrupt.clone())),
     };
+    let start = |addr: &str| super::live::serve(addr, run, session, &spec.to_string(), interrupt.clone());
     let served = match serve {
-        Some((addr, asked)) => {
-            match super::live::serve(addr, run, session, &spec.to_string(), interrupt.clone()) {
-                Ok(s) => Some(s),
-                Err(e) if asked => return Err(e),
-                // The default port taken (another run serves there): any free one.
-                Err(_) => Some(super::live::serve(
-                    "127.0.0.1:0",
-                    run,
-                    session,
-                    &spec.to_string(),
-                    interrupt.clone(),
-                )?),
-            }
-        }
+        Some((addr, true)) => Some(start(addr)?),
+        // The default port taken (another run serves there): any free one.
+        Some((addr, false)) => Some(start(addr).or_else(|_| start("127.0.0.1:0"))?),
         None => None,
     };
     let (transport, timeline) = open(rig, &spec)?;
