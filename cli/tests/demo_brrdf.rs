@@ -2,6 +2,8 @@
 //! the virtual rig, `lightrig fit brrdf`'s pipeline) against the scene's band-limited truth, and
 //! the fit's errors on bad input.
 
+mod kept_demo;
+
 use lightrig_cli::demo::brrdf::{
     run_brrdf, BrrdfDemoOptions, DIAGONAL_TOLERANCE, MAX_COMPONENTS, MIN_PSNR, RERADIATION_TOLERANCE,
     SPARSE_MIN_PSNR,
@@ -10,8 +12,7 @@ use lightrig_host::fit::brrdf::fit_session;
 
 #[test]
 fn the_quick_brrdf_demo_scales_bins_and_reconstructs_against_the_truth() {
-    let out = std::env::temp_dir().join(format!("lightrig-brrdf-demo-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let out = kept_demo::out_dir("brrdf", "lightrig-brrdf-demo");
     let opts = BrrdfDemoOptions { quick: true, out: out.clone(), seed: 1, progress: false, real_time: false };
     let r = run_brrdf(&opts).unwrap();
     // Every target `lightrig demo brrdf --check` holds the demo to (CI runs the demos here).
@@ -131,5 +132,5 @@ fn the_quick_brrdf_demo_scales_bins_and_reconstructs_against_the_truth() {
         lightrig_host::fit::brrdf::fit_merged(&m, scaling, spec).unwrap_err().to_string()
     };
     assert!(e.contains("pca_angles: 65°") && e.contains("70.0°"), "{e}");
-    let _ = std::fs::remove_dir_all(&out);
+    kept_demo::finish(&out);
 }

@@ -2,6 +2,8 @@
 //! virtual rig, `lightrig fit disco`'s pipeline) against the scene's true throughput factors,
 //! `F`'s file read back, and the fit's errors on bad input.
 
+mod kept_demo;
+
 use lightrig_cli::demo::disco::{
     acquire_disco, projector_error, run_disco, DiscoDemoOptions, DETAIL_TOLERANCE, INTERPOLATED_TOLERANCE,
     KERNEL_TOLERANCE, OBSERVED_TOLERANCE, PROJECTOR_TOLERANCE_MM, REGISTRATION_TOLERANCE_MM,
@@ -10,8 +12,7 @@ use lightrig_host::fit::disco::{fit_session, read_matrix, ATLAS_FORMAT, F_FORMAT
 
 #[test]
 fn the_quick_disco_demo_measures_f_against_the_truth() {
-    let out = std::env::temp_dir().join(format!("lightrig-disco-demo-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let out = kept_demo::out_dir("disco", "lightrig-disco-demo");
     let opts = DiscoDemoOptions { quick: true, out: out.clone(), seed: 1, progress: false, real_time: false };
     let r = run_disco(&opts).unwrap();
     assert!(r.missed().is_empty(), "{:?}", r.targets());
@@ -243,6 +244,7 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     std::fs::write(&manifest, text).unwrap();
     // A frame of the wrong size (a camera ROI changed mid-run): named, with the sizes.
     let frame = s.frame_index().into_iter().nth(10).unwrap();
+    let kept_frame = std::fs::read(session.join(&frame.file)).unwrap();
     let small = lightrig_imaging::io::Image::new(64, 32, 1);
     lightrig_imaging::io::write_exr(
         session.join(&frame.file),
@@ -252,7 +254,8 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     .unwrap();
     let e = fit_session(&session, None, &none).unwrap_err().0;
     assert!(e.contains(&frame.file) && e.contains("64 × 32") && e.contains("288 × 186"), "{e}");
-    std::fs::remove_dir_all(&out).ok();
+    std::fs::write(session.join(&frame.file), kept_frame).unwrap();
+    kept_demo::finish(&out);
 }
 
 #[test]

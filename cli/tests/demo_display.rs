@@ -2,14 +2,15 @@
 //! a sweep of Ward roughnesses, the closed loop) against the scene's truth, and the planner's
 //! refusal of an α the calibrated display cannot reach.
 
+mod kept_demo;
+
 use lightrig_cli::demo::display::{run_display, DisplayDemoOptions};
 use lightrig_host::plan::from_rig;
 use lightrig_host::rigfile::RigFile;
 
 #[test]
 fn the_quick_display_demo_meets_its_targets_and_refuses_what_it_cannot_show() {
-    let out = std::env::temp_dir().join(format!("lightrig-display-demo-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let out = kept_demo::out_dir("display", "lightrig-display-demo");
     let opts =
         DisplayDemoOptions { quick: true, out: out.clone(), seed: 1, progress: false, real_time: false };
     let r = run_display(&opts).unwrap();
@@ -77,5 +78,5 @@ fn the_quick_display_demo_meets_its_targets_and_refuses_what_it_cannot_show() {
     let (code, said) = live("0.3", "");
     assert_eq!(code, Some(2), "{said}");
     assert!(said.contains("this display reaches 0 < αx ≤ 0.14"), "{said}");
-    std::fs::remove_dir_all(&out).unwrap();
+    kept_demo::finish(&out);
 }

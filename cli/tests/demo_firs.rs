@@ -2,6 +2,8 @@
 //! opaque sphere behind a refracting wall) acquired, calibrated and fitted, checked against the
 //! scene's ground truth; the tank scene's renders checked for determinism.
 
+mod kept_demo;
+
 use lightrig_cli::demo::firs::{firs_accuracy, run_firs, FirsAccuracy, FirsDemoObject, FirsDemoOptions};
 use lightrig_pipelines::firs::mesh::read_ply;
 use lightrig_sim::camera::{RigState, VirtualCamera};
@@ -11,11 +13,10 @@ use lightrig_sim::sensor::Sensor;
 /// Runs the quick demo for `object` and checks what every object must meet; returns the
 /// accuracy and the object's output directory.
 fn quick_demo(object: FirsDemoObject, seed: u64) -> (FirsAccuracy, std::path::PathBuf) {
-    let out = std::env::temp_dir().join(format!(
-        "lightrig-firs-demo-test-{}-{}",
-        object.name(),
-        std::process::id()
-    ));
+    let out = kept_demo::out_dir(
+        &format!("firs-{}", object.name()),
+        &format!("lightrig-firs-demo-test-{}", object.name()),
+    );
     let opts = FirsDemoOptions {
         objects: vec![object],
         volume: false,
@@ -80,7 +81,7 @@ fn firs_quick_demo_opaque_sphere_within_half_a_permille() {
     }
     let off = firs_accuracy(&bigger, &again);
     assert!(off.merged.1 > 0.08, "{off:?}");
-    std::fs::remove_dir_all(&out).ok();
+    kept_demo::finish(&out);
 }
 
 #[test]
@@ -91,12 +92,12 @@ fn firs_quick_demo_transparent_faceted_solid_within_a_permille() {
     assert!(acc.transparent);
     assert!(acc.rms_percent() <= 0.1, "{acc:?}");
     assert!(acc.merged.0 > 4000, "{acc:?}");
-    std::fs::remove_dir_all(&out).ok();
+    kept_demo::finish(&out);
 }
 
 #[test]
 fn firs_volume_mode_within_a_voxel_and_a_percent() {
-    let out = std::env::temp_dir().join(format!("lightrig-firs-volume-test-{}", std::process::id()));
+    let out = kept_demo::out_dir("firs-volume", "lightrig-firs-volume-test");
     let opts = FirsDemoOptions {
         objects: vec![],
         volume: true,
@@ -148,7 +149,7 @@ fn firs_volume_mode_within_a_voxel_and_a_percent() {
             (std::fs::read(fit.join(f)).unwrap(), std::fs::read(out.join("banded").join(f)).unwrap());
         assert!(a == b, "{f} differs between the banded and the whole-width reference");
     }
-    std::fs::remove_dir_all(&out).ok();
+    kept_demo::finish(&out);
 }
 
 #[test]

@@ -65,6 +65,18 @@ pub struct Args {
     /// 127.0.0.1:7878 (`127.0.0.1:0`: any free port, printed at start).
     #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = lightrig_serve::DEFAULT_ADDR)]
     pub serve: Option<String>,
+    /// No progress bars (the Python package's `demo(progress=False)`).
+    #[arg(skip)]
+    pub quiet: bool,
+}
+
+/// What a demo run made.
+#[derive(Debug, Clone)]
+pub struct DemoRun {
+    /// The accuracy targets missed (empty: every one met).
+    pub missed: Vec<String>,
+    /// Its `report.md`.
+    pub report: PathBuf,
 }
 
 /// `--serve`'s address, for every acquisition of this demo.
@@ -73,75 +85,103 @@ static SERVE: std::sync::OnceLock<Option<String>> = std::sync::OnceLock::new();
 /// Runs `lightrig demo [METHOD]`: the demo's output in `out/<method>/`; with `check`, a
 /// missed accuracy target is a failure.
 pub fn run(args: &Args) -> ExitCode {
+    match run_demo(args) {
+        Ok(run) if args.check && !run.missed.is_empty() => {
+            eprintln!("error: accuracy targets missed: {}", run.missed.join(", "));
+            ExitCode::from(FAILURE)
+        }
+        Ok(_) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {}", e.message);
+            ExitCode::from(e.code)
+        }
+    }
+}
+
+/// [`run`]'s work: the demo of `args.method`, its report written; an error for arguments that do
+/// not fit the method (exit code [`USAGE`]) or a demo that failed.
+pub fn run_demo(args: &Args) -> Result<DemoRun, CliError> {
     let _ = SERVE.set(args.serve.clone());
+    let progress = !args.quiet;
     let firs = args.method == "firs" || args.method == "fluorescent-immersion";
     if let Some(step) = args.step_mm.filter(|_| firs) {
-        eprintln!("error: --step-mm {step}: the firs demo has no gantry; it is for `lightrig demo lls`");
-        return ExitCode::from(USAGE);
+        return Err(err(
+            USAGE,
+            format!("--step-mm {step}: the firs demo has no gantry; it is for `lightrig demo lls`"),
+        ));
     }
     if let Some(step) = args.step_mm.filter(|s| !(0.1..=5.0).contains(s)) {
-        eprintln!("error: --step-mm {step}: give a gantry step from 0.1 to 5 mm");
-        return ExitCode::from(USAGE);
+        return Err(err(USAGE, format!("--step-mm {step}: give a gantry step from 0.1 to 5 mm")));
     }
     let display = args.method == "display" || args.method == "brdf-display";
     let lls = args.method == "lls" || args.method == "linear-light-source";
     if let Some(g) = args.camera_gamma.filter(|_| !lls) {
-        eprintln!("error: --camera-gamma {g}: only `lightrig demo lls` has a camera response to recover");
-        return ExitCode::from(USAGE);
+        return Err(err(
+            USAGE,
+            format!("--camera-gamma {g}: only `lightrig demo lls` has a camera response to recover"),
+        ));
     }
     if let Some(g) = args.camera_gamma.filter(|g| !(0.2..=5.0).contains(g)) {
-        eprintln!("error: --camera-gamma {g}: give a gamma from 0.2 to 5 (1 is a linear camera)");
-        return ExitCode::from(USAGE);
+        return Err(err(
+            USAGE,
+            format!("--camera-gamma {g}: give a gamma from 0.2 to 5 (1 is a linear camera)"),
+        ));
     }
     if let Some(step) = args.step_mm.filter(|_| display) {
-        eprintln!("error: --step-mm {step}: the display demo has no gantry; it is for `lightrig demo lls`");
-        return ExitCode::from(USAGE);
+        return Err(err(
+            USAGE,
+            format!("--step-mm {step}: the display demo has no gantry; it is for `lightrig demo lls`"),
+        ));
     }
     let brrdf = args.method == "brrdf" || args.method == "bispectral";
     if let Some(step) = args.step_mm.filter(|_| brrdf) {
-        eprintln!("error: --step-mm {step}: the brrdf demo has no gantry; it is for `lightrig demo lls`");
-        return ExitCode::from(USAGE);
+        return Err(err(
+            USAGE,
+            format!("--step-mm {step}: the brrdf demo has no gantry; it is for `lightrig demo lls`"),
+        ));
     }
     let disco = args.method == "disco";
     if let Some(step) = args.step_mm.filter(|_| disco) {
-        eprintln!("error: --step-mm {step}: the disco demo has no gantry; it is for `lightrig demo lls`");
-        return ExitCode::from(USAGE);
+        return Err(err(
+            USAGE,
+            format!("--step-mm {step}: the disco demo has no gantry; it is for `lightrig demo lls`"),
+        ));
     }
-    let missed = if disco {
+    if disco {
         let opts = disco::DiscoDemoOptions {
             quick: args.quick,
             out: args.out.join("disco"),
             seed: args.seed,
-            progress: true,
+            progress,
             real_time: args.real_time,
         };
         disco::run_disco(&opts).map(|r| {
             eprintln!("report: {}", r.report.display());
-            r.missed()
+            DemoRun { missed: r.missed(), report: r.report.clone() }
         })
     } else if brrdf {
         let opts = brrdf::BrrdfDemoOptions {
             quick: args.quick,
             out: args.out.join("brrdf"),
             seed: args.seed,
-            progress: true,
+            progress,
             real_time: args.real_time,
         };
         brrdf::run_brrdf(&opts).map(|r| {
             eprintln!("report: {}", r.report.display());
-            r.missed()
+            DemoRun { missed: r.missed(), report: r.report.clone() }
         })
     } else if display {
         let opts = display::DisplayDemoOptions {
             quick: args.quick,
             out: args.out.join("display"),
             seed: args.seed,
-            progress: true,
+            progress,
             real_time: args.real_time,
         };
         display::run_display(&opts).map(|r| {
             eprintln!("report: {}", r.report.display());
-            r.missed()
+            DemoRun { missed: r.missed(), report: r.report.clone() }
         })
     } else if firs {
         let opts = firs::FirsDemoOptions {
@@ -150,40 +190,32 @@ pub fn run(args: &Args) -> ExitCode {
             quick: args.quick,
             out: args.out.join("firs"),
             seed: args.seed,
-            progress: true,
+            progress,
             real_time: args.real_time,
         };
-        firs::run_firs(&opts).map(|result| result.missed())
+        firs::run_firs(&opts).map(|r| DemoRun { missed: r.missed(), report: r.report.clone() })
     } else if lls {
         let opts = lls::DemoOptions {
             quick: args.quick,
             out: args.out.join("lls"),
             seed: args.seed,
-            progress: true,
+            progress,
             real_time: args.real_time,
             step_mm: args.step_mm,
             camera_gamma: args.camera_gamma,
         };
-        lls::run_lls(&opts).map(|(acc, _)| {
-            acc.targets().into_iter().filter(|t| !t.3).map(|t| t.0.to_string()).collect::<Vec<_>>()
+        lls::run_lls(&opts).map(|(acc, report)| DemoRun {
+            missed: acc.targets().into_iter().filter(|t| !t.3).map(|t| t.0.to_string()).collect(),
+            report,
         })
     } else {
-        eprintln!(
-            "error: `lightrig demo {}`: the methods with a demo are: lls, firs, display, brrdf, disco",
-            args.method
-        );
-        return ExitCode::from(USAGE);
-    };
-    match missed {
-        Ok(missed) if args.check && !missed.is_empty() => {
-            eprintln!("error: accuracy targets missed: {}", missed.join(", "));
-            ExitCode::from(FAILURE)
-        }
-        Ok(_) => ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {}", e.message);
-            ExitCode::from(e.code)
-        }
+        Err(err(
+            USAGE,
+            format!(
+                "`lightrig demo {}`: the methods with a demo are: lls, firs, display, brrdf, disco",
+                args.method
+            ),
+        ))
     }
 }
 

@@ -75,7 +75,8 @@ impl StepRecords {
 
 impl SessionIndex {
     /// Reads and checks `dir`'s manifest and journal (as [`Session::read`](super::Session::read)
-    /// does: a damaged tail is ignored, a record that breaks the history is an error), keeping
+    /// does: a damaged tail is ignored, a record that breaks the history is an error, and so is
+    /// damage that intact lines follow: [`SessionError::Damaged`]), keeping
     /// per step attempt only its place in the journal and its counts.
     pub fn read(dir: impl AsRef<Path>) -> Result<SessionIndex> {
         let dir = dir.as_ref().to_path_buf();
@@ -86,11 +87,13 @@ impl SessionIndex {
         match File::open(&path) {
             Ok(file) => {
                 let mut offset = 0u64;
-                scan(
+                let mut lines = 0usize;
+                let end = scan(
                     &file,
                     |line, payload| {
                         let corrupt =
                             |detail: String| SessionError::Corrupt { path: path.clone(), line, detail };
+                        lines = line;
                         let rec: Record = serde_json::from_slice(payload)
                             .map_err(|e| corrupt(format!("not a journal record: {e}")))?;
                         match state.apply(&rec, &manifest) {
@@ -135,6 +138,16 @@ impl SessionIndex {
                     },
                     io_at(&path),
                 )?;
+                // Damage with intact lines after it is not a torn last write: reading on would
+                // drop the session's later records unseen.
+                if end.intact_after > 0 {
+                    return Err(SessionError::Damaged {
+                        path,
+                        line: lines as u64 + 1,
+                        bytes: end.file_len - end.good_len,
+                        intact_after: end.intact_after,
+                    });
+                }
             }
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
             Err(e) => return Err(io_at(&path)(e)),

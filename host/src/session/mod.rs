@@ -26,6 +26,7 @@ mod fsutil;
 mod index;
 mod journal;
 mod pairing;
+mod reader;
 mod records;
 mod state;
 mod syncer;
@@ -47,6 +48,7 @@ pub use index::{SessionIndex, StepRecords};
 pub use journal::{crc32, decode_line, encode_line, Crc32, Damage};
 pub use pairing::{camera_clock, off_their_triggers, pair, repair_by_stamps, Arrival, CameraClock, Extra};
 pub use pairing::{ExtraReason, Pair, Pairing, RobustClock, Trigger};
+pub use reader::{Frames, ReadFrame};
 pub use records::{
     new_session_id, CameraStamp, CameraTriggers, DeviceSummary, ExtraRecord, FrameRecord, Manifest,
     MissingRecord, PlanStep, PlanSummary, Record, StepId,
