@@ -199,6 +199,24 @@ fn series_shape(shapes: &[&[usize]]) -> PyResult<(usize, usize, usize)> {
     Ok(first)
 }
 
+/// An exposure series' arrays as a [`Stack`] (views of them, not copies).
+fn stack_of<'a, T: hdr::Sample + numpy::Element>(
+    arrays: &'a [PyReadonlyArrayDyn<'_, T>],
+    times: Vec<f32>,
+) -> PyResult<Stack<'a, T>> {
+    let shapes: Vec<&[usize]> = arrays.iter().map(|a| a.shape()).collect();
+    let (h, w, c) = series_shape(&shapes)?;
+    let slices: Vec<&[T]> = arrays
+        .iter()
+        .map(|a| {
+            a.as_slice().map_err(|_| {
+                ImageError::new_err("an image that is not C-contiguous: np.ascontiguousarray it")
+            })
+        })
+        .collect::<PyResult<_>>()?;
+    Stack::new(w, h, c, slices, times).map_err(image_err)
+}
+
 fn weights(levels: usize, black: u32, saturation: Option<u32>, shape: &str) -> PyResult<Weights> {
     let shape = match shape {
         "snr" => WeightShape::Snr,
@@ -233,17 +251,7 @@ pub fn hdr_merge<'py>(
         w: Weights,
         levels: usize,
     ) -> PyResult<hdr::Hdr> {
-        let shapes: Vec<&[usize]> = arrays.iter().map(|a| a.shape()).collect();
-        let (h, wd, c) = series_shape(&shapes)?;
-        let slices: Vec<&[T]> = arrays
-            .iter()
-            .map(|a| {
-                a.as_slice().map_err(|_| {
-                    ImageError::new_err("an image that is not C-contiguous: np.ascontiguousarray it")
-                })
-            })
-            .collect::<PyResult<_>>()?;
-        let stack = Stack::new(wd, h, c, slices, times).map_err(image_err)?;
+        let stack = stack_of(arrays, times)?;
         let options = MergeOptions { weights: w, threads: 0 };
         py.detach(|| match response {
             None => hdr::merge_linear(&stack, levels, &options),
@@ -293,17 +301,7 @@ pub fn hdr_response<'py>(
         levels: usize,
         lambda: f64,
     ) -> PyResult<Vec<Response>> {
-        let shapes: Vec<&[usize]> = arrays.iter().map(|a| a.shape()).collect();
-        let (h, w, c) = series_shape(&shapes)?;
-        let slices: Vec<&[T]> = arrays
-            .iter()
-            .map(|a| {
-                a.as_slice().map_err(|_| {
-                    ImageError::new_err("an image that is not C-contiguous: np.ascontiguousarray it")
-                })
-            })
-            .collect::<PyResult<_>>()?;
-        let stack = Stack::new(w, h, c, slices, times).map_err(image_err)?;
+        let stack = stack_of(arrays, times)?;
         let robertson = match method {
             "debevec" => false,
             "robertson" => true,
