@@ -157,12 +157,10 @@ pub struct Scratch(PathBuf);
 
 impl Scratch {
     pub fn new(what: &str) -> std::io::Result<Scratch> {
-        let mut bytes = [0u8; 8];
-        let seed = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_nanos() as u64);
-        bytes.copy_from_slice(&(seed ^ u64::from(std::process::id()).rotate_left(32)).to_le_bytes());
-        let dir = std::env::temp_dir().join(format!("lightrig-{what}-{:016x}", u64::from_le_bytes(bytes)));
+        static COUNT: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+        let n = COUNT.fetch_add(1, Ordering::Relaxed);
+        let dir = std::env::temp_dir().join(format!("lightrig-{what}-{}-{n}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir)?;
         Ok(Scratch(dir))
     }

@@ -117,8 +117,8 @@ pub fn read_spectral_exr<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<
 pub fn write_spectral_exr(
     py: Python<'_>,
     path: PathBuf,
-    diagonal: BTreeMap<OrdF64, PyReadonlyArrayDyn<'_, f32>>,
-    reradiation: Option<BTreeMap<(OrdF64, OrdF64), PyReadonlyArrayDyn<'_, f32>>>,
+    diagonal: BTreeMap<Wavelength, PyReadonlyArrayDyn<'_, f32>>,
+    reradiation: Option<BTreeMap<(Wavelength, Wavelength), PyReadonlyArrayDyn<'_, f32>>>,
 ) -> PyResult<()> {
     let mut size: Option<(usize, usize)> = None;
     let mut plane = |a: &PyReadonlyArrayDyn<'_, f32>, name: String| -> PyResult<Vec<f32>> {
@@ -142,10 +142,10 @@ pub fn write_spectral_exr(
     };
     let mut b = BispectralImage::new(0, 0);
     for (nm, a) in &diagonal {
-        b.diagonal.insert(Nm(nm.0), plane(a, format!("diagonal[{}]", nm.0))?);
+        b.diagonal.insert(nm.0, plane(a, format!("diagonal[{}]", nm.0 .0))?);
     }
     for ((i, o), a) in reradiation.iter().flatten() {
-        b.reradiation.insert((Nm(i.0), Nm(o.0)), plane(a, format!("reradiation[({}, {})]", i.0, o.0))?);
+        b.reradiation.insert((i.0, o.0), plane(a, format!("reradiation[({}, {})]", i.0 .0, o.0 .0))?);
     }
     let (h, w) = size.ok_or_else(|| ImageError::new_err("no planes given"))?;
     b.width = w as u32;
@@ -153,24 +153,13 @@ pub fn write_spectral_exr(
     py.detach(|| b.write(&path)).map_err(image_err)
 }
 
-/// A wavelength key.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct OrdF64(f64);
-impl Eq for OrdF64 {}
-impl PartialOrd for OrdF64 {
-    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
-        Some(self.cmp(other))
-    }
-}
-impl Ord for OrdF64 {
-    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
-        self.0.total_cmp(&other.0)
-    }
-}
-impl<'a, 'py> FromPyObject<'a, 'py> for OrdF64 {
+/// A wavelength key, nm.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub struct Wavelength(Nm);
+impl<'a, 'py> FromPyObject<'a, 'py> for Wavelength {
     type Error = PyErr;
     fn extract(ob: pyo3::Borrowed<'a, 'py, PyAny>) -> PyResult<Self> {
-        Ok(OrdF64(ob.extract::<f64>()?))
+        Ok(Wavelength(Nm(ob.extract::<f64>()?)))
     }
 }
 

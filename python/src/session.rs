@@ -192,16 +192,7 @@ impl Session {
 
 impl Session {
     fn known(&self, step: StepId) -> PyResult<()> {
-        if self.index.manifest().step(step).is_none() {
-            let ids: Vec<String> =
-                self.index.manifest().plan.steps.iter().map(|s| s.id.to_string()).collect();
-            return Err(SessionError::new_err(format!(
-                "{}: the plan has no step {step} (its steps: {})",
-                self.index.dir().display(),
-                ids.join(", ")
-            )));
-        }
-        Ok(())
+        self.index.check_step(step).map_err(session_err)
     }
 }
 

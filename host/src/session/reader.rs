@@ -6,7 +6,6 @@
 //! per [`Frames::next`]: a session of any size streams.
 
 use std::collections::VecDeque;
-use std::path::PathBuf;
 use std::sync::Arc;
 
 use lightrig_imaging::io::{decode, Encoding, Image, ReadOptions};
@@ -67,34 +66,33 @@ impl SessionIndex {
             .map_err(|e| damaged(format!("cannot be decoded: {e}")))
     }
 
+    /// An error naming the plan's steps if the plan has no step `step`.
+    pub fn check_step(&self, step: StepId) -> Result<()> {
+        if self.manifest().step(step).is_some() {
+            return Ok(());
+        }
+        let ids: Vec<String> = self.manifest().plan.steps.iter().map(|s| s.id.to_string()).collect();
+        Err(SessionError::Refused {
+            detail: format!(
+                "{}: the plan has no step {step} (its steps: {})",
+                self.dir().display(),
+                ids.join(", ")
+            ),
+        })
+    }
+
     /// The frames of `steps` (every completed step in plan order if `None`) from `camera` (every
     /// camera if `None`), read one at a time.
     pub fn frames(self: &Arc<Self>, steps: Option<Vec<StepId>>, camera: Option<u8>) -> Result<Frames> {
         let steps = match steps {
             None => self.done_steps(),
             Some(steps) => {
-                for &s in &steps {
-                    if self.manifest().step(s).is_none() {
-                        return Err(SessionError::Refused {
-                            detail: format!(
-                                "{}: the plan has no step {s} (its steps: {})",
-                                self.dir().display(),
-                                step_list(self)
-                            ),
-                        });
-                    }
-                }
+                steps.iter().try_for_each(|&s| self.check_step(s))?;
                 steps
             }
         };
         Ok(Frames { index: Arc::clone(self), steps: steps.into(), camera, queue: VecDeque::new() })
     }
-}
-
-/// The plan's step ids, for an error message.
-fn step_list(index: &SessionIndex) -> String {
-    let ids: Vec<String> = index.manifest().plan.steps.iter().map(|s| s.id.to_string()).collect();
-    ids.join(", ")
 }
 
 /// Frames read one at a time ([`SessionIndex::frames`]): each step's records are read when its
@@ -122,16 +120,6 @@ impl Frames {
                 .collect();
         }
         Ok(self.queue.pop_front())
-    }
-
-    /// The session directory.
-    pub fn dir(&self) -> PathBuf {
-        self.index.dir().to_path_buf()
-    }
-
-    /// The index the frames are read through.
-    pub fn index(&self) -> &Arc<SessionIndex> {
-        &self.index
     }
 }
 
