@@ -46,7 +46,7 @@ def _progress(progress: Progress, desc: str) -> Optional[Callable[[int, int], An
     if callable(progress):
         return progress
     try:
-        from tqdm.auto import tqdm
+        from tqdm.auto import tqdm  # type: ignore[import-untyped]
     except ImportError:  # no tqdm: a line on stderr every tenth
         import sys
 
@@ -114,7 +114,7 @@ def fit_disco(session: PathLike, mesh: Optional[PathLike] = None, out: Optional[
     return _lightrig.fit_disco(session, mesh, out, _progress(progress, "disco"))
 
 
-_FITS = {
+_FITS: dict[str, Callable[..., dict]] = {
     "lls": fit_lls,
     "firs-surface": fit_firs_surface,
     "firs-volume": fit_firs_volume,

@@ -99,6 +99,18 @@ pub fn interruptible<T: Send>(
     callback: Option<Py<PyAny>>,
     work: impl FnOnce(&(dyn Fn(u64, u64) + Sync)) -> T + Send,
 ) -> PyResult<T> {
+    interruptible_with(py, callback, &|| {}, work)
+}
+
+/// [`interruptible`], calling `on_cancel` once when Ctrl-C (or the callback's exception) stops
+/// the work: for work that stops by a flag of its own (an acquisition's
+/// [`lightrig_host::client::Interrupt`]) rather than at a progress report.
+pub fn interruptible_with<T: Send>(
+    py: Python<'_>,
+    callback: Option<Py<PyAny>>,
+    on_cancel: &(dyn Fn() + Sync),
+    work: impl FnOnce(&(dyn Fn(u64, u64) + Sync)) -> T + Send,
+) -> PyResult<T> {
     let cancel = AtomicBool::new(false);
     let raised: Mutex<Option<PyErr>> = Mutex::new(None);
     let stop = |e: PyErr| {
@@ -106,7 +118,9 @@ pub fn interruptible<T: Send>(
         if slot.is_none() {
             *slot = Some(e);
         }
-        cancel.store(true, Ordering::SeqCst);
+        if !cancel.swap(true, Ordering::SeqCst) {
+            on_cancel();
+        }
     };
     let progress = |done: u64, total: u64| {
         if !cancel.load(Ordering::SeqCst) {

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use crate::convert::{dict, interruptible, paths};
+use crate::convert::{dict, interruptible_with, paths};
 use crate::DemoError;
 
 /// The session directories under `dir` (those with a `manifest.json`), sorted.
@@ -35,7 +35,10 @@ fn sessions_under(dir: &Path) -> Vec<PathBuf> {
 /// targets missed) and `sessions` (the session directories it acquired). With `check`, a missed
 /// target raises `DemoError`.
 #[pyfunction]
-#[pyo3(signature = (method="lls", quick=true, out=PathBuf::from("lightrig-demo"), seed=1, check=false, progress=false))]
+#[pyo3(
+    signature = (method="lls", quick=true, out=PathBuf::from("lightrig-demo"), seed=1, check=false, progress=false),
+    text_signature = "(method='lls', quick=True, out='lightrig-demo', seed=1, check=False, progress=False)"
+)]
 pub fn demo<'py>(
     py: Python<'py>,
     method: &str,
@@ -45,6 +48,7 @@ pub fn demo<'py>(
     check: bool,
     progress: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let interrupt = std::sync::Arc::new(lightrig_host::client::Interrupt::default());
     let args = lightrig_cli::demo::Args {
         method: method.to_string(),
         quick,
@@ -56,8 +60,11 @@ pub fn demo<'py>(
         camera_gamma: None,
         serve: None,
         quiet: !progress,
+        interrupt: Some(interrupt.clone()),
     };
-    let run = interruptible(py, None, |_| lightrig_cli::demo::run_demo(&args))?
+    // Ctrl-C stops the virtual device at once (an emergency stop, as on a real rig); a fit the
+    // demo is running finishes first.
+    let run = interruptible_with(py, None, &|| interrupt.request(), |_| lightrig_cli::demo::run_demo(&args))?
         .map_err(|e| DemoError::new_err(e.message))?;
     let dir = run.report.parent().map(Path::to_path_buf).unwrap_or(out);
     let report = std::fs::read_to_string(&run.report)

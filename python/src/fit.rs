@@ -8,7 +8,7 @@ use lightrig_host::fit::{brrdf, disco, display, firs, lls, FitError as RustFitEr
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 
-use crate::convert::{array, dict, interruptible, object, paths, points, triangles, vectors, Scratch};
+use crate::convert::{array, dict, image, interruptible, object, paths, points, triangles, vectors, Scratch};
 use crate::FitError;
 
 fn fit_err(e: RustFitError) -> PyErr {
@@ -326,6 +326,33 @@ pub fn fit_disco<'py>(
             })?,
         )?;
         d.set_item("local_spots", f.spots.len())?;
+        // The local term on its atlas: each texture `(height, width, 3)` as `<name>.exr` holds it,
+        // the masks of the texels on the charts and of those a spot (or a frame) gave.
+        let (w, h) = (f.atlas.width.max(1) as usize, f.atlas.height.max(1) as usize);
+        let mask = |m: Vec<bool>| array(py, m, &[h, w]);
+        d.set_item(
+            "textures",
+            dict(py, |t| {
+                for (name, im) in disco::local_textures(&f) {
+                    t.set_item(name, image(py, im)?)?;
+                }
+                Ok(())
+            })?,
+        )?;
+        let on_atlas =
+            |m: &[bool]| (0..w * h).map(|i| m.get(i).copied().unwrap_or(false)).collect::<Vec<_>>();
+        let covered: Vec<bool> = f.atlas.texels.iter().map(Option::is_some).collect();
+        d.set_item("covered", mask(on_atlas(&covered))?)?;
+        d.set_item("kernel_observed", mask(on_atlas(&f.local.observed))?)?;
+        d.set_item("detail_observed", mask(on_atlas(&f.detail.observed))?)?;
+        d.set_item("atlas", object(py, &disco::atlas_json(&f))?)?;
+        let spots: Vec<_> = f
+            .spots
+            .iter()
+            .map(|k| disco::spot_json(k, true))
+            .chain(f.local_rejected.iter().map(|k| disco::spot_json(k, false)))
+            .collect();
+        d.set_item("spots", object(py, &spots)?)?;
         d.set_item("local_hidden", f.local_hidden)?;
         d.set_item("local_failed", f.local_failed)?;
         d.set_item("files", paths(&files))

@@ -42,6 +42,7 @@ def test_lls_maps_are_the_command_s(lls_both):
     for key, layer in (("diffuse", "diffuse"), ("specular", "specular")):
         a = m[key]
         assert a.shape == (h, w, 3) and a.dtype == np.float32 and a.flags.c_contiguous
+        assert not a.flags.owndata and not a.base.flags.owndata  # the fit's buffer, not a copy
         for c, ch in enumerate("RGB"):
             np.testing.assert_allclose(a[..., c][fitted], cli[f"{layer}.{ch}"][fitted], rtol=1e-6, atol=0)
         assert np.isnan(a[~fitted]).all()

@@ -5,6 +5,7 @@ import json
 import pathlib
 
 import numpy as np
+import OpenEXR
 import pytest
 
 import lightrig
@@ -16,6 +17,8 @@ def test_disco_f_is_the_demo_s(demos, tmp_path):
     n = len(m["vertices"])
     F = m["F"]
     assert F.shape == (n, n, 3) and F.dtype == np.float32 and F.flags.c_contiguous
+    # The fit's own buffer handed to NumPy, reshaped as a view: F (n² × 3 floats) is not copied.
+    assert not F.flags.owndata and F.base.ndim == 1 and F.base.size == F.size and not F.base.flags.owndata
     assert m["observed"].shape == (n, n) and m["observed"].dtype == np.bool_
     assert m["triangles"].dtype == np.uint32 and m["triangles"].max() < n
     # F.f32: the upper triangle, for k in 0..n, r in k..n: F(r, k) as 3 little-endian f32.
@@ -29,6 +32,26 @@ def test_disco_f_is_the_demo_s(demos, tmp_path):
     assert (m["observed"][k, r] == bits.astype(bool)).all()
     assert sorted(pathlib.Path(f).name for f in m["files"]) == sorted(p.name for p in (d / "fit").iterdir() if not p.name.startswith("relit-truth"))
     assert 0.5 < m["beam_sigma_mm"] < 1.5 and m["used"] + m["missed"] + m["held_out_frames"] == m["frames"]
+    # The local term: each texture as its EXR (read by the OpenEXR package), the atlas and the
+    # spots as atlas.json and fit.json say.
+    atlas = json.loads((d / "fit" / "atlas.json").read_text())
+    assert m["atlas"] == atlas
+    h, w = atlas["height"], atlas["width"]
+    for name in ("kernel-rates", "kernel-c1", "kernel-c2", "kernel-correction", "detail"):
+        t = m["textures"][name]
+        assert t.shape == (h, w, 3) and t.dtype == np.float32, name
+        ch = OpenEXR.File(str(d / "fit" / f"{name}.exr"), separate_channels=True).channels()
+        np.testing.assert_array_equal(t, np.stack([ch[c].pixels for c in "RGB"], axis=-1), err_msg=name)
+    covered = m["covered"]
+    assert covered.shape == (h, w) and covered.dtype == np.bool_
+    assert (m["textures"]["detail"][~covered] == 0).all() and (m["textures"]["detail"][covered] > 0).all()
+    rates = m["textures"]["kernel-rates"]
+    assert (m["kernel_observed"] == (rates[..., 2] == 1)).all() and not (m["kernel_observed"] & ~covered).any()
+    fit_json = json.loads((d / "fit" / "fit.json").read_text())
+    assert m["spots"] == fit_json["local"]["spots"]
+    assert sum(s["kept"] for s in m["spots"]) == m["local_spots"] == fit_json["local"]["spots_fitted"]
+    assert int(m["kernel_observed"].sum()) == fit_json["local"]["observed_texels"]
+    assert int(m["detail_observed"].sum()) == fit_json["detail"]["observed_texels"]
 
 
 def test_brrdf_bins_are_the_demo_s(demos):
@@ -82,13 +105,18 @@ def test_firs_surface_points_are_the_demo_s(demos):
     pts = m["points"]
     assert pts.ndim == 2 and pts.shape[1] == 3 and pts.dtype == np.float64 and len(pts) > 1000
     summary = json.loads((d / "fit" / "summary.json").read_text())
-    assert summary  # the demo's own fit summary, for its counts
-    plys = sorted((d / "fit").glob("*.ply"))
-    assert plys, "the demo wrote its points as PLY"
-    n, fmt, props, body = read_ply_vertices(plys[0])
-    assert n == len(pts), (plys[0], n, len(pts))
+    assert summary["merged_points"] == len(pts) and summary["image"] == [m["width"], m["height"]]
+    assert summary["ray_pixels"] == m["ray_pixels"] and summary["sheet_samples"] == m["sheet_samples"]
+    assert summary["sheet_rms_mm"] == pytest.approx(m["sheet_rms_mm"], rel=1e-12)
+    # merged.ply: the same points, as float32 (binary little endian, x y z).
+    n, fmt, props, body = read_ply_vertices(d / "fit" / "merged.ply")
+    assert fmt == "binary_little_endian" and [p[1:] for p in props] == [["float", "x"], ["float", "y"], ["float", "z"]]
+    ply = np.frombuffer(body[: 12 * n], dtype="<f4").reshape(n, 3)
+    np.testing.assert_allclose(ply, pts, rtol=0, atol=1e-5 * np.abs(pts).max())
     h, w = m["height"], m["width"]
-    assert all(s["points"].shape == (h, w, 3) for s in m["scans"])
+    assert [s["angle_deg"] for s in m["scans"]] == [o["angle_deg"] for o in summary["orientations"]]
+    for s, o in zip(m["scans"], summary["orientations"]):
+        assert s["points"].shape == (h, w, 3) and int(np.isfinite(s["points"][..., 0]).sum()) == o["points"]
 
 
 def test_firs_volume_is_the_demo_s(demos):
@@ -100,4 +128,10 @@ def test_firs_volume_is_the_demo_s(demos):
     np.testing.assert_allclose(occ, raw, rtol=1e-6, atol=1e-7)
     assert occ.dtype == np.float32 and 0.0 <= occ.min() and occ.max() <= 1.0
     assert len(m["vertices"]) > 100 and m["triangles"].shape[1] == 3 and m["enclosed_mm3"] > 0
-    assert meta
+    # volume.json: the grid the array is laid out on, x fastest: (z, y, x).
+    assert meta["order"] == "x-fastest" and meta["dtype"] == "float32" and meta["endian"] == "little"
+    assert list(occ.shape) == meta["dims"][::-1]
+    np.testing.assert_allclose(m["voxel_mm"], meta["voxel_mm"], rtol=1e-12)
+    np.testing.assert_allclose(m["origin_mm"], meta["origin_mm"], rtol=1e-12)
+    n, *_ = read_ply_vertices(d / "fit" / "volume.ply")
+    assert n == len(m["vertices"])

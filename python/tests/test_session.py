@@ -60,7 +60,9 @@ def test_manifest_rig_and_steps(lls_session):
             assert n == sum(1 for f in frames if f["step"] == st["id"] and f["camera"] == cam)
     assert len(s) == len(frames)
     assert s.missing() == [] and s.extras() == []
-    assert "lls" in repr(s) or "steps done" in repr(s)
+    n = len(manifest["plan"]["steps"])
+    name = json.dumps(s.rig["rig"]["name"])  # Rust's {:?} of a plain string
+    assert repr(s) == f"Session('{lls_session}', rig={name}, {n} of {n} steps done, complete)"
 
 
 def test_frames_are_the_journal_s_with_their_triggers(lls_session):

@@ -68,6 +68,10 @@ pub struct Args {
     /// No progress bars (the Python package's `demo(progress=False)`).
     #[arg(skip)]
     pub quiet: bool,
+    /// Stops the virtual device as Ctrl-C stops a real one (the Python package's
+    /// `KeyboardInterrupt`): the acquisition under way ends with an emergency stop.
+    #[arg(skip)]
+    pub interrupt: Option<std::sync::Arc<lightrig_host::client::Interrupt>>,
 }
 
 /// What a demo run made.
@@ -79,8 +83,26 @@ pub struct DemoRun {
     pub report: PathBuf,
 }
 
-/// `--serve`'s address, for every acquisition of this demo.
-static SERVE: std::sync::OnceLock<Option<String>> = std::sync::OnceLock::new();
+/// What every acquisition of the demo running on this thread shares: `--serve`'s address and
+/// the caller's interrupt ([`run_demo`] sets them for its run).
+#[derive(Default, Clone)]
+struct Context {
+    serve: Option<String>,
+    interrupt: Option<std::sync::Arc<lightrig_host::client::Interrupt>>,
+}
+
+thread_local! {
+    static CONTEXT: std::cell::RefCell<Context> = std::cell::RefCell::default();
+}
+
+/// Clears [`CONTEXT`] when the run ends, however it ends.
+struct ContextGuard;
+
+impl Drop for ContextGuard {
+    fn drop(&mut self) {
+        CONTEXT.with(|c| *c.borrow_mut() = Context::default());
+    }
+}
 
 /// Runs `lightrig demo [METHOD]`: the demo's output in `out/<method>/`; with `check`, a
 /// missed accuracy target is a failure.
@@ -101,7 +123,9 @@ pub fn run(args: &Args) -> ExitCode {
 /// [`run`]'s work: the demo of `args.method`, its report written; an error for arguments that do
 /// not fit the method (exit code [`USAGE`]) or a demo that failed.
 pub fn run_demo(args: &Args) -> Result<DemoRun, CliError> {
-    let _ = SERVE.set(args.serve.clone());
+    CONTEXT
+        .with(|c| *c.borrow_mut() = Context { serve: args.serve.clone(), interrupt: args.interrupt.clone() });
+    let _context = ContextGuard;
     let progress = !args.quiet;
     let firs = args.method == "firs" || args.method == "fluorescent-immersion";
     if let Some(step) = args.step_mm.filter(|_| firs) {
@@ -268,11 +292,15 @@ impl DemoRig {
         let mut client = bring_up_on(&self.rig, transport)?;
         let manifest = Manifest::new(self.text.clone(), client.info(), plan_summary(&self.plan));
         let mut session = Session::create(&session_dir, manifest).map_err(failure)?;
-        let served = match SERVE.get().and_then(|s| s.as_deref()) {
+        let context = CONTEXT.with(|c| c.borrow().clone());
+        // Stop from the page, or the caller's interrupt, stops this virtual device as Ctrl-C
+        // stops a real one.
+        let interrupt = context.interrupt.clone().unwrap_or_default();
+        if context.interrupt.is_some() || context.serve.is_some() {
+            client.set_interrupt(interrupt.clone());
+        }
+        let served = match context.serve.as_deref() {
             Some(addr) => {
-                // Stop from the page stops this virtual device as Ctrl-C stops a real one.
-                let interrupt = std::sync::Arc::new(lightrig_host::client::Interrupt::default());
-                client.set_interrupt(interrupt.clone());
                 let device = client.transport().describe();
                 let s = crate::cmd::live::serve(addr, "demo", &session_dir, &device, interrupt)?;
                 s.live.set_method(&self.plan.method);

@@ -637,10 +637,13 @@ pub fn fit_session(
                 e.samples.extend(d.local);
                 e.channels |= 1 << j.channel;
             }
-            // Spots with all three lasers in: fitted in parallel, recorded, dropped.
+            // Spots with all three lasers in: fitted in parallel, recorded, dropped; in the
+            // order of their keys, not the map's, so that a fit gives the same spots in the same
+            // order (and the same textures to the bit) every time.
             let ready: Vec<((usize, [u16; 2]), Pending)> = {
-                let keys: Vec<(usize, [u16; 2])> =
+                let mut keys: Vec<(usize, [u16; 2])> =
                     pending.iter().filter(|(_, p)| p.channels == 7).map(|(k, _)| *k).collect();
+                keys.sort_unstable();
                 keys.into_iter().filter_map(|k| pending.remove(&k).map(|p| (k, p))).collect()
             };
             // The data divided by the detail texture as the frames so far show it (by a spot's
@@ -1191,7 +1194,7 @@ fn judge_spots(
 
 /// A spot's local fit in `fit.json`: where and how its beam entered, the blur taken out, `m(d)`
 /// and its misfit, and whether it went into the kernel textures.
-fn spot_json(k: &SpotKernel, kept: bool) -> serde_json::Value {
+pub fn spot_json(k: &SpotKernel, kept: bool) -> serde_json::Value {
     let p = &k.profile;
     serde_json::json!({
         "view": k.view, "code": k.code, "point_mm": k.point, "incidence_deg": k.angle_deg,
@@ -1503,17 +1506,15 @@ pub fn write_relit(
 /// The atlas file's format tag.
 pub const ATLAS_FORMAT: &str = "lightrig-disco-atlas 1";
 
-/// Writes the local term (section 7): `atlas.json` (how a surface point finds its texel) and
-/// four atlas textures, linear float EXR, one texel per pixel, zero off the charts:
-/// `kernel-rates.exr` (R σ1, G σ2 in mm⁻¹, B 1 where a spot gave the parameters, 0 where they
-/// were filled), `kernel-c1.exr`, `kernel-c2.exr` (the two terms' weights per colour, mm⁻²),
-/// `kernel-correction.exr` (the multiplicative correction `C` per colour), and the detail
-/// texture `detail.exr` (`T_ρ` per colour; 1 where no frame showed the texel).
-pub fn write_local(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitError> {
-    use lightrig_imaging::io::{write_exr, Encoding, ExrPrecision, Image};
+/// The local term's atlas textures (section 7), each `(name, image)`: linear, 3 channels, one
+/// texel per pixel, zero off the charts. `kernel-rates` (R σ1, G σ2 in mm⁻¹, B 1 where a spot
+/// gave the parameters, 0 where they were filled), `kernel-c1`, `kernel-c2` (the two terms'
+/// weights per colour, mm⁻²), `kernel-correction` (the multiplicative correction `C` per
+/// colour), and the detail texture `detail` (`T_ρ` per colour; 1 where no frame showed the
+/// texel).
+pub fn local_textures(fit: &DiscoFit) -> Vec<(&'static str, lightrig_imaging::io::Image)> {
+    use lightrig_imaging::io::{Encoding, Image};
     let a = &fit.atlas;
-    let io = |p: &Path, e: std::io::Error| fail(format!("{}: {e}", p.display()));
-    let mut files = Vec::new();
     type Texel<'a> = &'a dyn Fn(usize) -> Option<[f32; 3]>;
     let textures: [(&str, Texel); 5] = [
         ("kernel-rates", &|i| {
@@ -1525,21 +1526,26 @@ pub fn write_local(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitError>
         ("kernel-correction", &|i| fit.local.correction[i]),
         ("detail", &|i| a.texels[i].and(fit.detail.values.get(i).copied())),
     ];
-    for (name, value) in textures {
-        let mut im = Image::new(a.width.max(1), a.height.max(1), 3);
-        for i in 0..a.texels.len() {
-            if let Some(v) = value(i) {
-                im.data[3 * i..3 * i + 3].copy_from_slice(&v);
+    textures
+        .into_iter()
+        .map(|(name, value)| {
+            let mut im = Image::new(a.width.max(1), a.height.max(1), 3);
+            for i in 0..a.texels.len() {
+                if let Some(v) = value(i) {
+                    im.data[3 * i..3 * i + 3].copy_from_slice(&v);
+                }
             }
-        }
-        let path = out.join(format!("{name}.exr"));
-        write_exr(&path, &im.with_encoding(Encoding::Linear), ExrPrecision::Float)
-            .map_err(|e| fail(format!("{}: {e}", path.display())))?;
-        files.push(path);
-    }
+            (name, im.with_encoding(Encoding::Linear))
+        })
+        .collect()
+}
+
+/// `atlas.json`'s content: how a surface point finds its texel, and what the textures hold.
+pub fn atlas_json(fit: &DiscoFit) -> Value {
+    let a = &fit.atlas;
     let charts: Vec<Value> =
         a.charts.iter().map(|c| json!({ "axis": c.axis, "rect": c.rect, "shift": c.shift })).collect();
-    let j = json!({
+    json!({
         "format": ATLAS_FORMAT,
         "width": a.width, "height": a.height, "texel_mm": a.texel_mm, "border": a.border,
         "mapping": "triangle t of object.ply lies in chart triangle_chart[t] (4294967295: none); a point p (mm, object frame) of it is at atlas pixel (x, y) = (u / texel_mm + shift[0], v / texel_mm + shift[1]), texel centres at +0.5, where for axis a (0 +x, 1 -x, 2 +y, 3 -y, 4 +z, 5 -z) and k = a / 2: u = p[(k+1) % 3] (negated for odd a), v = p[(k+2) % 3]",
@@ -1547,9 +1553,23 @@ pub fn write_local(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitError>
         "kernel": "m(d) = c1 e^(-sigma1 d) + c2 e^(-sigma2 d) per colour, d the 3D distance (mm) from the texel's point; a texel's 7x7 kernel is m at each neighbour's distance times that neighbour's correction times texel_mm^2",
         "charts": charts,
         "triangle_chart": a.triangle_chart,
-    });
+    })
+}
+
+/// Writes the local term (section 7): `atlas.json` ([`atlas_json`]) and the atlas textures
+/// ([`local_textures`]) as `<name>.exr`, float.
+pub fn write_local(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitError> {
+    use lightrig_imaging::io::{write_exr, ExrPrecision};
+    let io = |p: &Path, e: std::io::Error| fail(format!("{}: {e}", p.display()));
+    let mut files = Vec::new();
+    for (name, im) in local_textures(fit) {
+        let path = out.join(format!("{name}.exr"));
+        write_exr(&path, &im, ExrPrecision::Float).map_err(|e| fail(format!("{}: {e}", path.display())))?;
+        files.push(path);
+    }
     let path = out.join("atlas.json");
-    std::fs::write(&path, serde_json::to_string(&j).unwrap_or_default() + "\n").map_err(|e| io(&path, e))?;
+    std::fs::write(&path, serde_json::to_string(&atlas_json(fit)).unwrap_or_default() + "\n")
+        .map_err(|e| io(&path, e))?;
     files.push(path);
     Ok(files)
 }
