@@ -136,6 +136,59 @@ fn a_missing_camera_response_is_refused_before_the_session_starts() {
     assert!(!session.join("manifest.json").exists(), "no session is started");
 }
 
+/// Plan values and the fit's `[plan.fit]` are checked before anything connects or moves, each
+/// error naming the key the user wrote, its line and what is allowed (before, a pass beyond the
+/// gantry's limits named the stepper after 10 s of homing, and a broken [plan.fit] surfaced
+/// only in the fit after the whole acquisition).
+#[test]
+fn plan_values_and_the_fit_table_are_checked_before_anything_moves() {
+    let dir = scratch("values");
+    let rig = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/rigs/lls-gantry.toml");
+    let r = rig.to_str().unwrap();
+    let at = |line: usize| format!("lls-gantry.toml:{line}: ");
+    let cases: [(&str, String); 5] = [
+        (
+            "plan.pass_mm=[-300, 100]",
+            at(68) + "plan.pass_mm: -300 mm is outside the limits -200..=200 mm (the gantry's [[stepper]] limits)",
+        ),
+        ("plan.pass_mm=[-100, 250]", at(68) + "plan.pass_mm: 250 mm is outside the limits -200..=200 mm"),
+        (
+            "plan.exposures_us=[-5, 100]",
+            at(70) + "plan.exposures_us: -5 µs is out of range: give a duration from 0 to 4294967295 µs",
+        ),
+        (
+            "plan.fit.stripe.offset_m=3",
+            at(79) + "plan.fit: unknown field `offset_m`, expected `offset_mm` or `angle_deg`",
+        ),
+        ("plan.fit.light=", at(79) + "plan.fit: missing field `light`"),
+    ];
+    for (k, (set, expected)) in cases.iter().enumerate() {
+        let session = dir.join(format!("s{k}"));
+        let out = lightrig(&["acquire", r, "--session", session.to_str().unwrap(), "--set", set]);
+        let said = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(4), "--set {set}: {said}");
+        assert!(said.contains(expected.as_str()), "--set {set}: expected {expected:?} in:\n{said}");
+        assert!(
+            !said.contains("homing") && !session.exists(),
+            "--set {set}: refused before bring-up: {said}"
+        );
+    }
+    // Without [plan.fit] the acquisition runs (it needs none), saying at once that the fit will
+    // refuse the session.
+    let session = dir.join("no-fit");
+    let s = session.to_str().unwrap();
+    let mut args = vec!["acquire", r, "--session", s, "--set", "plan.fit=", "--set", "plan.pass_mm=[-4, 4]"];
+    args.extend(["--set", "plan.step_mm=4", "--set", "plan.passes=[\"reflectance\"]"]);
+    let out = lightrig(&args);
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{said}");
+    let warning =
+        "no [plan.fit] table: the acquisition runs, but `lightrig fit` will refuse the session without \
+                   the tube's and the stripe's geometry";
+    let (w, h) = (said.find(warning), said.find("homing"));
+    assert!(w.is_some() && w < h, "warned before bring-up: {said}");
+}
+
 #[test]
 fn overrides_shape_the_run_and_resume_asks_for_the_same_ones() {
     let dir = scratch("overrides");

@@ -105,13 +105,12 @@ impl DiscoSetup {
     /// From `rig`'s `[plan] camera_positions` and `[plan.fit]`; a missing or malformed key is an
     /// error naming it.
     pub fn from_rig(rig: &RigFile) -> Result<Self, RigError> {
-        let fit = rig.plan.get("fit").cloned().ok_or_else(|| {
+        let spec: FitSpec = crate::fit::plan_fit(rig).ok_or_else(|| {
             rig.error(
                 "plan.fit",
                 "a DISCO fit needs [plan.fit] with image, focal_px, projector and white_target (see docs/rigs/disco.toml)",
             )
-        })?;
-        let spec: FitSpec = fit.try_into().map_err(|e| rig.error("plan.fit", e.to_string()))?;
+        })??;
         let positions = camera_positions(rig)?;
         if rig.plan.get("camera_positions").is_none() {
             return Err(rig

@@ -650,7 +650,12 @@ pub fn acquire(args: &AcquireArgs) -> Result<(), CliError> {
         (args.rig.as_path(), args.session.as_path(), args.connect.as_ref(), &args.overrides[..]);
     let consent = Consent { yes: args.yes, clear_stop: args.clear_stop };
     let (text, rig) = rig_with(rig_path, overrides)?;
-    from_rig::check_keys(&rig).map_err(|e| err(INPUT, e.to_string()))?;
+    // Everything that needs no device, before anything connects or moves: the keys, every
+    // plan value against its range and the steppers' limits, the fit's [plan.fit].
+    from_rig::check(&rig).map_err(|e| err(INPUT, e.to_string()))?;
+    if let Some(warning) = lightrig_host::fit::check_rig(&rig).map_err(|e| err(INPUT, e.0))? {
+        eprintln!("warning: {warning}");
+    }
     lightrig_host::response::check(&rig).map_err(|e| err(INPUT, e))?;
     if dir.join("manifest.json").exists() {
         return Err(err(

@@ -548,18 +548,14 @@ fn calibrate(dir: &Path, band_bytes: usize, progress: &dyn Fn(u64, u64)) -> Resu
     let (session, _) = Session::read(dir).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
     let manifest = session.manifest().clone();
     let rig = RigFile::parse(&manifest.rig, &dir.join("manifest.json")).map_err(|e| fail(e.to_string()))?;
-    let spec: FirsFitSpec = rig
-        .plan
-        .get("fit")
-        .cloned()
+    let spec: FirsFitSpec = crate::fit::plan_fit(&rig)
         .ok_or_else(|| {
             fail(format!(
                 "{}: the rig file has no [plan.fit] table (target, volume, laser_dir, turntable); see docs/rigs/fluorescent-immersion.toml",
                 dir.display()
             ))
         })?
-        .try_into()
-        .map_err(|e| fail(format!("{}: [plan.fit]: {e}", dir.display())))?;
+        .map_err(|e| fail(e.to_string()))?;
     let galvo = rig
         .galvos
         .first()

@@ -46,12 +46,31 @@ const DEFAULT_FRAME_BYTES: u64 = 2448 * 2048 * 2;
 
 /// The plan for `rig` on the device described by `info`.
 pub fn plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
+    plan_at(rig, info.tick_hz)
+}
+
+/// The tick rate [`check`] plans at before a device says its own: the boards' and the virtual
+/// rig's 1 MHz.
+pub const NOMINAL_TICK_HZ: u32 = 1_000_000;
+
+/// Everything about `rig`'s plan that needs no device, checked before one is connected (and
+/// homed): its keys ([`check_keys`]) and the plan made at [`NOMINAL_TICK_HZ`] (every value, its
+/// range, the positions against the steppers' limits). Each error names the key the rig file
+/// has, with its line. The fit's `[plan.fit]` is [`crate::fit::check_rig`]'s.
+pub fn check(rig: &RigFile) -> Result<Plan, RigError> {
+    check_keys(rig)?;
+    plan_at(rig, NOMINAL_TICK_HZ)
+}
+
+/// The plan for `rig` on a device counting `hz` ticks per second (the planners need nothing
+/// else of it).
+fn plan_at(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
     let mut plan = match rig.method {
-        Method::LinearLightSource => lls_plan(rig, info),
-        Method::Disco => disco_plan(rig, info),
-        Method::FluorescentImmersion => immersion_plan(rig, info),
-        Method::BrdfDisplay => display_plan(rig, info),
-        Method::Bispectral => bispectral_plan(rig, info),
+        Method::LinearLightSource => lls_plan(rig, hz),
+        Method::Disco => disco_plan(rig, hz),
+        Method::FluorescentImmersion => immersion_plan(rig, hz),
+        Method::BrdfDisplay => display_plan(rig, hz),
+        Method::Bispectral => bispectral_plan(rig, hz),
     }?;
     plan.lost_retries = lost_retries(rig)?;
     Ok(plan)
@@ -212,7 +231,13 @@ fn names(rig: &RigFile, key: &str) -> Result<Option<Vec<String>>, RigError> {
 }
 
 fn us(rig: &RigFile, key: &str, v: f64, hz: u32) -> Result<u32, RigError> {
-    ticks_from_us(v, hz).ok_or_else(|| rig.error(&format!("plan.{key}"), format!("{v} µs is out of range")))
+    ticks_from_us(v, hz).ok_or_else(|| {
+        let max = f64::from(u32::MAX) / f64::from(hz) * 1e6;
+        rig.error(
+            &format!("plan.{key}"),
+            format!("{v} µs is out of range: give a duration from 0 to {max:.0} µs (32-bit device ticks at {hz} Hz)"),
+        )
+    })
 }
 
 fn laser_named(rig: &RigFile, key: &str, name: &str) -> Result<u8, RigError> {
@@ -295,8 +320,7 @@ fn indices(cameras: &[&Camera]) -> Vec<u8> {
     cameras.iter().map(|c| c.camera).collect()
 }
 
-fn lls_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
-    let hz = info.tick_hz;
+fn lls_plan(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
     let axis = rig
         .stepper_named("gantry")
         .or_else(|| rig.steppers.iter().find(|s| s.kind == AxisKind::Linear))
@@ -311,10 +335,16 @@ fn lls_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
         return Err(rig.error("plan.step_mm", "must be positive"));
     }
     let count = ((to - from).abs() / step_mm).floor() as u32 + 1;
-    let start = rig.stepper_steps(axis.axis, from)?;
-    // The far end must lie within the soft limits too (the error names them).
-    rig.stepper_steps(axis.axis, to).map_err(|e| rig.error("plan.pass_mm", e.message))?;
-    let second = rig.stepper_steps(axis.axis, from + step_mm.copysign(to - from))?;
+    // Both ends within the gantry's soft limits: the error names `pass_mm`, the key to fix,
+    // and the limits.
+    let on_gantry = |mm: f64| {
+        rig.stepper_steps(axis.axis, mm).map_err(|e| {
+            rig.error("plan.pass_mm", format!("{} (the gantry's [[stepper]] limits)", e.message))
+        })
+    };
+    let start = on_gantry(from)?;
+    on_gantry(to)?;
+    let second = on_gantry(from + step_mm.copysign(to - from))?;
     let cameras = plan_cameras(rig)?;
     let exposures: Vec<u32> = match nums(rig, "exposures_us")? {
         Some(v) => v.iter().map(|&e| us(rig, "exposures_us", e, hz)).collect::<Result<_, _>>()?,
@@ -372,8 +402,7 @@ fn lls_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
     lls::plan(&p).map_err(|e| rig.error("plan", e.0))
 }
 
-fn disco_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
-    let hz = info.tick_hz;
+fn disco_plan(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
     let (turntable, view_steps) = turntable_views(rig)?;
     let galvo = rig.galvos.first().ok_or_else(|| rig.error("galvo", "a DISCO rig needs a [[galvo]]"))?;
     let grid =
@@ -484,8 +513,7 @@ fn turntable_views(rig: &RigFile) -> Result<(u8, Vec<i32>), RigError> {
     Ok((table.axis, steps))
 }
 
-fn immersion_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
-    let hz = info.tick_hz;
+fn immersion_plan(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
     let (turntable, orientations) = turntable_views(rig)?;
     let galvo = rig.galvos.first().ok_or_else(|| rig.error("galvo", "the sheet needs a [[galvo]]"))?;
     let sheets = num(rig, "sheet_positions", None)? as u32;
@@ -573,10 +601,9 @@ fn targets(rig: &RigFile) -> Result<Vec<serde_json::Value>, RigError> {
         .collect()
 }
 
-fn display_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
+fn display_plan(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
     use lightrig_pipelines::display::mapping::{X_FREQUENCIES, Y_FREQUENCIES};
     use lightrig_pipelines::display::Liquid;
-    let hz = info.tick_hz;
     if rig.voice_coils.is_empty() {
         return Err(rig.error("voice_coil", "a BRDF display needs at least one [[voice_coil]]"));
     }
@@ -765,9 +792,8 @@ fn pattern_targets(rig: &RigFile) -> Result<Vec<display::Target>, RigError> {
     Ok(targets)
 }
 
-fn bispectral_plan(rig: &RigFile, info: &DeviceInfo) -> Result<Plan, RigError> {
+fn bispectral_plan(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
     use super::brrdf::{self, Pair};
-    let hz = info.tick_hz;
     let axis = |name: &str| {
         rig.stepper_named(name).ok_or_else(|| {
             rig.error("stepper", format!("a bispectral rig needs a rotary stepper named `{name}`"))

@@ -440,15 +440,11 @@ pub fn fit_session_with(
     let (session, _) = Session::read(dir).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
     let manifest = session.manifest().clone();
     let rig = RigFile::parse(&manifest.rig, &dir.join("manifest.json")).map_err(|e| fail(e.to_string()))?;
-    let spec: FitSpec = rig
-        .plan
-        .get("fit")
-        .cloned()
+    let spec: FitSpec = crate::fit::plan_fit(&rig)
         .ok_or_else(|| {
             fail(format!("{}: the rig file has no [plan.fit] table (the fit's geometry)", dir.display()))
         })?
-        .try_into()
-        .map_err(|e| fail(format!("{}: [plan.fit]: {e}", dir.display())))?;
+        .map_err(|e| fail(e.to_string()))?;
     let gantry = rig
         .stepper_named("gantry")
         .or_else(|| rig.steppers.first())
