@@ -173,6 +173,25 @@ fn plan_values_and_the_fit_table_are_checked_before_anything_moves() {
             "--set {set}: refused before bring-up: {said}"
         );
     }
+    // A goniometer angle beyond the light arm's limits: the plan key, not the stepper.
+    let bispectral = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/rigs/bispectral.toml");
+    let session = dir.join("gonio");
+    let set = "plan.gonio.light_angles=[30, 200]";
+    let out = lightrig(&[
+        "acquire",
+        bispectral.to_str().unwrap(),
+        "--session",
+        session.to_str().unwrap(),
+        "--set",
+        set,
+    ]);
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(4), "{said}");
+    let expected =
+        "bispectral.toml:130: plan.gonio.light_angles: 200 deg is outside the limits -170..=170 deg \
+                    (stepper `light-arm`'s limits)";
+    assert!(said.contains(expected), "expected {expected:?} in:\n{said}");
+    assert!(!said.contains("homing") && !session.exists(), "refused before bring-up: {said}");
     // Without [plan.fit] the acquisition runs (it needs none), saying at once that the fit will
     // refuse the session.
     let session = dir.join("no-fit");

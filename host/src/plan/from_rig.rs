@@ -809,10 +809,17 @@ fn bispectral_plan(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
             .map(|x| x.as_float().or_else(|| x.as_integer().map(|i| i as f64)).ok_or_else(bad))
             .collect()
     };
+    // An angle beyond its stepper's limits is the plan key's mistake: named so, with the limits.
+    let on = |axis: &crate::rigfile::Stepper, key: &str, deg: f64| {
+        rig.stepper_steps(axis.axis, deg).map_err(|e| {
+            let name = axis.name.as_deref().unwrap_or("its");
+            rig.error(&format!("plan.gonio.{key}"), format!("{} (stepper `{name}`'s limits)", e.message))
+        })
+    };
     let mut geometries = Vec::new();
     for s_deg in angles("sample_angles")? {
         for l_deg in angles("light_angles")? {
-            geometries.push((rig.stepper_steps(sample.axis, s_deg)?, rig.stepper_steps(light.axis, l_deg)?));
+            geometries.push((on(sample, "sample_angles", s_deg)?, on(light, "light_angles", l_deg)?));
         }
     }
     let wheel = rig
