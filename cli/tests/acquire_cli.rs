@@ -114,6 +114,17 @@ fn a_run_that_lost_frames_says_so_and_exits_incomplete() {
     let said = String::from_utf8_lossy(&again.stderr);
     assert_eq!(again.status.code(), Some(5), "{said}");
     assert!(said.contains("with frames missing in 1 step(s)"), "{said}");
+    // The fit, short of the frames it needs, names the lost ones and the command to take them.
+    let fit =
+        lightrig(&["fit", "lls", session.to_str().unwrap(), "--out", dir.join("fit").to_str().unwrap()]);
+    let said = String::from_utf8_lossy(&fit.stderr);
+    assert_eq!(fit.status.code(), Some(1), "{said}");
+    let expected = format!(
+        "the session has frames missing in 1 step(s):\n  step 0: 3 frame(s) missing (camera 0 frame 0: \
+         no frame arrived within the wait)\nacquire those steps again with `lightrig resume {} --retake-missing`",
+        session.display()
+    );
+    assert!(said.contains(&expected), "expected {expected:?} in:\n{said}");
 }
 
 #[test]

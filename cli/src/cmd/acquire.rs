@@ -502,21 +502,13 @@ fn run(
 /// A finished session that still misses frames is no success: exit code [`INCOMPLETE`], the
 /// steps named, and how to acquire them again.
 fn incomplete(session: &Session) -> Result<(), CliError> {
-    let missing = session.steps_missing_frames();
-    if missing.is_empty() {
-        return Ok(());
+    match session.missing_report() {
+        None => Ok(()),
+        Some(report) => Err(err(
+            INCOMPLETE,
+            format!("{}: the session is complete, with {report}", session.dir().display()),
+        )),
     }
-    Err(err(
-        INCOMPLETE,
-        format!(
-            "{}: the session is complete, with frames missing in {} step(s):\n{}\nacquire those steps again \
-             with `lightrig resume {} --retake-missing`",
-            session.dir().display(),
-            missing.len(),
-            missing.iter().map(|(s, why)| format!("  step {s}: {why}")).collect::<Vec<_>>().join("\n"),
-            session.dir().display()
-        ),
-    ))
 }
 
 /// What the session holds, in words: frames, missing frames, and frames without a trigger by

@@ -681,6 +681,22 @@ impl Session {
             .collect()
     }
 
+    /// What [`steps_missing_frames`](Self::steps_missing_frames) says, for a person: the steps
+    /// with their missing frames and the command that acquires them again; `None` when no
+    /// frame is missing.
+    pub fn missing_report(&self) -> Option<String> {
+        let missing = self.steps_missing_frames();
+        if missing.is_empty() {
+            return None;
+        }
+        Some(format!(
+            "frames missing in {} step(s):\n{}\nacquire those steps again with `lightrig resume {} --retake-missing`",
+            missing.len(),
+            missing.iter().map(|(s, why)| format!("  step {s}: {why}")).collect::<Vec<_>>().join("\n"),
+            self.dir.display()
+        ))
+    }
+
     /// Takes back the completed attempts that recorded missing frames (`StepReopened`), so that
     /// the next run acquires those steps again, and journals the run as a resume. The earlier
     /// attempts' records and files stay, superseded. Returns the steps reopened.

@@ -497,9 +497,16 @@ pub fn fit_session_with(
     let stripe_pos = positions("stripe")?;
     let backlit = first_frame(&positions("backlit")?, gantry, &response)?;
     let lightbox = first_frame(&positions("light-box")?, gantry, &response)?;
-    let first = board.ok_or_else(|| fail("the session has no board frame: the camera's pose needs one"))?;
+    // A pass short of frames because the run lost them: said so, with the command that takes
+    // them again.
+    let short = |what: String| match session.missing_report() {
+        Some(report) => fail(format!("{}: {what}: the session has {report}", dir.display())),
+        None => fail(format!("{}: {what}", dir.display())),
+    };
+    let first =
+        board.ok_or_else(|| short("the session has no board frame: the camera's pose needs one".into()))?;
     if reflect_pos.len() < 5 {
-        return Err(fail(format!(
+        return Err(short(format!(
             "the reflectance pass has {} positions; the fit needs a sweep",
             reflect_pos.len()
         )));
