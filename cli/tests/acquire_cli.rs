@@ -157,7 +157,7 @@ fn plan_values_and_the_fit_table_are_checked_before_anything_moves() {
     let rig = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/rigs/lls-gantry.toml");
     let r = rig.to_str().unwrap();
     let at = |line: usize| format!("lls-gantry.toml:{line}: ");
-    let cases: [(&str, String); 5] = [
+    let cases: [(&str, String); 6] = [
         (
             "plan.pass_mm=[-300, 100]",
             at(68) + "plan.pass_mm: -300 mm is outside the limits -200..=200 mm (the gantry's [[stepper]] limits)",
@@ -172,6 +172,12 @@ fn plan_values_and_the_fit_table_are_checked_before_anything_moves() {
             at(79) + "plan.fit: unknown field `offset_m`, expected `offset_mm` or `angle_deg`",
         ),
         ("plan.fit.light=", at(79) + "plan.fit: missing field `light`"),
+        (
+            "laser[1].name=\"led-tube\"",
+            at(75)
+                + "plan.passes: a reflectance pass needs the [[laser]] named `light-tube`; the rig's lasers are \
+                   named: stripe, led-tube",
+        ),
     ];
     for (k, (set, expected)) in cases.iter().enumerate() {
         let session = dir.join(format!("s{k}"));

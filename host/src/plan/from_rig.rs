@@ -379,6 +379,31 @@ fn lls_plan(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
         .map(|(_, p)| p)
         .collect(),
     };
+    // Each light is the laser of its name; a pass whose light the rig does not name is refused
+    // (before, a renamed tube left the reflectance passes on laser 0, the stripe, unseen).
+    for (name, needs) in [
+        ("light-tube", "a reflectance pass"),
+        ("stripe", "the stripe pass"),
+        ("backlight", "the backlit pass"),
+    ] {
+        let wanted = passes.iter().any(|p| match p {
+            lls::Pass::Reflectance { .. } => name == "light-tube",
+            lls::Pass::Stripe => name == "stripe",
+            lls::Pass::Backlit => name == "backlight",
+            _ => false,
+        });
+        if wanted && !has(name) {
+            let known: Vec<_> = rig.lasers.iter().filter_map(|l| l.name.clone()).collect();
+            return Err(rig.error(
+                "plan.passes",
+                format!(
+                    "{needs} needs the [[laser]] named `{name}`; the rig's lasers are named: {} \
+                     (name the laser that does it `{name}`, or leave the pass out of plan.passes)",
+                    if known.is_empty() { "none".to_string() } else { known.join(", ") }
+                ),
+            ));
+        }
+    }
     let light = if has("light-tube") { laser_named(rig, "laser", "light-tube")? } else { 0 };
     let stripe = if has("stripe") { laser_named(rig, "laser", "stripe")? } else { 0 };
     let backlight = if has("backlight") { Some(laser_named(rig, "laser", "backlight")?) } else { None };
