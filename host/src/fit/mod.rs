@@ -72,6 +72,9 @@ pub fn check_rig(rig: &crate::rigfile::RigFile) -> Result<Option<String>, FitErr
             None => Ok(missing("the targets, the volume, the laser direction and the turntable")),
             Some(r) => r.map(|_| None).map_err(|e| fail(e.to_string())),
         },
+        Method::Disco if !rig.plan.contains_key("fit") => {
+            Ok(missing("the camera, the projector and the white target"))
+        }
         Method::Disco => {
             crate::disco::DiscoSetup::from_rig(rig).map(|_| None).map_err(|e| fail(e.to_string()))
         }
