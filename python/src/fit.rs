@@ -329,7 +329,6 @@ pub fn fit_disco<'py>(
         // The local term on its atlas: each texture `(height, width, 3)` as `<name>.exr` holds it,
         // the masks of the texels on the charts and of those a spot (or a frame) gave.
         let (w, h) = (f.atlas.width.max(1) as usize, f.atlas.height.max(1) as usize);
-        let mask = |m: Vec<bool>| array(py, m, &[h, w]);
         d.set_item(
             "textures",
             dict(py, |t| {
@@ -339,20 +338,15 @@ pub fn fit_disco<'py>(
                 Ok(())
             })?,
         )?;
-        let on_atlas =
-            |m: &[bool]| (0..w * h).map(|i| m.get(i).copied().unwrap_or(false)).collect::<Vec<_>>();
+        let mask = |m: &[bool]| {
+            array(py, (0..w * h).map(|i| m.get(i).copied().unwrap_or(false)).collect::<Vec<_>>(), &[h, w])
+        };
         let covered: Vec<bool> = f.atlas.texels.iter().map(Option::is_some).collect();
-        d.set_item("covered", mask(on_atlas(&covered))?)?;
-        d.set_item("kernel_observed", mask(on_atlas(&f.local.observed))?)?;
-        d.set_item("detail_observed", mask(on_atlas(&f.detail.observed))?)?;
+        d.set_item("covered", mask(&covered)?)?;
+        d.set_item("kernel_observed", mask(&f.local.observed)?)?;
+        d.set_item("detail_observed", mask(&f.detail.observed)?)?;
         d.set_item("atlas", object(py, &disco::atlas_json(&f))?)?;
-        let spots: Vec<_> = f
-            .spots
-            .iter()
-            .map(|k| disco::spot_json(k, true))
-            .chain(f.local_rejected.iter().map(|k| disco::spot_json(k, false)))
-            .collect();
-        d.set_item("spots", object(py, &spots)?)?;
+        d.set_item("spots", object(py, &disco::spots_json(&f))?)?;
         d.set_item("local_hidden", f.local_hidden)?;
         d.set_item("local_failed", f.local_failed)?;
         d.set_item("files", paths(&files))

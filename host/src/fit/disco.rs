@@ -1192,9 +1192,15 @@ fn judge_spots(
     hits
 }
 
+/// Every spot's local fit as `fit.json` lists it, the kept ones first ([`spot_json`]).
+pub fn spots_json(fit: &DiscoFit) -> Vec<serde_json::Value> {
+    let kept = fit.spots.iter().map(|k| spot_json(k, true));
+    kept.chain(fit.local_rejected.iter().map(|k| spot_json(k, false))).collect()
+}
+
 /// A spot's local fit in `fit.json`: where and how its beam entered, the blur taken out, `m(d)`
 /// and its misfit, and whether it went into the kernel textures.
-pub fn spot_json(k: &SpotKernel, kept: bool) -> serde_json::Value {
+fn spot_json(k: &SpotKernel, kept: bool) -> serde_json::Value {
     let p = &k.profile;
     serde_json::json!({
         "view": k.view, "code": k.code, "point_mm": k.point, "incidence_deg": k.angle_deg,
@@ -1625,8 +1631,7 @@ pub fn write_outputs(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitErro
         "local": { "spots_fitted": fit.spots.len(), "spots_unseen": fit.local_hidden, "spots_failed": fit.local_failed, "spots_rejected": fit.local_rejected.len(),
                    "texel_mm": fit.atlas.texel_mm, "atlas": [fit.atlas.width, fit.atlas.height],
                    "observed_texels": fit.local.observed.iter().filter(|&&o| o).count(),
-                   "spots": fit.spots.iter().map(|k| spot_json(k, true))
-                       .chain(fit.local_rejected.iter().map(|k| spot_json(k, false))).collect::<Vec<_>>() },
+                   "spots": spots_json(fit) },
         "detail": { "observed_texels": fit.detail.observed.iter().filter(|&&o| o).count() },
         "held_out": { "frames": fit.held_out.frames, "pixels": fit.held_out.pixels,
                       "median_relative_rms": fit.held_out.median_rel_rms, "near_field_excluded_mm": fit.held_out.near_mm,

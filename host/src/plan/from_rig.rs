@@ -381,18 +381,14 @@ fn lls_plan(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
     };
     // Each light is the laser of its name; a pass whose light the rig does not name is refused
     // (before, a renamed tube left the reflectance passes on laser 0, the stripe, unseen).
-    for (name, needs) in [
-        ("light-tube", "a reflectance pass"),
-        ("stripe", "the stripe pass"),
-        ("backlight", "the backlit pass"),
-    ] {
-        let wanted = passes.iter().any(|p| match p {
-            lls::Pass::Reflectance { .. } => name == "light-tube",
-            lls::Pass::Stripe => name == "stripe",
-            lls::Pass::Backlit => name == "backlight",
-            _ => false,
-        });
-        if wanted && !has(name) {
+    for pass in &passes {
+        let (name, needs) = match pass {
+            lls::Pass::Reflectance { .. } => ("light-tube", "a reflectance pass"),
+            lls::Pass::Stripe => ("stripe", "the stripe pass"),
+            lls::Pass::Backlit => ("backlight", "the backlit pass"),
+            lls::Pass::Board | lls::Pass::LightBox => continue,
+        };
+        if !has(name) {
             let known: Vec<_> = rig.lasers.iter().filter_map(|l| l.name.clone()).collect();
             return Err(rig.error(
                 "plan.passes",
