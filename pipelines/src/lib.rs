@@ -17,6 +17,7 @@ pub mod brrdf;
 pub mod disco;
 pub mod display;
 pub mod firs;
+pub mod ggx;
 pub mod lls;
 pub mod quad;
 pub mod vec3;

@@ -69,6 +69,30 @@ pub fn fit_lls<'py>(
         d.set_item("specular", array(py, rgb(&|t| t.specular), &[h, w, 3])?)?;
         d.set_item("alpha", array(py, per(&|t| t.alpha), &[h, w])?)?;
         d.set_item("residual", array(py, per(&|t| t.residual), &[h, w])?)?;
+        // The GGX fit of the same traces (`maps.exr`'s `ggx.*` layers), where it was made.
+        match &maps.ggx {
+            Some(g) => {
+                let per = |f: &dyn Fn(&lightrig_pipelines::lls::TraceFit) -> Vec<f64>| -> Vec<f32> {
+                    g.iter()
+                        .zip(&maps.fitted)
+                        .flat_map(|(t, &ok)| {
+                            let v = f(t);
+                            v.iter().map(|&x| if ok { x as f32 } else { f32::NAN }).collect::<Vec<_>>()
+                        })
+                        .collect()
+                };
+                d.set_item(
+                    "ggx",
+                    dict(py, |gd| {
+                        gd.set_item("diffuse", array(py, per(&|t| t.diffuse.to_vec()), &[h, w, 3])?)?;
+                        gd.set_item("specular", array(py, per(&|t| t.specular.to_vec()), &[h, w, 3])?)?;
+                        gd.set_item("alpha", array(py, per(&|t| vec![t.alpha]), &[h, w])?)?;
+                        gd.set_item("residual", array(py, per(&|t| vec![t.residual]), &[h, w])?)
+                    })?,
+                )?;
+            }
+            None => d.set_item("ggx", py.None())?,
+        }
         d.set_item("points", vectors(py, &maps.points, &[h, w])?)?;
         d.set_item("normals", vectors(py, &maps.normals, &[h, w])?)?;
         d.set_item("geometric_normals", vectors(py, &maps.geometric_normals, &[h, w])?)?;

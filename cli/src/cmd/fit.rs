@@ -31,12 +31,16 @@ pub struct Args {
     /// to the session directory).
     #[arg(long)]
     pub mesh: Option<PathBuf>,
+    /// `lls`: the reflectance models, `both` (Ward, then GGX on the same traces; the Mitsuba
+    /// export needs GGX) or `ward` (else the rig file's `[plan.fit] models`, else `both`).
+    #[arg(long)]
+    pub model: Option<lls::Models>,
 }
 
 /// Runs `lightrig fit`.
 pub fn run(args: &Args) -> ExitCode {
     match args.pipeline.as_str() {
-        "lls" => fit_lls(&args.session, args.calibration.as_deref(), &args.out),
+        "lls" => fit_lls(&args.session, args.calibration.as_deref(), &args.out, args.model),
         "firs-surface" => fit_firs_surface(&args.session, &args.out),
         "firs-volume" => fit_firs_volume(&args.session, &args.out),
         "display" | "brdf-display" => fit_display(&args.session, args.calibration.as_deref(), &args.out),
@@ -51,11 +55,13 @@ pub fn run(args: &Args) -> ExitCode {
     }
 }
 
-/// `lightrig fit lls SESSION --out DIR [--calibration FILE]`.
-fn fit_lls(session: &Path, calibration: Option<&Path>, out: &Path) -> ExitCode {
+/// `lightrig fit lls SESSION --out DIR [--calibration FILE] [--model both|ward]`.
+fn fit_lls(session: &Path, calibration: Option<&Path>, out: &Path, models: Option<lls::Models>) -> ExitCode {
     let bar = indicatif::ProgressBar::new(0);
     let b = bar.clone();
-    let maps = lls::fit_session(session, calibration, out, &move |done, total| {
+    let tables = lls::default_tables_file();
+    let streaming = lls::Streaming { scratch: out, block_bytes: lls::BLOCK_BYTES, tables: tables.as_deref() };
+    let maps = lls::fit_session_with(session, calibration, streaming, models, &move |done, total| {
         b.set_length(total);
         b.set_position(done);
     });

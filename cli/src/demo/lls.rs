@@ -11,7 +11,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use lightrig_host::fit::lls::{fit_session, write_outputs, LlsMaps, NormalBlend};
+use lightrig_host::fit::lls::{export, fit_session, write_outputs, LlsMaps, NormalBlend};
 use lightrig_imaging::io::{write_exr_layers, ExrPrecision, Layer};
 use lightrig_pipelines::vec3::angle;
 use lightrig_sim::scenes::lls::{LlsScene, LlsSceneSpec, Region};
@@ -360,6 +360,123 @@ pub fn roughness_by_material(scene: &LlsScene, m: &LlsMaps) -> Vec<(f64, usize, 
         .collect()
 }
 
+/// One material of the scene under the two models fitted to the same traces (medians).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ModelRow {
+    /// The true Ward α (the material's key).
+    pub alpha: f64,
+    pub pixels: usize,
+    pub ward_residual: f64,
+    pub ggx_residual: f64,
+    pub ggx_alpha: f64,
+}
+
+/// [`ModelRow`] per material of the scene; `None` without a GGX fit.
+pub fn models_by_material(scene: &LlsScene, m: &LlsMaps) -> Option<Vec<ModelRow>> {
+    let ggx = m.ggx.as_ref()?;
+    let rows = scene
+        .spec
+        .tiles
+        .iter()
+        .map(|tile| {
+            let px: Vec<usize> = (0..scene.truth.len())
+                .filter(|&i| {
+                    let t = &scene.truth[i];
+                    t.region == Region::Sample && m.fitted[i] && t.material.alpha == tile.alpha
+                })
+                .collect();
+            let of = |f: &dyn Fn(usize) -> f64| median(px.iter().map(|&i| f(i)).collect());
+            ModelRow {
+                alpha: tile.alpha,
+                pixels: px.len(),
+                ward_residual: of(&|i| m.fit[i].residual),
+                ggx_residual: of(&|i| ggx[i].residual),
+                ggx_alpha: of(&|i| ggx[i].alpha),
+            }
+        })
+        .collect();
+    Some(rows)
+}
+
+/// The fit's images under the check light ([`export::check_light`]) against the true sample's:
+/// over the fitted sample pixels, the median and 95th percentile of the relative error of the
+/// pixel's RGB sum.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RelitError {
+    pub pixels: usize,
+    pub median: f64,
+    pub p95: f64,
+}
+
+/// [`RelitError`] of `image` (interleaved RGB) against `truth`.
+pub fn relit_error(scene: &LlsScene, m: &LlsMaps, image: &[f32], truth: &[[f64; 3]]) -> RelitError {
+    let mut e: Vec<f64> = (0..truth.len())
+        .filter(|&i| scene.truth[i].region == Region::Sample && m.fitted[i])
+        .filter_map(|i| {
+            let want: f64 = truth[i].iter().sum();
+            let got: f64 = (0..3).map(|c| f64::from(image[i * 3 + c])).sum();
+            (want > 0.0).then(|| (got / want - 1.0).abs())
+        })
+        .collect();
+    e.sort_by(f64::total_cmp);
+    let at = |q: f64| e.get(((e.len() as f64 - 1.0) * q).round() as usize).copied().unwrap_or(f64::NAN);
+    RelitError { pixels: e.len(), median: at(0.5), p95: at(0.95) }
+}
+
+/// What [`relight_check`] found and wrote.
+struct RelightCheck {
+    ward: Option<RelitError>,
+    ggx: Option<RelitError>,
+    png: Option<PathBuf>,
+}
+
+/// Writes `truth/point-light.exr` (the true sample under the check light) and `fit/relight.png`
+/// (truth | GGX fit | ten times the absolute error, one exposure for all three); returns the
+/// Ward and GGX errors.
+fn relight_check(scene: &LlsScene, m: &LlsMaps, out: &Path) -> Result<RelightCheck, CliError> {
+    let light = export::check_light(m);
+    let truth = scene.point_lit(light.position, light.intensity);
+    let (w, h) = (m.width, m.height);
+    let flat: Vec<f32> = truth.iter().flat_map(|v| v.map(|x| x as f32)).collect();
+    let p = out.join("truth").join("point-light.exr");
+    write_exr_layers(&p, &[Layer::linear("", &["R", "G", "B"], w, h, flat.clone())], ExrPrecision::Float)
+        .map_err(failure)?;
+    let ward = export::relit(m, export::Model::Ward, &light);
+    let ggx = export::relit(m, export::Model::Ggx, &light);
+    let err = |img: &Option<Vec<f32>>| img.as_ref().map(|i| relit_error(scene, m, i, &truth));
+    let (ew, eg) = (err(&ward), err(&ggx));
+    let Some(g) = &ggx else { return Ok(RelightCheck { ward: ew, ggx: eg, png: None }) };
+    // One exposure: the truth's 99th percentile to white.
+    let mut lum: Vec<f32> = flat.clone();
+    lum.sort_by(f32::total_cmp);
+    let white = lum[((lum.len() - 1) as f64 * 0.99) as usize].max(1e-12);
+    let (wu, hu) = (w as usize, h as usize);
+    let mut strip = vec![0f32; wu * hu * 9];
+    for y in 0..hu {
+        for x in 0..wu {
+            let i = y * wu + x;
+            for c in 0..3 {
+                let (t, f) = (flat[i * 3 + c], g[i * 3 + c]);
+                let row = y * 3 * wu;
+                strip[(row + x) * 3 + c] = t / white;
+                strip[(row + wu + x) * 3 + c] = f / white;
+                strip[(row + 2 * wu + x) * 3 + c] = 10.0 * (f - t).abs() / white;
+            }
+        }
+    }
+    let img = lightrig_imaging::io::Image {
+        width: w * 3,
+        height: h,
+        channels: 3,
+        data: strip.iter().map(|v| v.clamp(0.0, 1.0)).collect(),
+        encoding: lightrig_imaging::io::Encoding::Linear,
+    };
+    let png = out.join("fit").join("relight.png");
+    lightrig_imaging::io::write_png(&png, &img.to_srgb(), lightrig_imaging::io::BitDepth::Eight)
+        .map_err(failure)?;
+    Ok(RelightCheck { ward: ew, ggx: eg, png: Some(png) })
+}
+
 /// Runs the linear-light-source demo; returns the accuracy and the report's path.
 pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
     let t0 = Instant::now();
@@ -484,6 +601,36 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
     r.line("\nRoughness by material:\n\n| α | pixels | median rel error |\n|---|---|---|");
     for (a, n, e) in roughness_by_material(scene, &maps) {
         r.line(format_args!("| {a} | {n} | {e:.4} |"));
+    }
+    if let Some(rows) = models_by_material(scene, &maps) {
+        r.line(
+            "\nWard and GGX fitted to the same traces with the same normals (`maps.exr` layers `ggx.*`), \
+             by material (residual: RMS relative to the trace's):\n\n\
+             | true Ward α | pixels | Ward residual | GGX residual | GGX α |\n|---|---|---|---|---|",
+        );
+        for m in rows {
+            r.line(format_args!(
+                "| {} | {} | {:.4} | {:.4} | {:.4} |",
+                m.alpha, m.pixels, m.ward_residual, m.ggx_residual, m.ggx_alpha
+            ));
+        }
+    }
+    let RelightCheck { ward: ew, ggx: eg, png } = relight_check(scene, &maps, out)?;
+    let light = lightrig_host::fit::lls::export::check_light(&maps);
+    r.line(format_args!(
+        "\nUnder a light no frame used (a point at ({:.1}, {:.1}, {:.1}) mm, its highlight mid-sample; \
+         `truth/point-light.exr` is the true sample's image, `fit/relit-point.exr` the maps', \
+         `fit/mitsuba/scene.xml` the GGX fit for Mitsuba 3), relative error of each sample pixel:\n\n\
+         | model | pixels | median | 95th percentile |\n|---|---|---|---|",
+        light.position[0], light.position[1], light.position[2]
+    ));
+    for (name, e) in [("Ward", ew), ("GGX", eg)] {
+        if let Some(e) = e {
+            r.line(format_args!("| {name} | {} | {:.4} | {:.4} |", e.pixels, e.median, e.p95));
+        }
+    }
+    if png.is_some() {
+        r.line("\n![truth, GGX fit, 10 × |error| under the check light](fit/relight.png)\n");
     }
     r.outputs(&files);
     let report_path = out.join("report.md");

@@ -40,9 +40,9 @@ pub use model::{Sweep, TabledTraces, TraceModel};
 pub use table::{lobe_geometry, AlphaLobes, LobeGeometry, LobeTables, PixelLobes, TableLobe};
 
 pub use fit::{
-    blend_normals, blend_normals_by_gloss, fit_normal, fit_tabled_traces, fit_trace, fit_trace_tabled,
-    normals_from_points, point_on_sheet, strip_ratio, strip_scale, strip_scale_of, stripe_peak, PassTrace,
-    StripTrace, TraceFit,
+    blend_normals, blend_normals_by_gloss, fit_normal, fit_tabled_traces, fit_trace, fit_trace_ggx,
+    fit_trace_tabled, normals_from_points, point_on_sheet, strip_ratio, strip_scale, strip_scale_of,
+    stripe_peak, PassTrace, StripTrace, TraceFit,
 };
 
 use lightrig_imaging::calib::{find_chessboard, pixel_ray, pose_from_board, Board, Intrinsics, Pose};

@@ -409,6 +409,24 @@ impl LlsScene {
         LlsScene { spec, truth, board_points, quad: Quadrature::render() }
     }
 
+    /// The true sample as the camera sees it under an isotropic point light at `light` (mm) of
+    /// radiant `intensity`: per pixel (row-major) the true Ward BRDF at the pixel centre's
+    /// surface point times `n·ωi`·intensity/distance², unshadowed. The check for renderers'
+    /// exports: a light no frame of the session used.
+    pub fn point_lit(&self, light: V3, intensity: f64) -> Vec<[f64; 3]> {
+        self.truth
+            .iter()
+            .map(|t| {
+                let to = sub(light, t.point);
+                let d2 = to[0] * to[0] + to[1] * to[1] + to[2] * to[2];
+                let wi = normalize(to);
+                let f = t.material.eval(t.normal, wi, t.view);
+                let cos = (t.normal[0] * wi[0] + t.normal[1] * wi[1] + t.normal[2] * wi[2]).max(0.0);
+                f.map(|v| v * cos * intensity / d2)
+            })
+            .collect()
+    }
+
     fn board_white(&self, x: f64, y: f64) -> bool {
         let b = &self.spec.board;
         let (i, j) =

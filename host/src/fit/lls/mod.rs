@@ -12,15 +12,16 @@
 //! ([`fit_normal`]), blended ([`blend_normals`]), and the straight pass is fitted once more
 //! with the blended normals, as Gardner et al. do.
 
+pub mod export;
 pub mod stack;
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
-use lightrig_imaging::calib::Intrinsics;
+use lightrig_imaging::calib::{Intrinsics, Pose};
 use lightrig_imaging::io::{write_exr_layers, write_png, BitDepth, Encoding, ExrPrecision, Image, Layer};
 use lightrig_pipelines::lls::{
-    blend_normals, blend_normals_by_gloss, fit_normal, fit_tabled_traces, normals_from_points,
+    blend_normals, blend_normals_by_gloss, fit_normal, fit_tabled_traces, fit_trace_ggx, normals_from_points,
     point_on_sheet, register, strip_ratio, strip_scale_of, stripe_peak, BoardGeometry, Light, LobeTables,
     PassTrace, Registration, Setup, Sheet, Strip, Sweep, TabledTraces, TraceFit, TraceModel,
 };
@@ -56,6 +57,34 @@ pub struct FitSpec {
     /// (default: the displacement map's low frequencies, the specular normals' detail) or
     /// `"gloss"` (Gardner et al. §7.2: by `ρs/α`, specular above 0.5, displacement below 0.2).
     pub normal_blend: Option<NormalBlend>,
+    /// The reflectance models fitted: `"both"` (default: Ward, then GGX on the same traces
+    /// and normals) or `"ward"` (Ward alone: GGX integrates its long tails per pixel and
+    /// trial, a few seconds on the demo, minutes on a megapixel camera).
+    /// `lightrig fit lls --model` overrides it.
+    pub models: Option<Models>,
+}
+
+/// Which reflectance models a fit gives ([`FitSpec::models`]). There is no GGX-only fit: GGX
+/// starts from the Ward fit, whose traces also give the normals.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Models {
+    /// Ward, then GGX ([`lightrig_pipelines::ggx`]) fitted to the same traces.
+    #[default]
+    Both,
+    /// Ward alone.
+    Ward,
+}
+
+impl std::str::FromStr for Models {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "both" => Ok(Models::Both),
+            "ward" => Ok(Models::Ward),
+            other => Err(format!("`{other}` is not a model set: `both` (Ward and GGX) or `ward`")),
+        }
+    }
 }
 
 /// How the two normal estimates are combined ([`FitSpec::normal_blend`]).
@@ -160,7 +189,11 @@ pub struct LlsMaps {
     pub height: u32,
     /// Pixels fitted (on neither strip, with a surface point).
     pub fitted: Vec<bool>,
+    /// The Ward fit ([`lightrig_pipelines::ward`]).
     pub fit: Vec<TraceFit>,
+    /// The GGX fit of the same traces with the same normals ([`lightrig_pipelines::ggx`]),
+    /// where [`FitSpec::models`] asks for it.
+    pub ggx: Option<Vec<TraceFit>>,
     /// Surface points, mm.
     pub points: Vec<Option<V3>>,
     /// The normals the final fit used (blended when there were diagonal passes).
@@ -179,8 +212,11 @@ pub struct LlsMaps {
     /// The mount angles of the diagonal passes used, degrees.
     pub diagonal_mounts: Vec<i64>,
     pub translucency: Vec<f32>,
-    /// The camera registration.
+    /// The camera registration: its reprojection RMS, pixels; the intrinsics the fit used and
+    /// the pose (world → camera) from the board frame.
     pub registration_rms: f64,
+    pub intrinsics: Intrinsics,
+    pub pose: Pose,
     /// The light's scale per channel from the diffuse strip.
     pub scale: [f64; 3],
     /// The specular strip's fitted specular albedo (median), against its known value.
@@ -423,7 +459,7 @@ pub fn fit_session(
 ) -> Result<LlsMaps, FitError> {
     let tables = default_tables_file();
     let streaming = Streaming { scratch, block_bytes: BLOCK_BYTES, tables: tables.as_deref() };
-    fit_session_with(dir, calibration, streaming, progress)
+    fit_session_with(dir, calibration, streaming, None, progress)
 }
 
 /// [`fit_session`] with the streaming's scratch directory and block budget given. Every
@@ -431,10 +467,12 @@ pub fn fit_session(
 /// stripe) are written block-major to scratch files and fitted one block of pixels at a time,
 /// so that the traces resident at once take at most `block_bytes` (or one pixel's traces,
 /// if more) whatever the number of frames. The maps do not depend on the block size.
+/// `models`, where given, overrides the rig file's [`FitSpec::models`].
 pub fn fit_session_with(
     dir: &Path,
     calibration: Option<&Path>,
     streaming: Streaming,
+    models: Option<Models>,
     progress: &(dyn Fn(u64, u64) + Sync),
 ) -> Result<LlsMaps, FitError> {
     let (session, _) = Session::read(dir).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
@@ -675,7 +713,8 @@ pub fn fit_session_with(
     let scale = strip_scale_of(&strip_ratios)
         .ok_or_else(|| fail("no pixel sees the diffuse calibration strip: check [plan.fit.diffuse_strip]"))?;
     // Progress: the first fit, then (with diagonal passes) the normals and the refit.
-    let rounds = if diagonal.is_empty() { 1 } else { 3 };
+    let models = models.or(spec.models).unwrap_or_default();
+    let rounds = if diagonal.is_empty() { 1 } else { 3 } + usize::from(models == Models::Both);
     let total = (w * h * rounds) as u64;
     let done = AtomicU64::new(0);
     let tick = || {
@@ -871,6 +910,41 @@ pub fn fit_session_with(
             }
         }
     }
+    // GGX on the straight pass' traces with the final normals, its search started from the
+    // Ward fit's α (the two α agree to tens of per cent on these lobes).
+    let ggx = if models == Models::Both {
+        let mut ggx = vec![TraceFit::default(); w * h];
+        for b in 0..blocks {
+            read(&mut reflect, b, &mut block)?;
+            let blk = &block;
+            let got: Vec<TraceFit> = gathers_of(blk.pixels.clone())
+                .into_par_iter()
+                .flat_map_iter(|batch| {
+                    let gathered = blk.gather(batch.clone());
+                    let out: Vec<_> = batch
+                        .map(|i| {
+                            let out = match (fitted[i], points[i], normals[i]) {
+                                (true, Some(p), Some(n)) => {
+                                    let v = normalize(sub(reg.rays[i].0, p));
+                                    let (obs, valid) = trace_in(&gathered, &sweep, i, p, v, scale);
+                                    let model = TraceModel::of(p, v, &sweep);
+                                    fit_trace_ggx(&obs, &valid, &model, n, Some(&fit[i]))
+                                }
+                                _ => TraceFit::default(),
+                            };
+                            tick();
+                            out
+                        })
+                        .collect();
+                    out
+                })
+                .collect();
+            ggx[blk.pixels.clone()].copy_from_slice(&got);
+        }
+        Some(ggx)
+    } else {
+        None
+    };
     drop(block);
     // Keep what was built for the next fit (a failure to write costs the next fit the time
     // to build them again, nothing else: said, not fatal).
@@ -921,6 +995,7 @@ pub fn fit_session_with(
         height: h as u32,
         fitted,
         fit,
+        ggx,
         points,
         normals,
         geometric_normals,
@@ -931,6 +1006,8 @@ pub fn fit_session_with(
         diagonal_mounts: diagonal_pos.iter().map(|(m, _)| *m).collect(),
         translucency,
         registration_rms: reg.rms,
+        intrinsics: setup.intrinsics,
+        pose: reg.pose,
         scale,
         specular_strip,
         check_frame: (check_gantry, captured, predicted),
@@ -969,6 +1046,30 @@ pub fn write_outputs(m: &LlsMaps, out: &Path) -> Result<Vec<PathBuf>, FitError> 
         Layer::linear("translucency", &["Y"], w, h, m.translucency.clone()),
         Layer::linear("residual", &["Y"], w, h, resid),
     ];
+    let mut layers = layers;
+    if let Some(ggx) = &m.ggx {
+        let pick = |f: &dyn Fn(&TraceFit) -> Vec<f32>, ch: usize| -> Vec<f32> {
+            (0..n).flat_map(|i| if on(i) { f(&ggx[i]) } else { vec![0.0; ch] }).collect()
+        };
+        layers.extend([
+            Layer::linear(
+                "ggx.diffuse",
+                &["R", "G", "B"],
+                w,
+                h,
+                pick(&|f| f.diffuse.map(|v| v as f32).to_vec(), 3),
+            ),
+            Layer::linear(
+                "ggx.specular",
+                &["R", "G", "B"],
+                w,
+                h,
+                pick(&|f| f.specular.map(|v| v as f32).to_vec(), 3),
+            ),
+            Layer::linear("ggx.alpha", &["Y"], w, h, pick(&|f| vec![f.alpha as f32], 1)),
+            Layer::linear("ggx.residual", &["Y"], w, h, pick(&|f| vec![f.residual as f32], 1)),
+        ]);
+    }
     let exr = out.join("maps.exr");
     write_exr_layers(&exr, &layers, ExrPrecision::Float).map_err(|e| fail(e.to_string()))?;
     let mut files = vec![exr];
@@ -990,11 +1091,12 @@ pub fn write_outputs(m: &LlsMaps, out: &Path) -> Result<Vec<PathBuf>, FitError> 
     let (_, cap, pred) = &m.check_frame;
     let peak = cap.iter().fold(0f32, |a, &v| a.max(v)).max(1e-12);
     let light = [0.0, 0.0, 150.0];
+    let eye = m.pose.camera_centre();
     let mut relit = vec![0f32; n * 3];
     for i in 0..n {
         if let (true, Some(p), Some(nn)) = (m.fitted[i], m.points[i], m.normals[i]) {
             let wi = normalize(sub(light, p));
-            let wo = normalize([-p[0] - 175.0, -p[1], 303.0 - p[2]]);
+            let wo = normalize(sub(eye, p));
             let f = Ward {
                 diffuse: m.fit[i].diffuse,
                 specular: m.fit[i].specular,
@@ -1028,5 +1130,20 @@ pub fn write_outputs(m: &LlsMaps, out: &Path) -> Result<Vec<PathBuf>, FitError> 
     let p = out.join("relit.png");
     write_png(&p, &img.to_srgb(), BitDepth::Eight).map_err(|e| fail(e.to_string()))?;
     files.push(p);
+    // The check light's images from the maps (`export::check_light`), Ward's and GGX's, and
+    // the Mitsuba scene of the GGX fit under the same light.
+    let light = export::check_light(m);
+    let mut relit_layers = Vec::new();
+    for (name, model) in [("ward", export::Model::Ward), ("ggx", export::Model::Ggx)] {
+        if let Some(img) = export::relit(m, model, &light) {
+            relit_layers.push(Layer::linear(name, &["R", "G", "B"], w, h, img));
+        }
+    }
+    let p = out.join("relit-point.exr");
+    write_exr_layers(&p, &relit_layers, ExrPrecision::Float).map_err(|e| fail(e.to_string()))?;
+    files.push(p);
+    if m.ggx.is_some() {
+        files.extend(export::write_mitsuba(m, &out.join("mitsuba"), &light)?);
+    }
     Ok(files)
 }
