@@ -88,9 +88,21 @@ fn the_quick_brrdf_demo_scales_bins_and_reconstructs_against_the_truth() {
     assert!(bottom[1] > 10.0 * top[1].max(1e-6), "fluorescent {bottom:?} against {top:?}");
     let day = render(&r.fit, r.fit.pca_angles[0], RENDER_ILLUMINANTS[0])[centre(0)];
     assert!(day[0] > day[1] && day[1] > day[2], "orange in daylight: {day:?}");
-    for f in
-        ["render-d65.png", "render-a.png", "render-led400.png", "spectral-70deg.exr", "spectral-140deg.exr"]
-    {
+    // Each sphere's reradiation matrix, one pixel per PCA angle, reads back as written.
+    let m = BispectralImage::read(out.join("fit/reradiation-bottom.exr")).unwrap();
+    assert_eq!(m, lightrig_host::fit::brrdf::sphere_matrix(&r.fit, 1));
+    assert_eq!(
+        (m.width, m.height, m.diagonal.len() + m.reradiation.len()),
+        (r.fit.pca_angles.len() as u32, 1, 153)
+    );
+    for f in [
+        "render-d65.png",
+        "render-a.png",
+        "render-led400.png",
+        "spectral-70deg.exr",
+        "spectral-140deg.exr",
+        "reradiation-top.exr",
+    ] {
         assert!(out.join("fit").join(f).exists(), "{f}");
     }
     let report = std::fs::read_to_string(&r.report).unwrap();

@@ -42,6 +42,12 @@ fn lls_demo_meets_the_accuracy_targets() {
         "fit/mitsuba/specular.exr",
         "fit/mitsuba/alpha.exr",
         "fit/mitsuba/normal.exr",
+        "fit/gltf/sample.gltf",
+        "fit/gltf/sample.bin",
+        "fit/gltf/base_color.png",
+        "fit/gltf/metallic_roughness.png",
+        "fit/gltf/normal.png",
+        "fit/gltf/specular_color.png",
     ] {
         assert!(out.join(f).exists(), "{f} missing");
     }

@@ -66,18 +66,27 @@ fn parse() -> Result<Args, String> {
     if a.shift > 10 {
         return Err("--shift: 0..=10 (2^N ns per instruction)".into());
     }
+    // Refused here, not by each check when it opens the board.
+    if let Some(spec) = &a.usb {
+        usb_ids(spec)?;
+    }
     Ok(a)
 }
 
-/// `VID:PID[:SERIAL]` → a transport: the lightrig vendor interface when the ids are
-/// lightrig's, else the CDC-ACM serial port the system lists with those ids.
-fn open_usb(spec: &str, baud: u32) -> Result<Box<dyn Transport>, String> {
+/// `VID:PID[:SERIAL]` → the ids and the serial, if given.
+fn usb_ids(spec: &str) -> Result<(u16, u16, Option<&str>), String> {
     let mut parts = spec.split(':');
     let hex = |s: Option<&str>| -> Result<u16, String> {
         u16::from_str_radix(s.unwrap_or(""), 16).map_err(|_| format!("--usb {spec}: expected VID:PID in hex"))
     };
     let (vid, pid) = (hex(parts.next())?, hex(parts.next())?);
-    let serial = parts.next();
+    Ok((vid, pid, parts.next()))
+}
+
+/// `VID:PID[:SERIAL]` → a transport: the lightrig vendor interface when the ids are
+/// lightrig's, else the CDC-ACM serial port the system lists with those ids.
+fn open_usb(spec: &str, baud: u32) -> Result<Box<dyn Transport>, String> {
+    let (vid, pid, serial) = usb_ids(spec)?;
     use lightrig_host::transport::{USB_PID, USB_VID};
     if (vid, pid) == (USB_VID, USB_PID) {
         return Ok(Box::new(UsbTransport::open(serial).map_err(|e| e.to_string())?));

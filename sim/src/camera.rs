@@ -55,6 +55,14 @@ pub trait Scene: Send + Sync {
     fn size(&self) -> (u32, u32);
     /// Linear RGB radiance of pixel `(x, y)` in `state`.
     fn radiance(&self, x: u32, y: u32, state: &RigState) -> [f64; 3];
+    /// Row `y`'s radiance in `state`, one entry per column of `out`: the camera renders by
+    /// rows, so a scene with work shared by a frame's pixels (finding its view, its beam)
+    /// does it once a row here instead of once a pixel.
+    fn radiance_row(&self, y: u32, state: &RigState, out: &mut [[f64; 3]]) {
+        for (x, o) in out.iter_mut().enumerate() {
+            *o = self.radiance(x as u32, y, state);
+        }
+    }
 }
 
 impl<S: Scene + ?Sized> Scene for Box<S> {
@@ -64,6 +72,10 @@ impl<S: Scene + ?Sized> Scene for Box<S> {
 
     fn radiance(&self, x: u32, y: u32, state: &RigState) -> [f64; 3] {
         (**self).radiance(x, y, state)
+    }
+
+    fn radiance_row(&self, y: u32, state: &RigState, out: &mut [[f64; 3]]) {
+        (**self).radiance_row(y, state, out)
     }
 }
 
@@ -379,14 +391,18 @@ pub fn render_exposure<S: Scene + ?Sized>(
     let mut img = Image::new(w, h, ch as u8);
     let exposure_s = states.first().map_or(0.0, |(_, s)| s.exposure_s);
     img.data.par_chunks_mut(w as usize * ch).enumerate().for_each(|(y, row)| {
-        for x in 0..w {
-            let mut l = [0.0; 3];
-            for (f, state) in states {
-                let r = scene.radiance(x, y as u32, state);
+        let mut sum = vec![[0.0; 3]; w as usize];
+        let mut one = vec![[0.0; 3]; w as usize];
+        for (f, state) in states {
+            scene.radiance_row(y as u32, state, &mut one);
+            for (s, r) in sum.iter_mut().zip(&one) {
                 for c in 0..3 {
-                    l[c] += f * r[c];
+                    s[c] += f * r[c];
                 }
             }
+        }
+        for x in 0..w {
+            let mut l = sum[x as usize];
             if sensor.grey {
                 l[0] = (l[0] + l[1] + l[2]) / 3.0;
             }

@@ -620,7 +620,7 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
     r.line(format_args!(
         "\nUnder a light no frame used (a point at ({:.1}, {:.1}, {:.1}) mm, its highlight mid-sample; \
          `truth/point-light.exr` is the true sample's image, `fit/relit-point.exr` the maps', \
-         `fit/mitsuba/scene.xml` the GGX fit for Mitsuba 3), relative error of each sample pixel:\n\n\
+         `fit/mitsuba/scene.xml` the GGX fit for Mitsuba 3, `fit/gltf/sample.gltf` for glTF 2.0), relative error of each sample pixel:\n\n\
          | model | pixels | median | 95th percentile |\n|---|---|---|---|",
         light.position[0], light.position[1], light.position[2]
     ));

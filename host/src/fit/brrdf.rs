@@ -815,6 +815,40 @@ pub fn spectral_image(fit: &BrrdfFit, light_deg: f64) -> BispectralImage {
     img
 }
 
+/// Sphere `sphere`'s reradiation matrix in the layout of Fichet et al. (2021), for spectral
+/// renderers and colour-science: one pixel per PCA angle (column `k` at light angle
+/// `pca_angles[k]`), each channel (`T.<λ>nm` on the diagonal, `T.<λi>nm.<λo>nm` off it) the
+/// median over the sphere's samples at that angle of the entry times π, a reflectance factor
+/// as in [`spectral_image`] (the median keeps the specular highlight's pixels out).
+pub fn sphere_matrix(fit: &BrrdfFit, sphere: usize) -> BispectralImage {
+    let angles = &fit.pca_angles;
+    let mut img = BispectralImage::new(angles.len() as u32, 1);
+    let Some(s) = fit.spheres.get(sphere) else { return img };
+    let pi = std::f64::consts::PI;
+    for (j, &(ex, em)) in fit.pairs.iter().enumerate() {
+        let row: Vec<f32> = angles
+            .iter()
+            .map(|&a| {
+                let mut v: Vec<f64> =
+                    s.samples.iter().filter(|x| x.light_deg == a).map(|x| x.values[j]).collect();
+                v.sort_by(f64::total_cmp);
+                if v.is_empty() {
+                    return 0.0;
+                }
+                let m = v.len() / 2;
+                let median = if v.len() % 2 == 1 { v[m] } else { 0.5 * (v[m - 1] + v[m]) };
+                (median * pi) as f32
+            })
+            .collect();
+        if ex == em {
+            img.diagonal.insert(Nm(f64::from(ex)), row);
+        } else {
+            img.reradiation.insert((Nm(f64::from(ex)), Nm(f64::from(em))), row);
+        }
+    }
+    img
+}
+
 /// The spheres at light angle `light_deg` rendered under `light` with the CIE 1931 observer:
 /// linear sRGB per pixel (each sample's reflected radiance at its `cos θi`), zero off the
 /// spheres.
@@ -836,7 +870,8 @@ pub const RENDER_ILLUMINANTS: [Illuminant; 3] =
 
 /// Writes the fit's files into `out`: per sphere the binned BRRDF (`brrdf-<sphere>.json` and
 /// `.f32`) and the PCA choice (`pca-<sphere>.json`), the spectral scaling (`scaling.json`),
-/// per PCA angle the bispectral image (`spectral-<angle>deg.exr`), and the first PCA angle
+/// per sphere its reradiation matrix (`reradiation-<sphere>.exr`, [`sphere_matrix`]), per PCA
+/// angle the bispectral image (`spectral-<angle>deg.exr`), and the first PCA angle
 /// rendered in sRGB under D65, illuminant A and a 400 nm LED (`render-<light>.png`).
 pub fn write_outputs(fit: &BrrdfFit, out: &Path) -> Result<Vec<PathBuf>, FitError> {
     std::fs::create_dir_all(out).map_err(|e| fail(format!("{}: {e}", out.display())))?;
@@ -879,6 +914,11 @@ pub fn write_outputs(fit: &BrrdfFit, out: &Path) -> Result<Vec<PathBuf>, FitErro
     });
     let json = serde_json::to_string_pretty(&scaling).map_err(|e| fail(e.to_string()))? + "\n";
     files.push(write(out.join("scaling.json"), json.into_bytes())?);
+    for (k, s) in fit.spheres.iter().enumerate() {
+        let p = out.join(format!("reradiation-{}.exr", s.name));
+        sphere_matrix(fit, k).write(&p).map_err(|e| fail(e.to_string()))?;
+        files.push(p);
+    }
     for &a in &fit.pca_angles {
         let p = out.join(format!("spectral-{:.0}deg.exr", a));
         spectral_image(fit, a).write(&p).map_err(|e| fail(e.to_string()))?;

@@ -591,34 +591,70 @@ impl Scene for DiscoScene {
     }
 
     fn radiance(&self, x: u32, y: u32, state: &RigState) -> [f64; 3] {
+        self.pixel(&self.frame(state), x, y)
+    }
+
+    fn radiance_row(&self, y: u32, state: &RigState, out: &mut [[f64; 3]]) {
+        let frame = self.frame(state);
+        for (x, o) in out.iter_mut().enumerate() {
+            *o = self.pixel(&frame, x as u32, y);
+        }
+    }
+}
+
+/// What a frame's pixels share: which lights are on, the view of the object, the beam.
+enum Frame {
+    Dark,
+    /// The registration spotlights alone.
+    Spotlit(Arc<Vec<Option<Seen>>>),
+    /// The white target under the beam: camera position, galvo code, each laser's flux.
+    White(usize, [u16; 2], Vec<(usize, f64)>),
+    /// The object under the beam: the view, the beam, its direction, each laser's channel and
+    /// flux.
+    Beam(Arc<Vec<Option<Seen>>>, Arc<Beam>, V3, Vec<(usize, f64)>),
+}
+
+impl DiscoScene {
+    fn frame(&self, state: &RigState) -> Frame {
         let on: Vec<(usize, f64)> =
             self.lasers.iter().filter(|l| state.lasers & (1 << l.0) != 0).map(|l| (l.1, l.2)).collect();
         let deg = self.turntable.and_then(|a| state.axes.get(usize::from(a))).copied().unwrap_or(0.0);
         let key = Self::view_key(state, deg);
         let spotlit = self.spotlights.is_some_and(|c| state.lasers & (1 << c) != 0);
         if spotlit && on.is_empty() {
-            let Some(view) = self.view(key, deg) else { return [0.0; 3] };
-            let w = self.size().0;
-            return [view[(y * w + x) as usize].map_or(0.0, |seen| seen.lit); 3];
+            return self.view(key, deg).map_or(Frame::Dark, Frame::Spotlit);
         }
-        let Some(&code) = state.galvos.first() else { return [0.0; 3] };
+        let Some(&code) = state.galvos.first() else { return Frame::Dark };
         if on.is_empty() {
-            return [0.0; 3];
+            return Frame::Dark;
         }
         if state.meta.get("kind").and_then(|k| k.as_str()) == Some("white") {
-            let v: f64 = on.iter().map(|&(_, f)| self.white(key.0, x, y, code, f)).sum();
-            return [v; 3];
+            return Frame::White(key.0, code, on);
         }
-        let Some(view) = self.view(key, deg) else { return [0.0; 3] };
+        let Some(view) = self.view(key, deg) else { return Frame::Dark };
+        let d = self.setup.projector.ray([f64::from(code[0]), f64::from(code[1])]);
+        Frame::Beam(view, self.beam(key, code, deg), d, on)
+    }
+
+    fn pixel(&self, frame: &Frame, x: u32, y: u32) -> [f64; 3] {
         let w = self.size().0;
+        let (view, beam, d, on) = match frame {
+            Frame::Dark => return [0.0; 3],
+            Frame::Spotlit(view) => return [view[(y * w + x) as usize].map_or(0.0, |seen| seen.lit); 3],
+            Frame::White(pos, code, on) => {
+                let v: f64 = on.iter().map(|&(_, f)| self.white(*pos, x, y, *code, f)).sum();
+                return [v; 3];
+            }
+            Frame::Beam(view, beam, d, on) => (view, beam, *d, on),
+        };
         let Some(seen) = view[(y * w + x) as usize] else { return [0.0; 3] };
-        let beam = self.beam(key, code, deg);
         let rays = match beam.centre {
             Some(c) if norm(sub(c, seen.point)) < FINE_MM => &beam.fine,
             _ => &beam.coarse,
         };
+        let glint = self.glint(&seen, d);
         let mut l = 0.0;
-        for &(c, flux) in &on {
+        for &(c, flux) in on {
             let mo = &self.dipoles[usize::from(seen.material)][c];
             let mut s = 0.0;
             for e in rays.iter() {
@@ -629,7 +665,7 @@ impl Scene for DiscoScene {
                         norm(sub(e.point, seen.point)),
                     );
             }
-            l += flux * s * seen.out[c] + flux * self.glint(&seen, code);
+            l += flux * s * seen.out[c] + flux * glint;
         }
         [l; 3]
     }
@@ -640,13 +676,12 @@ impl Scene for DiscoScene {
 pub const GLINT_LOBE_RAD: f64 = 0.1;
 
 impl DiscoScene {
-    /// The surface's own reflection of the beam at galvo code `code` seen at `seen`, per unit
-    /// flux: the beam's irradiance there (its Gaussian profile across the beam) reflected by
+    /// The surface's own reflection of the beam along `d` (a galvo code's ray) seen at `seen`,
+    /// per unit flux: the beam's irradiance there (its Gaussian profile across the beam) reflected by
     /// Fresnel's `1 − Ft(η, θi)` into a lobe of [`GLINT_LOBE_RAD`] about the mirror direction
     /// (normalised over the lobe's solid angle), the radiance the camera sees.
-    fn glint(&self, seen: &Seen, code: [u16; 2]) -> f64 {
+    fn glint(&self, seen: &Seen, d: V3) -> f64 {
         let proj = &self.setup.projector;
-        let d = proj.ray([f64::from(code[0]), f64::from(code[1])]);
         let cos_i = -dot(d, seen.normal);
         if cos_i <= 0.0 {
             return 0.0;
@@ -741,7 +776,6 @@ mod tests {
     #[test]
     fn the_glint_is_the_beam_reflected_into_its_lobe() {
         let scene = DiscoScene::new(&rig(), 2).unwrap();
-        let code = [30_000u16, 33_000];
         let p = &scene.setup.projector;
         let d = p.ray([30_000.0, 33_000.0]);
         let n = normalize([1.0, -0.3, 0.2]);
@@ -761,19 +795,19 @@ mod tests {
         let peak = (1.0 - fresnel_transmittance(1.3, cos_i))
             / (2.0 * std::f64::consts::PI * s * s)
             / (2.0 * std::f64::consts::PI * GLINT_LOBE_RAD * GLINT_LOBE_RAD);
-        let g = scene.glint(&seen(on_axis, mirror), code);
+        let g = scene.glint(&seen(on_axis, mirror), d);
         assert!(cos_i > 0.5 && (g / peak - 1.0).abs() < 1e-12, "{g} {peak}");
         // Two beam σ across the beam: e^(−2).
         let across = normalize(cross(d, [0.0, 0.0, 1.0]));
-        let g2 = scene.glint(&seen(add(on_axis, scale(across, 2.0 * s)), mirror), code);
+        let g2 = scene.glint(&seen(add(on_axis, scale(across, 2.0 * s)), mirror), d);
         assert!((g2 / peak - (-2.0f64).exp()).abs() < 1e-9, "{}", g2 / peak);
         // Three lobe σ from the mirror direction: e^(−4.5).
         let off = turned_about(mirror, normalize(cross(mirror, [0.0, 0.0, 1.0])), 3.0 * GLINT_LOBE_RAD);
-        let g3 = scene.glint(&seen(on_axis, off), code);
+        let g3 = scene.glint(&seen(on_axis, off), d);
         assert!((g3 / peak - (-4.5f64).exp()).abs() < 1e-9, "{}", g3 / peak);
         // The beam meeting the surface from behind reflects nothing.
         let back = Seen { normal: scale(n, -1.0), ..seen(on_axis, mirror) };
-        assert_eq!(scene.glint(&back, code), 0.0);
+        assert_eq!(scene.glint(&back, d), 0.0);
     }
 
     /// `v` turned by `angle` rad about the axis `u` (unit, perpendicular to `v`).

@@ -13,6 +13,7 @@
 //! with the blended normals, as Gardner et al. do.
 
 pub mod export;
+pub mod gltf;
 pub mod stack;
 
 use std::path::{Path, PathBuf};
@@ -1144,6 +1145,7 @@ pub fn write_outputs(m: &LlsMaps, out: &Path) -> Result<Vec<PathBuf>, FitError> 
     files.push(p);
     if m.ggx.is_some() {
         files.extend(export::write_mitsuba(m, &out.join("mitsuba"), &light)?);
+        files.extend(gltf::write_gltf(m, &out.join("gltf"), &light)?);
     }
     Ok(files)
 }
