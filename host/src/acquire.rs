@@ -271,10 +271,14 @@ impl FrameInput for Cameras {
 /// until every earlier call is done, and drops frames the thread produced for no one (an
 /// attempt cut short), as the contract of `begin_step` says.
 pub struct Background {
-    /// Triggers sent to the thread and not yet handled by it.
-    backlog: std::sync::Arc<std::sync::atomic::AtomicUsize>,
+    /// Triggers sent to the thread.
+    sent: usize,
+    /// Triggers the thread had worked through when it made the latest answer taken in: the
+    /// backlog is `sent - answered`, so it reaches 0 only once the frames of every trigger
+    /// sent have been handed over, never between the thread's work and its answer.
+    answered: std::cell::Cell<usize>,
     calls: Option<std::sync::mpsc::Sender<Call>>,
-    results: std::sync::mpsc::Receiver<Answer>,
+    results: std::sync::mpsc::Receiver<(Answer, usize)>,
     worker: Option<std::thread::JoinHandle<()>>,
 }
 
@@ -296,10 +300,10 @@ impl Background {
     /// Runs `inner` on a new thread.
     pub fn new(mut inner: Box<dyn FrameInput + Send>) -> Background {
         let (calls, inbox) = std::sync::mpsc::channel::<Call>();
-        let (outbox, results) = std::sync::mpsc::channel::<Answer>();
-        let backlog = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
-        let left = backlog.clone();
+        let (outbox, results) = std::sync::mpsc::channel::<(Answer, usize)>();
         let worker = std::thread::spawn(move || {
+            // Triggers worked through, sent with every answer.
+            let mut handled = 0;
             for call in inbox {
                 let answer = match call {
                     Call::Begin(step) => {
@@ -307,21 +311,20 @@ impl Background {
                         Answer::Begun(r)
                     }
                     Call::Trigger(t, host_us) => {
-                        let r = inner.on_trigger(&t, host_us);
-                        left.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
-                        match r {
+                        handled += 1;
+                        match inner.on_trigger(&t, host_us) {
                             Ok(()) => continue,
                             Err(e) => Answer::Frames(Err(e)),
                         }
                     }
                     Call::Poll(now_us) => Answer::Frames(inner.poll(now_us)),
                 };
-                if outbox.send(answer).is_err() {
+                if outbox.send((answer, handled)).is_err() {
                     return;
                 }
             }
         });
-        Background { backlog, calls: Some(calls), results, worker: Some(worker) }
+        Background { sent: 0, answered: 0.into(), calls: Some(calls), results, worker: Some(worker) }
     }
 
     fn send(&self, call: Call) -> io::Result<()> {
@@ -331,12 +334,19 @@ impl Background {
             .ok_or_else(|| io::Error::other("the frame source's thread has stopped (it panicked?)"))
     }
 
+    /// The next answer within `wait`, its count of triggers handled taken in.
+    fn receive(&self, wait: std::time::Duration) -> Option<Answer> {
+        let (answer, handled) = self.results.recv_timeout(wait).ok()?;
+        self.answered.set(handled);
+        Some(answer)
+    }
+
     /// Takes the answers in, appending frames to `out`; the first error wins. Waits up to
     /// `wait` for the first one.
     fn gather(&self, out: &mut Vec<Captured>, wait: std::time::Duration) -> io::Result<()> {
-        let mut first = self.results.recv_timeout(wait).ok();
+        let mut first = self.receive(wait);
         let mut error = None;
-        while let Some(answer) = first.take().or_else(|| self.results.try_recv().ok()) {
+        while let Some(answer) = first.take().or_else(|| self.receive(std::time::Duration::ZERO)) {
             match answer {
                 Answer::Frames(Ok(v)) => out.extend(v),
                 Answer::Frames(Err(e)) | Answer::Begun(Err(e)) => {
@@ -355,28 +365,25 @@ impl FrameInput for Background {
         // Everything sent before is answered before `Begun`: drop those frames, keep errors.
         let mut error = None;
         loop {
-            match self.results.recv() {
-                Ok(Answer::Begun(r)) => return error.map_or(r, Err),
-                Ok(Answer::Frames(Err(e))) => {
+            match self.receive(std::time::Duration::MAX) {
+                Some(Answer::Begun(r)) => return error.map_or(r, Err),
+                Some(Answer::Frames(Err(e))) => {
                     error.get_or_insert(e);
                 }
-                Ok(Answer::Frames(Ok(_))) => {}
-                Err(_) => {
-                    return Err(io::Error::other("the frame source's thread has stopped (it panicked?)"))
-                }
+                Some(Answer::Frames(Ok(_))) => {}
+                None => return Err(io::Error::other("the frame source's thread has stopped (it panicked?)")),
             }
         }
     }
 
     fn on_trigger(&mut self, trigger: &TriggerEvent, host_us: Option<f64>) -> io::Result<()> {
-        self.backlog.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
-        self.send(Call::Trigger(trigger.clone(), host_us)).inspect_err(|_| {
-            self.backlog.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
-        })
+        self.send(Call::Trigger(trigger.clone(), host_us))?;
+        self.sent += 1;
+        Ok(())
     }
 
     fn backlog(&self) -> usize {
-        self.backlog.load(std::sync::atomic::Ordering::SeqCst)
+        self.sent - self.answered.get()
     }
 
     fn poll(&mut self, now_us: f64) -> io::Result<Vec<Captured>> {
@@ -1237,6 +1244,55 @@ mod tests {
             error = bg.poll(0.0).err();
         }
         assert!(error.unwrap().to_string().contains("no go-ahead"));
+    }
+
+    /// [`OneCamera`] that says when it has worked through a trigger, and whose `poll` waits
+    /// for the test's go-ahead: frames made, not yet handed over.
+    struct SlowToHand(OneCamera, std::sync::mpsc::Sender<()>, std::sync::mpsc::Receiver<()>);
+
+    impl FrameInput for SlowToHand {
+        fn begin_step(&mut self, step: &Step) -> io::Result<()> {
+            self.0.begin_step(step)
+        }
+        fn on_trigger(&mut self, t: &TriggerEvent, host_us: Option<f64>) -> io::Result<()> {
+            self.0.on_trigger(t, host_us)?;
+            self.1.send(()).map_err(|_| io::Error::other("no one listens"))
+        }
+        fn poll(&mut self, now_us: f64) -> io::Result<Vec<Captured>> {
+            if now_us.is_finite() {
+                self.2.recv().map_err(|_| io::Error::other("no go-ahead"))?;
+            }
+            self.0.poll(now_us)
+        }
+    }
+
+    #[test]
+    fn a_background_backlog_ends_only_when_its_frames_are_handed_over() {
+        let (done, worked) = std::sync::mpsc::channel();
+        let (go, gate) = std::sync::mpsc::channel();
+        let camera = SlowToHand(OneCamera { camera: 0, steps: 0, ready: Vec::new() }, done, gate);
+        let mut bg = Background::new(Box::new(camera));
+        let step = Step::new(0, "s", serde_json::Value::Null, |_| {});
+        bg.begin_step(&step).unwrap();
+        for f in 0..3 {
+            bg.on_trigger(&trigger(f), Some(f64::from(f))).unwrap();
+        }
+        assert_eq!(bg.backlog(), 3);
+        // The thread has made all three frames but not handed them over: the engine, seeing
+        // no frame, must not take the source for idle.
+        for _ in 0..3 {
+            worked.recv().unwrap();
+        }
+        assert_eq!(bg.backlog(), 3, "frames made are not frames handed over");
+        go.send(()).unwrap();
+        let mut got = Vec::new();
+        while got.len() < 3 {
+            assert_eq!(bg.backlog(), 3, "no answer with frames yet");
+            got.extend(bg.poll(1.0).unwrap().into_iter().map(|c| c.frame));
+        }
+        assert_eq!(got, [Some(0), Some(1), Some(2)]);
+        assert_eq!(bg.backlog(), 0, "the answer with the frames ends the backlog");
+        drop(go);
     }
 
     #[test]
