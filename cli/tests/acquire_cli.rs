@@ -157,26 +157,38 @@ fn plan_values_and_the_fit_table_are_checked_before_anything_moves() {
     let rig = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/rigs/lls-gantry.toml");
     let r = rig.to_str().unwrap();
     let at = |line: usize| format!("lls-gantry.toml:{line}: ");
-    let cases: [(&str, String); 6] = [
+    let cases: [(&str, String); 8] = [
         (
             "plan.pass_mm=[-300, 100]",
-            at(68) + "plan.pass_mm: -300 mm is outside the limits -200..=200 mm (the gantry's [[stepper]] limits)",
+            at(70) + "plan.pass_mm: -300 mm is outside the limits -200..=200 mm (the gantry's [[stepper]] limits)",
         ),
-        ("plan.pass_mm=[-100, 250]", at(68) + "plan.pass_mm: 250 mm is outside the limits -200..=200 mm"),
+        ("plan.pass_mm=[-100, 250]", at(70) + "plan.pass_mm: 250 mm is outside the limits -200..=200 mm"),
         (
             "plan.exposures_us=[-5, 100]",
-            at(70) + "plan.exposures_us: -5 µs is out of range: give a duration from 0 to 4294967295 µs",
+            at(72) + "plan.exposures_us: -5 µs is out of range: give a duration from 0 to 4294967295 µs",
         ),
         (
             "plan.fit.stripe.offset_m=3",
-            at(79) + "plan.fit: unknown field `offset_m`, expected `offset_mm` or `angle_deg`",
+            at(81) + "plan.fit: unknown field `offset_m`, expected `offset_mm` or `angle_deg`",
         ),
-        ("plan.fit.light=", at(79) + "plan.fit: missing field `light`"),
+        ("plan.fit.light=", at(81) + "plan.fit: missing field `light`"),
         (
-            "laser[1].name=\"led-tube\"",
-            at(75)
-                + "plan.passes: a reflectance pass needs the [[laser]] named `light-tube`; the rig's lasers are \
-                   named: stripe, led-tube",
+            "laser[1].role=",
+            at(76)
+                + "plan.passes: a reflectance pass needs the [[laser]] with `role = \"tube\"`; the rig's lasers: \
+                   channel 0 `stripe` (role stripe), channel 1 `light-tube` (no role)",
+        ),
+        (
+            // A lab's own camera on the virtual rig, whose camera renders its own.
+            "plan.fit.camera.cx=639.5",
+            "lls-gantry.toml: camera 0 is virtual, and the virtual rig renders its own fixed scene \
+             (docs/virtual-rig.md), not what [plan.fit] describes: plan.fit.camera.cx = 639.5 (the virtual \
+             rig's: 63.5)"
+                .to_string(),
+        ),
+        (
+            "laser[1].role=\"tub\"",
+            at(50) + "laser[1].role: unknown value \"tub\"; did you mean \"tube\"?",
         ),
     ];
     for (k, (set, expected)) in cases.iter().enumerate() {

@@ -79,6 +79,7 @@ fn lls_demo_meets_the_accuracy_targets() {
     .unwrap();
     let scene = LlsScene::new(LlsSceneSpec::new(80, 60));
     assert_eq!(lightrig_cli::demo::lls::lls_accuracy(&scene, &again, 2.0), acc);
+    fit_checks_agree_with_the_truth(&out, &again, &scene);
     // Streamed in small blocks (a tenth of the quick session's traces at most resident) the
     // fit gives exactly the same maps as with all of them in one block.
     let small = 1 << 20;
@@ -164,6 +165,104 @@ fn lls_demo_meets_the_accuracy_targets() {
     // Measured 6.2 % (the frame's noise: one frame, where the fit saw the whole trace).
     assert!(level > 0.0 && off < 0.08 * level, "check frame: {off} off a median level of {level}");
     std::fs::remove_dir_all(&out).ok();
+}
+
+/// The fit's masks and checks (`maps.exr` layers `valid.*`, `quality.json`) against the scene the
+/// frames were rendered from, and a session without its stripe and backlit passes: the maps it
+/// cannot measure are not written, and the checks say so.
+fn fit_checks_agree_with_the_truth(
+    out: &std::path::Path,
+    m: &lightrig_host::fit::lls::LlsMaps,
+    scene: &LlsScene,
+) {
+    use lightrig_host::fit::lls::{quality, write_outputs};
+    let valid = quality::validity(m);
+    // The share of the fitted pixels of a region where a mask holds.
+    let share = |region: Region, mask: &[bool]| {
+        let px: Vec<usize> =
+            (0..mask.len()).filter(|&i| scene.truth[i].region == region && m.fitted[i]).collect();
+        (px.iter().filter(|&&i| mask[i]).count() as f64 / px.len().max(1) as f64, px.len())
+    };
+    // Every tile is glossy (ρs 0.05–0.15): α determined nearly everywhere on the sample.
+    let (rough, n) = share(Region::Sample, &valid.roughness);
+    assert!(n > 1500 && rough > 0.9, "α determined on {:.1} % of {n} sample pixels", 100.0 * rough);
+    let (height, _) = share(Region::Sample, &valid.height);
+    assert!(height > 0.9, "height from the stripe on {:.1} % of the sample", 100.0 * height);
+    let (physical, _) = share(Region::Sample, &valid.physical);
+    assert_eq!(physical, 1.0);
+    // Where α is said to be determined it is within 10 % of the truth on 95 % of the pixels;
+    // where it is not, the error is larger (what the mask is for).
+    let rel = |i: usize| (m.fit[i].alpha / scene.truth[i].material.alpha - 1.0).abs();
+    let on_sample = |i: &usize| scene.truth[*i].region == Region::Sample && m.fitted[*i];
+    let good: Vec<f64> =
+        (0..valid.roughness.len()).filter(on_sample).filter(|&i| valid.roughness[i]).map(rel).collect();
+    let within = good.iter().filter(|&&e| e < 0.1).count() as f64 / good.len() as f64;
+    assert!(within > 0.95, "{:.1} % of the determined α within 10 %", 100.0 * within);
+    // quality.json is the same assessment.
+    let q: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("fit/quality.json")).unwrap()).unwrap();
+    let expected = quality::assess(m, &valid);
+    assert_eq!(q["fitted"]["pixels"], expected.fitted.pixels);
+    assert_eq!(q["fitted"]["pixels"], valid.reflectance.iter().filter(|&&v| v).count());
+    assert_eq!(q["roughness_determined"]["pixels"], expected.roughness_determined.pixels);
+    assert_eq!(q["unmeasured"], serde_json::json!([]));
+    assert_eq!(q["warnings"], serde_json::json!([]), "{q}");
+    let layers = lightrig_imaging::io::read_exr_layers(out.join("fit/maps.exr")).unwrap();
+    let layer = |name: &str| layers.iter().find(|l| l.name == name);
+    let v = layer("valid.roughness").expect("a valid.roughness layer");
+    let from_file: Vec<bool> = v.image.data.iter().map(|&x| x == 1.0).collect();
+    assert_eq!(from_file, valid.roughness);
+    for name in ["height", "normal", "translucency"] {
+        assert!(layer(name).is_some(), "{name}");
+    }
+
+    // The same session with its stripe and backlit passes taken out of the plan (as if never
+    // acquired): heights and translucency are not measured, so not written; the diagonal
+    // passes still give the normals.
+    let bare = out.join("bare-session");
+    copy_dir(&out.join("session"), &bare);
+    let manifest = bare.join("manifest.json");
+    let mut j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&manifest).unwrap()).unwrap();
+    for step in j["plan"]["steps"].as_array_mut().unwrap() {
+        if matches!(step["extra"]["meta"]["pass"].as_str(), Some("stripe" | "backlit")) {
+            step["extra"]["meta"]["pass"] = "not-acquired".into();
+        }
+    }
+    std::fs::write(&manifest, serde_json::to_string_pretty(&j).unwrap()).unwrap();
+    let bare_maps = lightrig_host::fit::lls::fit_session(
+        &bare,
+        Some(&out.join("camera.toml")),
+        &out.join("bare-scratch"),
+        &|_, _| {},
+    )
+    .unwrap();
+    assert_eq!(
+        bare_maps.measured,
+        lightrig_host::fit::lls::Measured { height: false, normals: true, translucency: false }
+    );
+    let files = write_outputs(&bare_maps, &out.join("bare-fit")).unwrap();
+    let names: Vec<String> =
+        files.iter().map(|f| f.file_name().unwrap().to_string_lossy().into_owned()).collect();
+    for absent in ["height.png", "translucency.png"] {
+        assert!(
+            !names.iter().any(|n| n == absent) && !out.join("bare-fit").join(absent).exists(),
+            "{absent}"
+        );
+    }
+    assert!(names.iter().any(|n| n == "normal.png"));
+    let layers = lightrig_imaging::io::read_exr_layers(out.join("bare-fit/maps.exr")).unwrap();
+    let names: Vec<&str> = layers.iter().map(|l| l.name.as_str()).collect();
+    assert!(
+        !names.contains(&"height") && !names.contains(&"translucency") && names.contains(&"normal"),
+        "{names:?}"
+    );
+    let bare_valid = quality::validity(&bare_maps);
+    assert!(!bare_valid.height.iter().any(|&v| v) && !bare_valid.translucency.iter().any(|&v| v));
+    let q = quality::assess(&bare_maps, &bare_valid);
+    assert_eq!(q.unmeasured.len(), 2, "{:?}", q.unmeasured);
+    assert!(q.unmeasured[0].starts_with("height: the session has no stripe pass"), "{:?}", q.unmeasured);
+    assert!(q.unmeasured[1].starts_with("translucency: "), "{:?}", q.unmeasured);
 }
 
 /// A camera with a display gamma: with the response recovered from an exposure series and

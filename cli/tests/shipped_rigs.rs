@@ -96,10 +96,64 @@ fn lls_gantry_acquires_and_fits_as_shipped() {
     let dir = scratch("lls");
     let (session, _) = acquire("lls-gantry.toml", &dir);
     let maps = dir.join("maps");
-    ok(&lightrig(&["fit", "lls", session.to_str().unwrap(), "--out", maps.to_str().unwrap()]), "fit lls");
-    for f in ["maps.exr", "diffuse.png", "height.png", "normal.png", "relit.png"] {
+    let said =
+        ok(&lightrig(&["fit", "lls", session.to_str().unwrap(), "--out", maps.to_str().unwrap()]), "fit lls");
+    for f in ["maps.exr", "diffuse.png", "height.png", "normal.png", "relit.png", "quality.json"] {
         assert!(maps.join(f).exists(), "{f} missing");
     }
+    // The shipped file has no backlit pass: the translucency is said to be unmeasured, and no
+    // map of it is written.
+    assert!(
+        said.contains(
+            "not measured: translucency: the session needs both the backlit and the light-box passes"
+        ),
+        "{said}"
+    );
+    assert!(!maps.join("translucency.png").exists());
+    // The lab's own camera in [plan.fit] (1280 × 1024 intrinsics) on the virtual rig's 128 × 96
+    // frames is refused, not fitted to nonsense: given to the fit by `--set`, which changes the
+    // rig file for this fit alone.
+    let manifest = std::fs::read(session.join("manifest.json")).unwrap();
+    let fit_with = |set: &[&str], out: &str| {
+        let mut args = vec!["fit", "lls", session.to_str().unwrap(), "--out"];
+        let out = dir.join(out);
+        args.push(out.to_str().unwrap());
+        for s in set {
+            args.extend(["--set", s]);
+        }
+        lightrig(&args)
+    };
+    let out = fit_with(&["plan.fit.camera.cx=639.5", "plan.fit.camera.cy=511.5"], "lab-camera");
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{said}");
+    assert!(
+        said.contains("fitting with the session's rig file changed by --set plan.fit.camera.cx=639.5 --set plan.fit.camera.cy=511.5"),
+        "{said}"
+    );
+    assert!(
+        said.contains("[plan.fit] camera = { fx = 407.2727, fy = 407.2727, cx = 639.5, cy = 511.5 } is not a camera of the session's 128×96 frames (the principal point must lie inside them, near (63.5, 47.5))"),
+        "{said}"
+    );
+    // A tube height measured 10 mm low, then corrected by `--set`: the wrong one moves the
+    // specular strip's fitted ρs off the rig file's value; the session itself never changes.
+    let strip = |out: &str| -> f64 {
+        let q: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join(out).join("quality.json")).unwrap())
+                .unwrap();
+        q["specular_strip"][0].as_f64().unwrap()
+    };
+    ok(&fit_with(&["plan.fit.light.height_mm=40"], "low-tube"), "fit lls --set");
+    let (low, right) = (strip("low-tube"), strip("maps"));
+    assert!((right / 0.04 - 1.0).abs() < 0.05 && (low / right - 1.0).abs() > 0.1, "ρs {low} against {right}");
+    // A key the acquisition used is not the fit's to change.
+    let out = fit_with(&["plan.step_mm=4"], "refused");
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{said}");
+    assert!(
+        said.contains("error: --set plan.step_mm=4: a fit changes only what the fit alone reads"),
+        "{said}"
+    );
+    assert_eq!(std::fs::read(session.join("manifest.json")).unwrap(), manifest);
     // Against the virtual scene's truth (scene_for's sample at 128 × 96).
     let fitted =
         lightrig_host::fit::lls::fit_session(&session, None, &dir.join("again"), &|_, _| {}).unwrap();

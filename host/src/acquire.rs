@@ -480,8 +480,17 @@ pub struct Progress {
     pub steps_done: usize,
     /// Steps in the plan.
     pub steps: usize,
-    /// Frames stored in this run.
+    /// Frames stored in this run (a step's frames are stored, paired, when it ends).
     pub frames: u64,
+    /// Frames of the running step received and not yet stored.
+    pub received: u64,
+    /// Bytes of the frames stored in this run.
+    pub bytes: u64,
+    /// The plan's time for the work this run has done and has left, µs: each step's
+    /// [`Step::min_ticks`] (every wait ending at once), the running step's split by its
+    /// triggers. Their ratio to the time taken gives the time left at the run's own pace.
+    pub planned_done_us: u64,
+    pub planned_left_us: u64,
     /// Triggers fired in this run, the running step's included: progress within a step (a
     /// DISCO view is 12 288 frames).
     pub triggered: u64,
@@ -591,13 +600,21 @@ fn run_steps<T: Transport>(
         .filter(|s| !done_before.contains(&s.id))
         .flat_map(|s| s.triggers.iter().map(|t| u64::from(t.1)))
         .sum();
-    let (mut triggered, mut missing) = (0u64, 0u64);
+    let (mut triggered, mut missing, mut bytes) = (0u64, 0u64, 0u64);
+    let us_of = |ticks: u64| (u128::from(ticks) * 1_000_000 / u128::from(plan.tick_hz.max(1))) as u64;
+    let planned_us: u64 =
+        plan.steps.iter().filter(|s| !done_before.contains(&s.id)).map(|s| us_of(s.min_ticks)).sum();
+    let mut planned_done_us = 0u64;
     if let Some(l) = &live {
         // Those watching see the run's size before its first trigger.
         l.progress(&Progress {
             steps_done: done_before.len(),
             steps: total,
             frames,
+            received: 0,
+            bytes,
+            planned_done_us,
+            planned_left_us: planned_us,
             triggered,
             to_trigger,
             missing,
@@ -633,12 +650,18 @@ fn run_steps<T: Transport>(
         };
         let steps_done = session.steps_done().len();
         let step_start = triggered;
-        let mut within = |n: u64| {
+        let (step_us, step_shots) = (us_of(step.min_ticks), step.shot_count().max(1) as u64);
+        let mut within = |n: u64, received: u64| {
             triggered = step_start + n;
+            let done = planned_done_us + step_us * n.min(step_shots) / step_shots;
             progress(Progress {
                 steps_done,
                 steps: total,
                 frames,
+                received,
+                bytes,
+                planned_done_us: done,
+                planned_left_us: planned_us.saturating_sub(done),
                 triggered,
                 to_trigger,
                 missing,
@@ -661,6 +684,8 @@ fn run_steps<T: Transport>(
             l.step_stored();
         }
         frames += stored.frames;
+        bytes += stored.bytes;
+        planned_done_us += step_us;
         missing += stored.missing.len() as u64;
         let missing_now = (!stored.missing.is_empty()).then(|| missing_words(step, &stored.missing));
         // A step's shots all fired (an abandoned attempt's are not counted twice).
@@ -669,6 +694,10 @@ fn run_steps<T: Transport>(
             steps_done: session.steps_done().len(),
             steps: total,
             frames,
+            received: 0,
+            bytes,
+            planned_done_us,
+            planned_left_us: planned_us.saturating_sub(planned_done_us),
             triggered,
             to_trigger,
             missing,
@@ -861,7 +890,7 @@ fn run_step<T: Transport>(
     input: &mut dyn FrameInput,
     prepared: Option<(String, Vec<String>)>,
     retry: bool,
-    triggered: &mut dyn FnMut(u64),
+    triggered: &mut dyn FnMut(u64, u64),
 ) -> Result<Stepped, AcquireError> {
     let attempt = session.next_attempt(step.id);
     let seq = sequence_id(step.id, attempt);
@@ -869,7 +898,9 @@ fn run_step<T: Transport>(
     // Frames still on their way from an attempt that was cut short belong to nobody now: drain
     // them, and below ignore anything stamped before this attempt began.
     let start_us = client.transport().now_us() as f64;
-    let _stale = input.poll(start_us).map_err(AcquireError::Frames)?;
+    // A camera's work between steps (a directory of files to look through, a GenICam camera
+    // taking its new settings) keeps the link alive as every other wait of the host does.
+    let _stale = client.busy(|| input.poll(start_us)).map_err(AcquireError::Frames)?;
     client.busy(|| {
         session.start_step(step.id, seq)?;
         match prepared {
@@ -877,7 +908,7 @@ fn run_step<T: Transport>(
             None => Ok(()),
         }
     })?;
-    input.begin_step(step).map_err(AcquireError::Frames)?;
+    client.busy(|| input.begin_step(step)).map_err(AcquireError::Frames)?;
     if let Some(l) = &live {
         l.step_started(number, of, step, attempt, seq);
     }
@@ -905,7 +936,7 @@ fn run_step<T: Transport>(
         if let Event::Trigger(t) = &e.event {
             if t.sequence == seq && t.tick >= fence {
                 triggers.push(Trigger::from_event(t, e.host_us));
-                triggered(triggers.len() as u64);
+                triggered(triggers.len() as u64, arrivals.len() as u64);
                 if let Err(err) = input.on_trigger(t, e.host_us) {
                     failure = Some(AcquireError::Frames(err));
                     return;
@@ -962,6 +993,8 @@ fn run_step<T: Transport>(
         let at = client.transport().now_us();
         if arrivals.len() > before {
             wait_until = at + FRAME_WAIT_US;
+            // The frames are counted as they come, not only when the step is stored.
+            triggered(triggers.len() as u64, arrivals.len() as u64);
         }
         let busy = input.backlog();
         if busy < backlog.0 {
@@ -1079,6 +1112,7 @@ pub const LOST_PREFIX: &str = "lost";
 /// A stored step attempt: the frames stored, and those recorded missing with why.
 struct Stored {
     frames: u64,
+    bytes: u64,
     missing: Vec<(u8, u32, String)>,
 }
 
@@ -1106,11 +1140,12 @@ fn store(
     arrivals: &[Captured],
     lost: &[(u8, u32, String)],
 ) -> Result<Stored, AcquireError> {
-    let mut stored = Stored { frames: 0, missing: Vec::new() };
+    let mut stored = Stored { frames: 0, bytes: 0, missing: Vec::new() };
     for p in &pairing.pairs {
         let c = &arrivals[p.arrival];
         session.store_frame_stamped(p, &c.ext, &c.data, c.stamp)?;
         stored.frames += 1;
+        stored.bytes += c.data.len() as u64;
     }
     for m in &pairing.missing {
         let why = lost.iter().find(|(c, f, _)| (*c, *f) == (m.camera, m.frame)).map(|(_, _, w)| w.as_str());

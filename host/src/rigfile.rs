@@ -159,6 +159,9 @@ pub struct Laser {
     pub channel: u8,
     /// Host-side name.
     pub name: Option<String>,
+    /// What the light does for the rig's planner (`role`): a pass finds its light by role,
+    /// never by the spelling of a name.
+    pub role: Option<LaserRole>,
     /// Nominal wavelength, nm.
     pub wavelength_nm: u16,
     /// Warm-up until the output is stable, ms.
@@ -169,6 +172,24 @@ pub struct Laser {
     pub enable: Polarity,
     /// Interlock input.
     pub interlock: Input,
+}
+
+/// A light's job in a linear-light-source rig (`[[laser]] role`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum LaserRole {
+    /// The linear light source of the reflectance passes.
+    Tube,
+    /// The laser stripe of the height pass.
+    Stripe,
+    /// The light under the sample of the backlit (translucency) pass.
+    Backlight,
+}
+
+impl LaserRole {
+    /// The role as the rig file spells it.
+    pub fn key(self) -> &'static str {
+        name_of(LASER_ROLES, self)
+    }
 }
 
 /// Homing of a stepper axis, in the axis' units.
@@ -459,6 +480,7 @@ struct RawGalvo {
 struct RawLaser {
     channel: i64,
     name: Option<String>,
+    role: Option<String>,
     wavelength_nm: i64,
     #[serde(default)]
     warmup_ms: f64,
@@ -562,6 +584,8 @@ const INPUTS: &[(&str, Input)] = &[
     ("low", Input::Wired(Polarity::ActiveLow)),
     ("unused", Input::Unused),
 ];
+const LASER_ROLES: &[(&str, LaserRole)] =
+    &[("tube", LaserRole::Tube), ("stripe", LaserRole::Stripe), ("backlight", LaserRole::Backlight)];
 const DACS: &[(&str, DacKind)] = &[
     ("dac8563", DacKind::Dac8563),
     ("ad5689", DacKind::Ad5689),
@@ -1047,6 +1071,29 @@ fn no_duplicates(
     Ok(())
 }
 
+/// Each role once, and only where the rig's planner gives lights roles.
+fn laser_roles(cx: &Cx<'_>, method: Method, lasers: &[Laser]) -> Result<(), RigError> {
+    let mut seen: HashMap<LaserRole, usize> = HashMap::new();
+    for (i, l) in lasers.iter().enumerate() {
+        let Some(role) = l.role else { continue };
+        let key = format!("laser[{i}].role");
+        if method != Method::LinearLightSource {
+            return Err(cx.err(
+                &key,
+                "roles (tube, stripe, backlight) are for linear-light-source rigs; this rig's planner \
+                 takes its lasers from [plan] by name: remove the key",
+            ));
+        }
+        if let Some(first) = seen.insert(role, i) {
+            return Err(cx.err(
+                &key,
+                format!("role \"{}\" is already laser[{first}]'s; each role is one laser's", role.key()),
+            ));
+        }
+    }
+    Ok(())
+}
+
 fn parse_connect(s: &str) -> Result<Connect, String> {
     const FORMS: &str = "valid values: \"virtual\", \"usb\", \"serial:PATH\" or \"serial:PATH@BAUD\" (e.g. \
                          \"serial:/dev/ttyACM0@115200\")";
@@ -1112,6 +1159,7 @@ fn build_laser(cx: &Cx<'_>, i: usize, l: RawLaser) -> Result<Laser, RigError> {
     Ok(Laser {
         channel: cx.index(&k("channel"), l.channel, MAX_LASERS, "laser channels")?,
         name: l.name,
+        role: l.role.as_deref().map(|r| cx.choice(&k("role"), r, LASER_ROLES)).transpose()?,
         wavelength_nm: cx.int(&k("wavelength_nm"), l.wavelength_nm, 0, u16::MAX.into())? as u16,
         warmup_ms: cx.nonneg(&k("warmup_ms"), l.warmup_ms)?,
         max_on_s: cx.nonneg(&k("max_on_s"), l.max_on_s)?,
@@ -1487,6 +1535,7 @@ impl RigFile {
         no_duplicates(&cx, "galvo", "galvo", &g)?;
         let l: Vec<_> = lasers.iter().map(|l| (l.channel, l.name.as_deref())).collect();
         no_duplicates(&cx, "laser", "channel", &l)?;
+        laser_roles(&cx, method, &lasers)?;
         let s: Vec<_> = steppers.iter().map(|s| (s.axis, s.name.as_deref())).collect();
         no_duplicates(&cx, "stepper", "axis", &s)?;
         let w: Vec<_> = filter_wheels.iter().map(|w| (w.wheel, w.name.as_deref())).collect();
@@ -1550,6 +1599,11 @@ impl RigFile {
     /// The stepper called `name`.
     pub fn stepper_named(&self, name: &str) -> Option<&Stepper> {
         self.steppers.iter().find(|s| s.name.as_deref() == Some(name))
+    }
+
+    /// The laser whose `role` is `role`.
+    pub fn laser_with_role(&self, role: LaserRole) -> Option<&Laser> {
+        self.lasers.iter().find(|l| l.role == Some(role))
     }
 
     /// The laser on device channel `channel`.

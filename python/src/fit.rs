@@ -98,7 +98,25 @@ pub fn fit_lls<'py>(
         d.set_item("geometric_normals", vectors(py, &maps.geometric_normals, &[h, w])?)?;
         d.set_item("photometric_normals", vectors(py, &maps.photometric_normals, &[h, w])?)?;
         debug_assert_eq!(maps.translucency.len(), n);
-        d.set_item("translucency", array(py, maps.translucency.clone(), &[h, w])?)?;
+        if maps.measured.translucency {
+            d.set_item("translucency", array(py, maps.translucency.clone(), &[h, w])?)?;
+        } else {
+            d.set_item("translucency", py.None())?;
+        }
+        // What was measured (`maps.exr`'s `valid` layer) and the fit's checks (`quality.json`).
+        let valid = lls::quality::validity(&maps);
+        let quality = lls::quality::assess(&maps, &valid);
+        d.set_item(
+            "valid",
+            dict(py, |vd| {
+                vd.set_item("reflectance", array(py, valid.reflectance.clone(), &[h, w])?)?;
+                vd.set_item("roughness", array(py, valid.roughness.clone(), &[h, w])?)?;
+                vd.set_item("height", array(py, valid.height.clone(), &[h, w])?)?;
+                vd.set_item("translucency", array(py, valid.translucency.clone(), &[h, w])?)?;
+                vd.set_item("physical", array(py, valid.physical.clone(), &[h, w])?)
+            })?,
+        )?;
+        d.set_item("quality", object(py, &quality)?)?;
         d.set_item("normal_blend", format!("{:?}", maps.normal_blend).to_lowercase())?;
         d.set_item("diagonal_mounts", maps.diagonal_mounts.clone())?;
         d.set_item("registration_rms", maps.registration_rms)?;

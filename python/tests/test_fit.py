@@ -2,6 +2,7 @@
 (read back with the OpenEXR package, not lightrig's reader), its errors against the command's
 message, its progress and its interruption by Ctrl-C."""
 
+import json
 import os
 import pathlib
 import subprocess
@@ -55,6 +56,21 @@ def test_lls_maps_are_the_command_s(lls_both):
     for c, ch in enumerate("XYZ"):
         np.testing.assert_allclose(n[..., c][ok], cli[f"normal.{ch}"][ok], rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(np.linalg.norm(n[ok], axis=-1), 1.0, atol=1e-5)
+
+
+def test_lls_masks_and_checks_are_the_command_s(lls_both):
+    m, cli_dir, cli_out = lls_both
+    cli = exr_channels(cli_dir / "maps.exr")
+    for name in ("reflectance", "roughness", "height", "translucency", "physical"):
+        mask = m["valid"][name]
+        assert mask.dtype == np.bool_ and mask.shape == (m["height"], m["width"])
+        np.testing.assert_array_equal(mask, cli[f"valid.{name}.Y"] == 1.0)
+    np.testing.assert_array_equal(m["valid"]["reflectance"], m["fitted"])
+    # (pythonize gives fixed-size arrays as tuples, JSON as lists)
+    assert json.loads(json.dumps(m["quality"])) == json.loads((cli_dir / "quality.json").read_text())
+    assert m["quality"]["fitted"]["pixels"] == int(m["fitted"].sum())
+    assert m["quality"]["roughness_determined"]["pixels"] == int(m["valid"]["roughness"].sum())
+    assert "fitted %d of %d pixels" % (m["fitted"].sum(), m["height"] * m["width"]) in cli_out
 
 
 def test_lls_writes_the_command_s_files(lls_both):

@@ -88,10 +88,16 @@ struct SlowCamera {
     ready: Vec<Captured>,
     /// Reading frames takes no time (frames from memory).
     quick: bool,
+    /// Each step begins with [`BUSY`] of the camera's own (new settings taken, a directory
+    /// looked through), and so does every look for frames, even when there are none.
+    slow_between_steps: bool,
 }
 
 impl FrameInput for SlowCamera {
     fn begin_step(&mut self, _step: &Step) -> std::io::Result<()> {
+        if self.slow_between_steps {
+            std::thread::sleep(BUSY);
+        }
         Ok(())
     }
 
@@ -109,7 +115,7 @@ impl FrameInput for SlowCamera {
     }
 
     fn poll(&mut self, _now: f64) -> std::io::Result<Vec<Captured>> {
-        if !self.ready.is_empty() && !self.quick {
+        if !self.ready.is_empty() && !self.quick || self.slow_between_steps {
             std::thread::sleep(BUSY);
         }
         Ok(std::mem::take(&mut self.ready))
@@ -230,6 +236,35 @@ fn a_slow_disk_does_not_time_the_host_out() {
         .filter(|r| matches!(r, Record::Event { event: Event::Fault { .. }, .. }))
         .collect();
     assert_eq!(faults, vec![], "no fault while the disk was slow");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A camera slow between steps (its settings, its directory) leaves the host as alive as one
+/// slow with its frames: no step boundary is a silence the device times out (issue 60: over
+/// `sim --pty` a step's `SequenceLoad` was refused with `Faulted(HeartbeatLost)`).
+#[test]
+fn a_camera_slow_between_steps_does_not_time_the_host_out() {
+    let rig = RealTimeRig::start();
+    let dir = temp_dir("between");
+    let mut p = common::lls_params();
+    p.count = 2;
+    let plan = lls::plan(&p).unwrap();
+    let mut client = connect(&rig);
+    let mut session =
+        Session::create(&dir, Manifest::new("# test rig", client.info(), plan_summary(&plan))).unwrap();
+    let mut camera = SlowCamera { quick: true, slow_between_steps: true, ..Default::default() };
+    acquire::run(&mut client, &mut session, &plan, &mut camera, |_| {}).unwrap();
+    assert!(session.is_done());
+    for step in &plan.steps {
+        assert_eq!(session.frames_of(step.id).len(), step.shot_count(), "step {}", step.id);
+    }
+    drop(session);
+    let faults: Vec<_> = journal_records(&dir)
+        .unwrap()
+        .into_iter()
+        .filter(|r| matches!(r, Record::Event { event: Event::Fault { .. }, .. }))
+        .collect();
+    assert_eq!(faults, vec![], "no fault between the steps");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

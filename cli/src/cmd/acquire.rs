@@ -190,6 +190,24 @@ fn check_sources(rig: &RigFile) -> Result<(), CliError> {
             FrameSource::Directory { dir, pattern } => {
                 DirectoryInput::new(cam.camera, dir, pattern).map_err(|e| err(INPUT, e))?;
             }
+            FrameSource::Virtual { .. } => {
+                let differs = lightrig_sim::scenes::unsimulated(rig);
+                if !differs.is_empty() {
+                    return Err(err(
+                        INPUT,
+                        format!(
+                            "{}: camera {} is virtual, and the virtual rig renders its own fixed scene \
+                             (docs/virtual-rig.md), not what [plan.fit] describes: {}. The fit would be told \
+                             a camera and geometry the frames were not made with: acquire with the rig's own \
+                             camera, or give [plan.fit] the virtual rig's values (docs/rigs/lls-gantry.toml \
+                             has them) to try the file on the virtual rig",
+                            rig.path.display(),
+                            cam.camera,
+                            differs.join("; ")
+                        ),
+                    ));
+                }
+            }
             FrameSource::Genicam(g) if !lightrig_genicam::available() => {
                 return Err(err(
                     INPUT,
@@ -375,12 +393,14 @@ impl FrameInput for Boxed<'_> {
 fn print_summary(plan: &Plan, info: &DeviceInfo) {
     let s = plan.summary();
     eprintln!(
-        "plan: {} ({} steps, {} frames, at least {:.0} s, {:.1} GB) on {:?} at {} Hz",
+        "plan: {} ({} steps, {} frames, at least {:.0} s of device time; {} at {} a frame by [plan] frame_bytes, \
+         the progress line gives the size the frames take) on {:?} at {} Hz",
         plan.method,
         s.steps,
         s.triggers,
         s.min_duration_us as f64 / 1e6,
-        s.bytes as f64 / 1e9,
+        bytes_in_words(s.bytes as f64),
+        bytes_in_words(plan.frame_bytes as f64),
         info.board,
         info.tick_hz
     );
@@ -397,40 +417,69 @@ fn print_summary(plan: &Plan, info: &DeviceInfo) {
     }
 }
 
-/// One status line, rewritten in place at most ten times a second: the triggers fired this run
-/// against those it has to fire (progress within a step, whose frames may take minutes), the
-/// rate and the time left at that rate.
-fn progress_printer(start: std::time::Instant) -> impl FnMut(Progress) {
+/// One status line, rewritten in place at most ten times a second ([`progress_line`]).
+fn progress_printer() -> impl FnMut(Progress) {
     let mut last: Option<std::time::Instant> = None;
+    // The run's pace is measured from its first report (the first step's start), not from
+    // the bring-up and homing before it.
+    let mut began: Option<std::time::Instant> = None;
     move |p: Progress| {
         // Frames gone missing are said at once, on a line of their own.
         if let Some(what) = &p.missing_now {
             eprintln!("\nwarning: {what}");
         }
         let now = std::time::Instant::now();
+        let began = *began.get_or_insert(now);
         let recent = last.is_some_and(|l| now.duration_since(l).as_millis() < 100);
         if recent && p.triggered < p.to_trigger && p.missing_now.is_none() {
             return;
         }
         last = Some(now);
-        let elapsed = start.elapsed().as_secs_f64().max(1e-3);
-        let rate = p.triggered as f64 / elapsed;
-        let left = p.to_trigger.saturating_sub(p.triggered);
-        let eta = if rate > 0.0 { format!("{:.0} s", left as f64 / rate) } else { "–".into() };
-        let bar = (20 * p.triggered / p.to_trigger.max(1)).min(20) as usize;
-        let missing = if p.missing > 0 { format!(", {} MISSING", p.missing) } else { String::new() };
-        eprint!(
-            "\r[{}{}] step {}/{}  {}/{} triggers  {} frames{missing}  {:.1} frames/s  ETA {}   ",
-            "=".repeat(bar),
-            " ".repeat(20 - bar),
-            p.steps_done,
-            p.steps,
-            p.triggered,
-            p.to_trigger,
-            p.frames,
-            rate,
-            eta
-        );
+        eprint!("\r{}   ", progress_line(&p, now.duration_since(began).as_secs_f64()));
+    }
+}
+
+/// The status line of `p`, `elapsed_s` into the run's steps: triggers fired of those to
+/// fire, frames stored and received, the trigger rate, the data stored and what the whole run
+/// will take at that size a frame, and the time left: the plan's own estimate of the work left
+/// scaled by the pace so far (the plan's times are lower bounds: every wait ending at once),
+/// or before any work is done, the plan's bound itself.
+pub fn progress_line(p: &Progress, elapsed_s: f64) -> String {
+    let bar = (20 * p.triggered / p.to_trigger.max(1)).min(20) as usize;
+    let missing = if p.missing > 0 { format!(", {} MISSING", p.missing) } else { String::new() };
+    let received = if p.received > 0 { format!(" (+{} received)", p.received) } else { String::new() };
+    let rate = if elapsed_s > 0.0 { p.triggered as f64 / elapsed_s } else { 0.0 };
+    let size = if p.frames > 0 {
+        let all = p.bytes as f64 / p.frames as f64 * p.to_trigger as f64;
+        format!("  {} stored, about {} in all", bytes_in_words(p.bytes as f64), bytes_in_words(all))
+    } else {
+        String::new()
+    };
+    let left_s = p.planned_left_us as f64 / 1e6;
+    let eta = if p.planned_done_us > 0 && elapsed_s > 0.0 {
+        format!("ETA {:.0} s", left_s * elapsed_s / (p.planned_done_us as f64 / 1e6))
+    } else {
+        format!("ETA ≥ {left_s:.0} s (plan)")
+    };
+    format!(
+        "[{}{}] step {}/{}  {}/{} triggers  {} frames stored{received}{missing}  {:.1} triggers/s{size}  {eta}",
+        "=".repeat(bar),
+        " ".repeat(20 - bar),
+        p.steps_done,
+        p.steps,
+        p.triggered,
+        p.to_trigger,
+        p.frames,
+        rate,
+    )
+}
+
+/// `bytes` as kB, MB or GB (powers of ten), one decimal.
+fn bytes_in_words(bytes: f64) -> String {
+    match bytes {
+        b if b >= 1e9 => format!("{:.1} GB", b / 1e9),
+        b if b >= 1e6 => format!("{:.1} MB", b / 1e6),
+        b => format!("{:.1} kB", b / 1e3),
     }
 }
 
@@ -443,7 +492,6 @@ fn run(
     input: &mut dyn FrameInput,
     prep: &mut OperatorPrompt,
 ) -> Result<(), CliError> {
-    let start = std::time::Instant::now();
     // A real device that goes away (unplug, port reset) is waited for and brought up again;
     // the virtual one lives in this process and cannot.
     let attempts = if *spec == Connect::Virtual { 0 } else { RECONNECT_ATTEMPTS };
@@ -481,7 +529,7 @@ fn run(
         plan,
         &mut Boxed(input),
         steps,
-        progress_printer(start),
+        progress_printer(),
         |m| eprintln!("\n{m}"),
     );
     eprintln!();
@@ -859,4 +907,46 @@ fn same_steps(now: &[PlanStep], then: &[PlanStep]) -> bool {
             (a.id, &a.name, &a.triggers, a.extra.get("meta"))
                 == (b.id, &b.name, &b.triggers, b.extra.get("meta"))
         })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn at(triggered: u64, frames: u64, received: u64, bytes: u64, done_us: u64, left_us: u64) -> Progress {
+        Progress {
+            steps_done: 1,
+            steps: 3,
+            frames,
+            received,
+            bytes,
+            planned_done_us: done_us,
+            planned_left_us: left_us,
+            triggered,
+            to_trigger: 486,
+            missing: 0,
+            missing_now: None,
+        }
+    }
+
+    /// Before any work the time left is the plan's bound; after it, the plan's estimate at
+    /// the run's own pace (here 3.7 × the plan's times, as the issue's 21 s plan that took
+    /// 78 s); the size is what the stored frames take a frame, times the run's frames.
+    #[test]
+    fn the_progress_line_counts_frames_as_they_come_and_times_the_rest_by_the_run_s_pace() {
+        assert_eq!(
+            progress_line(&at(0, 0, 0, 0, 0, 21_000_000), 0.0),
+            "[                    ] step 1/3  0/486 triggers  0 frames stored  0.0 triggers/s  ETA ≥ 21 s (plan)"
+        );
+        // 243 triggers in 39 s for 10.5 s of the plan's 21: 10.5 s left at 3.71 × = 39 s.
+        assert_eq!(
+            progress_line(&at(243, 200, 43, 8_800_000, 10_500_000, 10_500_000), 39.0),
+            "[==========          ] step 1/3  243/486 triggers  200 frames stored (+43 received)  6.2 triggers/s  \
+             8.8 MB stored, about 21.4 MB in all  ETA 39 s"
+        );
+        let mut lost = at(486, 244, 0, 10_736_000, 21_000_000, 0);
+        lost.missing = 242;
+        assert!(progress_line(&lost, 78.0).contains("244 frames stored, 242 MISSING  6.2 triggers/s"));
+        assert!(progress_line(&lost, 78.0).ends_with("ETA 0 s"));
+    }
 }

@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use lightrig_host::fit::{brrdf, disco, display, firs, lls};
+use lightrig_host::overrides::Override;
 
 use crate::error::{FAILURE, USAGE};
 
@@ -35,10 +36,29 @@ pub struct Args {
     /// export needs GGX) or `ward` (else the rig file's `[plan.fit] models`, else `both`).
     #[arg(long)]
     pub model: Option<lls::Models>,
+    /// Change a value of the session's rig file for this fit, `KEY=VALUE` (repeatable): keys
+    /// under `plan.fit` (`plan.fit.light.height_mm=51.2`) and `camera[N].response`. The
+    /// session is not changed.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<Override>,
 }
 
 /// Runs `lightrig fit`.
 pub fn run(args: &Args) -> ExitCode {
+    if !args.overrides.is_empty() {
+        let set: Vec<String> = args.overrides.iter().map(|o| format!("--set {o}")).collect();
+        eprintln!("fitting with the session's rig file changed by {}", set.join(" "));
+    }
+    match lightrig_host::fit::with_overrides(&args.overrides, || fit(args)) {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(USAGE)
+        }
+    }
+}
+
+fn fit(args: &Args) -> ExitCode {
     match args.pipeline.as_str() {
         "lls" => fit_lls(&args.session, args.calibration.as_deref(), &args.out, args.model),
         "firs-surface" => fit_firs_surface(&args.session, &args.out),
@@ -73,6 +93,15 @@ fn fit_lls(session: &Path, calibration: Option<&Path>, out: &Path, models: Optio
             t.frames, t.read_s, t.fit_s, t.threads
         );
         println!("{}", m.tables_note);
+        // The fit's own checks; what was not measured and what failed on stderr as well, so
+        // that a script's log keeps them beside the exit status.
+        for line in lls::quality::lines(&lls::quality::assess(&m, &lls::quality::validity(&m))) {
+            if line.starts_with("warning:") || line.starts_with("not measured:") {
+                eprintln!("{line}");
+            } else {
+                println!("{line}");
+            }
+        }
         lls::write_outputs(&m, out)
     }))
 }

@@ -141,6 +141,7 @@ enable = "low"
 [[laser]]
 channel = {stripe_ch}
 name = "stripe"
+role = "stripe"
 wavelength_nm = 650
 warmup_ms = 2
 max_on_s = 900
@@ -150,6 +151,7 @@ interlock = "unused"
 [[laser]]
 channel = {tube_ch}
 name = "light-tube"
+role = "tube"
 wavelength_nm = 550
 warmup_ms = 50
 max_on_s = 900
@@ -159,6 +161,7 @@ interlock = "unused"
 [[laser]]
 channel = {back_ch}
 name = "backlight"
+role = "backlight"
 wavelength_nm = 550
 warmup_ms = 20
 max_on_s = 900
@@ -323,7 +326,9 @@ pub fn lls_accuracy(scene: &LlsScene, m: &LlsMaps, step_mm: f64) -> LlsAccuracy 
         if let Some(p) = m.points[i] {
             hgt.push((p[2] - t.point[2]).abs());
         }
-        tr.push((f64::from(m.translucency[i]) - t.translucency).abs());
+        if m.translucency[i].is_finite() {
+            tr.push((f64::from(m.translucency[i]) - t.translucency).abs());
+        }
     }
     LlsAccuracy {
         pixels: r.len(),
@@ -573,6 +578,14 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
         "Specular calibration strip: fitted ρs {:.4} (known {:.4}).\n",
         maps.specular_strip.0, maps.specular_strip.1
     ));
+    let valid = lightrig_host::fit::lls::quality::validity(&maps);
+    r.line("The fit's own checks (`fit/quality.json`; per pixel, `maps.exr` layers `valid.*`):\n");
+    for line in
+        lightrig_host::fit::lls::quality::lines(&lightrig_host::fit::lls::quality::assess(&maps, &valid))
+    {
+        r.line(format_args!("- {line}"));
+    }
+    r.line("");
     r.line(format_args!("Fit against the ground truth over {} sample pixels (medians):\n", acc.pixels));
     r.targets(["quantity", "error", "target"], "≤ ", &acc.targets());
     r.line(format_args!("| translucency, median abs | {:.4} | | |", acc.translucency_abs));

@@ -162,7 +162,7 @@ impl FitSpec {
 pub fn read(dir: &Path, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<Merged, FitError> {
     let (session, _) = Session::read(dir).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
     let manifest = session.manifest().clone();
-    let rig = RigFile::parse(&manifest.rig, &dir.join("manifest.json")).map_err(|e| fail(e.to_string()))?;
+    let rig = crate::fit::session_rig(&manifest.rig, dir)?;
     if rig.method != crate::rigfile::Method::Bispectral {
         return Err(fail(format!("{}: a {:?} session, not a bispectral one", dir.display(), rig.method)));
     }

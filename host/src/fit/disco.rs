@@ -291,8 +291,7 @@ pub fn fit_session(
     if !s.is_done() {
         return Err(fail(format!("{}: not complete; `lightrig resume` it first", dir.display())));
     }
-    let rig = RigFile::parse(&m.rig, &dir.join("manifest.json"))
-        .map_err(|e| fail(format!("{}: the session's rig file: {e}", dir.display())))?;
+    let rig = crate::fit::session_rig(&m.rig, dir)?;
     let mut setup = DiscoSetup::from_rig(&rig).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
     let mesh_path = match (mesh, &setup.mesh) {
         (Some(p), _) => p.to_path_buf(),

@@ -56,8 +56,7 @@ pub fn read(dir: &Path) -> Result<DisplaySession, FitError> {
     if !s.is_done() {
         return Err(fail(format!("{}: not complete; `lightrig resume` it first", dir.display())));
     }
-    let rig = RigFile::parse(&m.rig, &dir.join("manifest.json"))
-        .map_err(|e| fail(format!("{}: the session's rig file: {e}", dir.display())))?;
+    let rig = crate::fit::session_rig(&m.rig, dir)?;
     let meta = m.plan.extra.get("meta").cloned().unwrap_or(Value::Null);
     let liquid_name = meta.get("liquid").and_then(Value::as_str).unwrap_or("water");
     let liquid = Liquid::preset(liquid_name)

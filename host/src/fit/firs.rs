@@ -42,7 +42,6 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::fit::{fail, FitError};
-use crate::rigfile::RigFile;
 use crate::session::{trigger_events, Session};
 
 /// The `[plan.fit]` table of a fluorescent-immersion rig file: what a lab measures once.
@@ -547,7 +546,7 @@ pub fn fit_surface_banded(
 fn calibrate(dir: &Path, band_bytes: usize, progress: &dyn Fn(u64, u64)) -> Result<Calibration, FitError> {
     let (session, _) = Session::read(dir).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
     let manifest = session.manifest().clone();
-    let rig = RigFile::parse(&manifest.rig, &dir.join("manifest.json")).map_err(|e| fail(e.to_string()))?;
+    let rig = crate::fit::session_rig(&manifest.rig, dir)?;
     let spec: FirsFitSpec = crate::fit::plan_fit(&rig)
         .ok_or_else(|| {
             fail(format!(

@@ -24,6 +24,8 @@ pub mod display;
 pub mod firs;
 pub mod lls;
 
+use crate::overrides::Override;
+
 /// Why a fit stopped: what, where, what to do.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FitError(pub String);
@@ -38,6 +40,58 @@ impl std::error::Error for FitError {}
 
 pub(crate) fn fail(m: impl Into<String>) -> FitError {
     FitError(m.into())
+}
+
+thread_local! {
+    /// The `--set` overrides of the fit running on this thread ([`with_overrides`]).
+    static SET: std::cell::RefCell<Vec<Override>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// Runs `fit` with `overrides` applied to the rig file of the session it reads
+/// (`lightrig fit --set`): a fit's geometry measured wrong (the tube's height, a target's
+/// depth) is corrected without acquiring again. Only what no acquisition step used may
+/// change: keys under `plan.fit` and a camera's `response`; any other key describes how the
+/// session was taken and is refused. Every fit reads its session's rig file through
+/// [`session_rig`], on the thread that calls it, so the overrides reach each pipeline
+/// without a parameter of its own.
+pub fn with_overrides<T>(overrides: &[Override], fit: impl FnOnce() -> T) -> Result<T, FitError> {
+    for o in overrides {
+        let camera_response = o
+            .key
+            .strip_prefix("camera[")
+            .and_then(|k| k.split_once("]."))
+            .is_some_and(|(_, f)| f == "response");
+        if !(o.key.starts_with("plan.fit.") || camera_response) {
+            return Err(fail(format!(
+                "--set {o}: a fit changes only what the fit alone reads, keys under plan.fit and a \
+                 camera's response (camera[N].response); `{}` describes how the session was acquired: \
+                 acquire again with `lightrig acquire … --set {o}`",
+                o.key
+            )));
+        }
+    }
+    struct Restore(Vec<Override>);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            SET.with(|s| *s.borrow_mut() = std::mem::take(&mut self.0));
+        }
+    }
+    let _restore = Restore(SET.with(|s| s.replace(overrides.to_vec())));
+    Ok(fit())
+}
+
+/// The rig file session `dir` was acquired with (its manifest's `rig_text`), with this
+/// thread's [`with_overrides`] applied; errors point at the manifest.
+pub(crate) fn session_rig(
+    rig_text: &str,
+    dir: &std::path::Path,
+) -> Result<crate::rigfile::RigFile, FitError> {
+    let manifest = dir.join("manifest.json");
+    let overrides = SET.with(|s| s.borrow().clone());
+    let text = crate::overrides::apply(rig_text, &overrides)
+        .map_err(|e| fail(format!("{}: the session's rig file: {e}", manifest.display())))?;
+    crate::rigfile::RigFile::parse(&text, &manifest)
+        .map_err(|e| fail(format!("{}: the session's rig file: {e}", dir.display())))
 }
 
 /// `rig`'s `[plan.fit]` as `T` (`None`: the rig file has no such table). A wrong, missing or

@@ -8,7 +8,7 @@
 //! `[plan]` keys per method (see `docs/rigs/README.md` for the full reference):
 //! - linear-light-source: `pass_mm = [from, to]`, `step_mm` (1.0), `exposures_us` (the
 //!   camera's pulse), `settle_ms` (20), `readout_us` (1000), `passes` (every pass the rig has
-//!   lights for: lasers named `light-tube`, `stripe`, `backlight`), `frame_bytes`.
+//!   lights for: the lasers whose `role` is `tube`, `stripe`, `backlight`), `frame_bytes`.
 //! - disco: `views` (turntable positions over a full turn), `spot_grid = [nx, ny]` over
 //!   `spot_window_deg = [[x0, x1], [y0, y1]]` (optical degrees from the zero codes; the galvo's
 //!   range without it), `lasers` (names, in order), `frames_per_spot` (1), `camera_positions`
@@ -39,7 +39,7 @@ use lightrig_protocol::config::{AxisKind, Xy};
 use lightrig_protocol::session::DeviceInfo;
 
 use super::{disco, display, firs, lls, Plan, LOST_RETRIES};
-use crate::rigfile::{ticks_from_ms, ticks_from_us, Camera, Method, RigError, RigFile};
+use crate::rigfile::{ticks_from_ms, ticks_from_us, Camera, LaserRole, Method, RigError, RigFile};
 
 /// Default bytes per frame for the data-volume estimate: a 5 MP 16-bit frame.
 const DEFAULT_FRAME_BYTES: u64 = 2448 * 2048 * 2;
@@ -353,7 +353,7 @@ fn lls_plan(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
     let longest = exposures.iter().copied().max().unwrap_or(0);
     let settle_ms = num(rig, "settle_ms", Some(20.0))?;
     let settle = ticks_from_ms(settle_ms, hz).ok_or_else(|| rig.error("plan.settle_ms", "out of range"))?;
-    let has = |n: &str| rig.lasers.iter().any(|l| l.name.as_deref() == Some(n));
+    let with_role = |r: LaserRole| rig.laser_with_role(r).map(|l| l.channel);
     let passes = match names(rig, "passes")? {
         Some(list) => list
             .iter()
@@ -370,39 +370,48 @@ fn lls_plan(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
             })
             .collect::<Result<Vec<_>, _>>()?,
         None => [
-            ("light-tube", lls::Pass::REFLECTANCE),
-            ("stripe", lls::Pass::Stripe),
-            ("backlight", lls::Pass::Backlit),
+            (LaserRole::Tube, lls::Pass::REFLECTANCE),
+            (LaserRole::Stripe, lls::Pass::Stripe),
+            (LaserRole::Backlight, lls::Pass::Backlit),
         ]
         .into_iter()
-        .filter(|(n, _)| has(n))
+        .filter(|(r, _)| with_role(*r).is_some())
         .map(|(_, p)| p)
         .collect(),
     };
-    // Each light is the laser of its name; a pass whose light the rig does not name is refused
-    // (before, a renamed tube left the reflectance passes on laser 0, the stripe, unseen).
+    // Each light is the laser of its role; a pass whose light has no laser is refused (a
+    // renamed tube once left the reflectance passes on laser 0, the stripe, unseen).
     for pass in &passes {
-        let (name, needs) = match pass {
-            lls::Pass::Reflectance { .. } => ("light-tube", "a reflectance pass"),
-            lls::Pass::Stripe => ("stripe", "the stripe pass"),
-            lls::Pass::Backlit => ("backlight", "the backlit pass"),
+        let (role, needs) = match pass {
+            lls::Pass::Reflectance { .. } => (LaserRole::Tube, "a reflectance pass"),
+            lls::Pass::Stripe => (LaserRole::Stripe, "the stripe pass"),
+            lls::Pass::Backlit => (LaserRole::Backlight, "the backlit pass"),
             lls::Pass::Board | lls::Pass::LightBox => continue,
         };
-        if !has(name) {
-            let known: Vec<_> = rig.lasers.iter().filter_map(|l| l.name.clone()).collect();
+        if with_role(role).is_none() {
+            let known: Vec<_> = rig
+                .lasers
+                .iter()
+                .map(|l| {
+                    let name = l.name.as_deref().map_or(String::new(), |n| format!(" `{n}`"));
+                    let role = l.role.map_or("no role".to_string(), |r| format!("role {}", r.key()));
+                    format!("channel {}{name} ({role})", l.channel)
+                })
+                .collect();
             return Err(rig.error(
                 "plan.passes",
                 format!(
-                    "{needs} needs the [[laser]] named `{name}`; the rig's lasers are named: {} \
-                     (name the laser that does it `{name}`, or leave the pass out of plan.passes)",
+                    "{needs} needs the [[laser]] with `role = \"{}\"`; the rig's lasers: {} (add the key \
+                     to the laser that does it, or leave the pass out of plan.passes)",
+                    role.key(),
                     if known.is_empty() { "none".to_string() } else { known.join(", ") }
                 ),
             ));
         }
     }
-    let light = if has("light-tube") { laser_named(rig, "laser", "light-tube")? } else { 0 };
-    let stripe = if has("stripe") { laser_named(rig, "laser", "stripe")? } else { 0 };
-    let backlight = if has("backlight") { Some(laser_named(rig, "laser", "backlight")?) } else { None };
+    let light = with_role(LaserRole::Tube).unwrap_or(0);
+    let stripe = with_role(LaserRole::Stripe).unwrap_or(0);
+    let backlight = with_role(LaserRole::Backlight);
     let p = lls::LlsParams {
         axis: axis.axis,
         start,
@@ -1039,6 +1048,38 @@ mod tests {
             let rig = RigFile::parse(&shipped(name), std::path::Path::new(name)).unwrap();
             assert_eq!(check_keys(&rig), Ok(()), "{name}");
         }
+    }
+
+    /// A pass takes the laser of its role whatever the lasers are called: the tube renamed
+    /// `led-tube` still lights the reflectance pass, and swapped roles swap the channels.
+    #[test]
+    fn lls_passes_take_their_lights_by_role_not_by_name() {
+        let lasers_of = |text: &str| -> Vec<(String, u8)> {
+            let rig = RigFile::parse(text, std::path::Path::new("lls-gantry.toml")).unwrap();
+            let plan = lls_plan(&rig, 1_000_000).unwrap();
+            plan.steps.iter().map(|s| (s.meta["pass"].as_str().unwrap_or("").to_string(), s.lasers)).collect()
+        };
+        let lls = shipped("lls-gantry.toml");
+        let expected: Vec<(String, u8)> =
+            vec![("board".into(), 0), ("reflectance".into(), 0b10), ("stripe".into(), 0b01)];
+        assert_eq!(lasers_of(&lls), expected);
+        assert_eq!(lasers_of(&lls.replace("name = \"light-tube\"", "name = \"led-tube\"")), expected);
+        let swapped = lls
+            .replace("role = \"stripe\"", "role = \"@\"")
+            .replace("role = \"tube\"", "role = \"stripe\"")
+            .replace("role = \"@\"", "role = \"tube\"");
+        assert_eq!(
+            lasers_of(&swapped),
+            vec![("board".into(), 0), ("reflectance".into(), 0b01), ("stripe".into(), 0b10)]
+        );
+        // A role twice, or in a rig whose planner takes lasers by name, is refused at its key.
+        let twice = lls.replace("role = \"tube\"", "role = \"stripe\"");
+        let e = RigFile::parse(&twice, std::path::Path::new("lls-gantry.toml")).unwrap_err();
+        assert_eq!(e.key, "laser[1].role");
+        assert_eq!(e.message, "role \"stripe\" is already laser[0]'s; each role is one laser's");
+        let disco = shipped("disco.toml").replacen("[[laser]]\n", "[[laser]]\nrole = \"tube\"\n", 1);
+        let e = RigFile::parse(&disco, std::path::Path::new("disco.toml")).unwrap_err();
+        assert_eq!(e.key, "laser[0].role");
     }
 
     #[test]

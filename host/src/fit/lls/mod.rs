@@ -14,6 +14,7 @@
 
 pub mod export;
 pub mod gltf;
+pub mod quality;
 pub mod stack;
 
 use std::path::{Path, PathBuf};
@@ -33,7 +34,6 @@ use serde::Deserialize;
 
 use crate::fit::{fail, FitError};
 use crate::response::CameraResponse;
-use crate::rigfile::RigFile;
 use crate::session::{trigger_events, Session};
 use stack::{block_pixels, Block, Gathered, TraceStack};
 
@@ -197,6 +197,10 @@ pub struct LlsMaps {
     pub ggx: Option<Vec<TraceFit>>,
     /// Surface points, mm.
     pub points: Vec<Option<V3>>,
+    /// Where the stripe's crossing gave the point (elsewhere it is on the plane z = 0).
+    pub height_measured: Vec<bool>,
+    /// Which maps the session's passes measured at all.
+    pub measured: Measured,
     /// The normals the final fit used (blended when there were diagonal passes).
     pub normals: Vec<Option<V3>>,
     /// Normals from the displacement map alone.
@@ -212,6 +216,8 @@ pub struct LlsMaps {
     pub normal_blend: NormalBlend,
     /// The mount angles of the diagonal passes used, degrees.
     pub diagonal_mounts: Vec<i64>,
+    /// Backlit over light-box brightness (NaN where the light box lit nothing; 0 everywhere
+    /// when not [`Measured::translucency`]).
     pub translucency: Vec<f32>,
     /// The camera registration: its reprojection RMS, pixels; the intrinsics the fit used and
     /// the pose (world → camera) from the board frame.
@@ -232,6 +238,18 @@ pub struct LlsMaps {
     /// What became of the kept lobe tables ([`Streaming::tables`]), for the user: read,
     /// written, or why not.
     pub tables_note: String,
+}
+
+/// The maps a session's passes can measure: without a pass, its map is an assumption (the
+/// plane z = 0, a flat sample, no translucency), and is neither written nor flagged valid.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Measured {
+    /// The stripe pass gave heights (it was acquired and crossed pixels).
+    pub height: bool,
+    /// The stripe pass or the diagonal reflectance passes gave normals.
+    pub normals: bool,
+    /// The backlit and light-box passes gave the translucency.
+    pub translucency: bool,
 }
 
 /// Wall-clock time of the fit's two phases, to see which one bounds it on this machine.
@@ -377,6 +395,24 @@ fn intrinsics(spec: &FitSpec, calibration: Option<&Path>, size: (u32, u32)) -> R
              `camera = { fx, fy, cx, cy }` in the rig file's [plan.fit]",
         )
     })?;
+    // A principal point outside the frames is a camera of another size (a lab's 1280 × 1024
+    // intrinsics on the virtual rig's 128 × 96 frames fitted to nonsense before).
+    let (w, h) = (f64::from(size.0), f64::from(size.1));
+    if !(0.0..=w).contains(&k.cx) || !(0.0..=h).contains(&k.cy) || k.fx <= 0.0 || k.fy <= 0.0 {
+        return Err(fail(format!(
+            "[plan.fit] camera = {{ fx = {}, fy = {}, cx = {}, cy = {} }} is not a camera of the session's \
+             {}×{} frames (the principal point must lie inside them, near ({:.1}, {:.1})): give that camera's \
+             intrinsics, or pass `--calibration cam.toml` from `lightrig calibrate` on its board images",
+            k.fx,
+            k.fy,
+            k.cx,
+            k.cy,
+            size.0,
+            size.1,
+            (w - 1.0) / 2.0,
+            (h - 1.0) / 2.0
+        )));
+    }
     Ok(Intrinsics::pinhole(k.fx, k.fy, k.cx, k.cy))
 }
 
@@ -478,7 +514,7 @@ pub fn fit_session_with(
 ) -> Result<LlsMaps, FitError> {
     let (session, _) = Session::read(dir).map_err(|e| fail(format!("{}: {e}", dir.display())))?;
     let manifest = session.manifest().clone();
-    let rig = RigFile::parse(&manifest.rig, &dir.join("manifest.json")).map_err(|e| fail(e.to_string()))?;
+    let rig = crate::fit::session_rig(&manifest.rig, dir)?;
     let spec: FitSpec = crate::fit::plan_fit(&rig)
         .ok_or_else(|| {
             fail(format!("{}: the rig file has no [plan.fit] table (the fit's geometry)", dir.display()))
@@ -611,12 +647,13 @@ pub fn fit_session_with(
     // Surface points: the stripe's crossing, or the reference plane where no stripe shows.
     let stripe_max = stripe.stack.peak[0].max(0.0);
     let mut points: Vec<Option<V3>> = vec![None; w * h];
+    let mut height_measured = vec![false; w * h];
     let mut block = Block::default();
     for b in 0..blocks {
         read(&mut stripe, b, &mut block)?;
         let blk = &block;
         let stripe_pos = &stripe.gantry;
-        let got: Vec<Option<V3>> = blk
+        let got: Vec<(Option<V3>, bool)> = blk
             .pixels
             .clone()
             .into_par_iter()
@@ -638,13 +675,18 @@ pub fn fit_session_with(
                 } else {
                     None
                 };
-                on_sheet.or_else(|| {
+                let plane = || {
                     let t = -o[2] / d[2];
                     (t > 0.0).then(|| [o[0] + t * d[0], o[1] + t * d[1], 0.0])
-                })
+                };
+                (on_sheet.or_else(plane), on_sheet.is_some())
             })
             .collect();
-        points[blk.pixels.clone()].copy_from_slice(&got);
+        for ((p, m), (point, measured)) in
+            points[blk.pixels.clone()].iter_mut().zip(&mut height_measured[blk.pixels.clone()]).zip(got)
+        {
+            (*p, *m) = (point, measured);
+        }
     }
     drop(stripe);
     let in_strip = |i: usize| {
@@ -973,7 +1015,7 @@ pub fn fit_session_with(
                 if den > 0.0 && num.is_finite() {
                     num / den
                 } else {
-                    0.0
+                    f32::NAN
                 }
             }
             _ => 0.0,
@@ -998,6 +1040,13 @@ pub fn fit_session_with(
         fit,
         ggx,
         points,
+        measured: Measured {
+            // A stripe pass that crossed no pixel measured nothing.
+            height: height_measured.iter().any(|&m| m),
+            normals: height_measured.iter().any(|&m| m) || !diagonal_pos.is_empty(),
+            translucency: backlit.is_some() && lightbox.is_some(),
+        },
+        height_measured,
         normals,
         geometric_normals,
         photometric_normals,
@@ -1024,8 +1073,10 @@ pub fn fit_session_with(
 }
 
 /// Writes `maps.exr` (layers diffuse, specular, roughness, height, normal, translucency,
-/// residual), PNG previews, and `relit.png`: a captured frame, the same frame predicted from
-/// the maps, and the maps relit by a point light above the sample. Returns the files written.
+/// residual, and `valid.<mask>`: the [`quality::Validity`] masks, 1 where true), PNG previews, `quality.json`
+/// ([`quality::Quality`]), and `relit.png`: a captured frame, the same frame predicted from
+/// the maps, and the maps relit by a point light above the sample. A map the session's
+/// passes did not measure ([`Measured`]) is not written. Returns the files written.
 pub fn write_outputs(m: &LlsMaps, out: &Path) -> Result<Vec<PathBuf>, FitError> {
     std::fs::create_dir_all(out).map_err(|e| fail(format!("{}: {e}", out.display())))?;
     let (w, h) = (m.width, m.height);
@@ -1038,16 +1089,34 @@ pub fn write_outputs(m: &LlsMaps, out: &Path) -> Result<Vec<PathBuf>, FitError> 
     let height = pick(&|i| vec![m.points[i].map_or(0.0, |p| p[2] as f32)]);
     let normal = pick(&|i| m.normals[i].unwrap_or([0.0, 0.0, 1.0]).map(|v| v as f32).to_vec());
     let resid = pick(&|i| vec![m.fit[i].residual as f32]);
-    let layers = vec![
+    let valid = quality::validity(m);
+    let q = quality::assess(m, &valid);
+    let masks: [(&str, &[bool]); 5] = [
+        ("valid.reflectance", &valid.reflectance),
+        ("valid.roughness", &valid.roughness),
+        ("valid.height", &valid.height),
+        ("valid.translucency", &valid.translucency),
+        ("valid.physical", &valid.physical),
+    ];
+    let mut layers = vec![
         Layer::linear("diffuse", &["R", "G", "B"], w, h, diffuse.clone()),
         Layer::linear("specular", &["R", "G", "B"], w, h, specular.clone()),
         Layer::linear("roughness", &["Y"], w, h, rough.clone()),
-        Layer::linear("height", &["Y"], w, h, height.clone()),
-        Layer::linear("normal", &["X", "Y", "Z"], w, h, normal.clone()),
-        Layer::linear("translucency", &["Y"], w, h, m.translucency.clone()),
-        Layer::linear("residual", &["Y"], w, h, resid),
     ];
-    let mut layers = layers;
+    if m.measured.height {
+        layers.push(Layer::linear("height", &["Y"], w, h, height.clone()));
+    }
+    if m.measured.normals {
+        layers.push(Layer::linear("normal", &["X", "Y", "Z"], w, h, normal.clone()));
+    }
+    if m.measured.translucency {
+        layers.push(Layer::linear("translucency", &["Y"], w, h, m.translucency.clone()));
+    }
+    layers.push(Layer::linear("residual", &["Y"], w, h, resid));
+    for (name, mask) in masks {
+        let ones = mask.iter().map(|&v| f32::from(u8::from(v))).collect();
+        layers.push(Layer::linear(name, &["Y"], w, h, ones));
+    }
     if let Some(ggx) = &m.ggx {
         let pick = |f: &dyn Fn(&TraceFit) -> Vec<f32>, ch: usize| -> Vec<f32> {
             (0..n).flat_map(|i| if on(i) { f(&ggx[i]) } else { vec![0.0; ch] }).collect()
@@ -1074,6 +1143,11 @@ pub fn write_outputs(m: &LlsMaps, out: &Path) -> Result<Vec<PathBuf>, FitError> 
     let exr = out.join("maps.exr");
     write_exr_layers(&exr, &layers, ExrPrecision::Float).map_err(|e| fail(e.to_string()))?;
     let mut files = vec![exr];
+    let quality_file = out.join("quality.json");
+    let text = serde_json::to_string_pretty(&q).expect("the quality record serialises");
+    std::fs::write(&quality_file, text + "\n")
+        .map_err(|e| fail(format!("{}: {e}", quality_file.display())))?;
+    files.push(quality_file);
     let png = |name: &str, ch: u8, data: Vec<f32>, files: &mut Vec<PathBuf>| -> Result<(), FitError> {
         let img = Image { width: w, height: h, channels: ch, data, encoding: Encoding::Linear };
         let p = out.join(name);
@@ -1085,9 +1159,17 @@ pub fn write_outputs(m: &LlsMaps, out: &Path) -> Result<Vec<PathBuf>, FitError> 
     png("diffuse.png", 3, diffuse.iter().map(|v| v.clamp(0.0, 1.0)).collect(), &mut files)?;
     png("specular.png", 3, specular.iter().map(|v| (v * 5.0).clamp(0.0, 1.0)).collect(), &mut files)?;
     png("roughness.png", 1, rough.iter().map(|v| (v / 0.4).clamp(0.0, 1.0)).collect(), &mut files)?;
-    png("height.png", 1, height.iter().map(|v| (v - hmin) / (hmax - hmin).max(1e-6)).collect(), &mut files)?;
-    png("normal.png", 3, normal.iter().map(|v| ((v + 1.0) / 2.0).clamp(0.0, 1.0)).collect(), &mut files)?;
-    png("translucency.png", 1, m.translucency.iter().map(|v| v.clamp(0.0, 1.0)).collect(), &mut files)?;
+    if m.measured.height {
+        let scaled = height.iter().map(|v| (v - hmin) / (hmax - hmin).max(1e-6)).collect();
+        png("height.png", 1, scaled, &mut files)?;
+    }
+    if m.measured.normals {
+        png("normal.png", 3, normal.iter().map(|v| ((v + 1.0) / 2.0).clamp(0.0, 1.0)).collect(), &mut files)?;
+    }
+    if m.measured.translucency {
+        let t = m.translucency.iter().map(|v| if v.is_finite() { v.clamp(0.0, 1.0) } else { 0.0 }).collect();
+        png("translucency.png", 1, t, &mut files)?;
+    }
     // relit.png: captured | predicted | point light.
     let (_, cap, pred) = &m.check_frame;
     let peak = cap.iter().fold(0f32, |a, &v| a.max(v)).max(1e-12);
