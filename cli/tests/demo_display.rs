@@ -33,6 +33,32 @@ fn the_quick_display_demo_meets_its_targets_and_refuses_what_it_cannot_show() {
     for heading in ["## Calibration", "## After calibration", "## After one correction", "figure 5.8"] {
         assert!(report.contains(heading), "{heading}");
     }
+    // The slope histograms as pictures, linked from the report and its HTML page: one sine
+    // against Eq. 5.6, then 1, 3, 5 and 7 partials against a Gaussian; 40 bins of 6 px.
+    let html = std::fs::read_to_string(r.report.with_extension("html")).unwrap();
+    let names: Vec<&str> = r.histograms.iter().map(|(f, _)| f.as_str()).collect();
+    assert_eq!(
+        names,
+        [
+            "slopes-one-sine.png",
+            "slopes-1-partials.png",
+            "slopes-3-partials.png",
+            "slopes-5-partials.png",
+            "slopes-7-partials.png"
+        ]
+    );
+    // The highlights after the correction, one 192 × 192 panel per target, a pixel apart.
+    let (file, caption) = &r.lobes;
+    assert!(report.contains(&format!("![{caption}]({file})")) && html.contains("<img src=\"lobes.png\""));
+    let lobes = lightrig_imaging::io::read(out.join(file)).unwrap();
+    let n = r.corrected.len() as u32;
+    assert_eq!((lobes.width, lobes.height), (192 * n + (n - 1), 192 + 3), "{caption}");
+    for (file, caption) in &r.histograms {
+        assert!(report.contains(&format!("![{caption}]({file})")), "{file}");
+        assert!(html.contains(&format!("<img src=\"{file}\"")), "{file}");
+        let img = lightrig_imaging::io::read(out.join(file)).unwrap();
+        assert_eq!((img.width, img.height), (240, 160), "{file}");
+    }
     // A rig file asking for more than the calibrated coils reach is refused, with the range.
     let shipped = include_str!("../../docs/rigs/brdf-display.toml");
     let cut = shipped.find("\n[plan.calibrate]").unwrap();

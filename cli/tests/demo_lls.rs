@@ -80,6 +80,7 @@ fn lls_demo_meets_the_accuracy_targets() {
     let scene = LlsScene::new(LlsSceneSpec::new(80, 60));
     assert_eq!(lightrig_cli::demo::lls::lls_accuracy(&scene, &again, 2.0), acc);
     fit_checks_agree_with_the_truth(&out, &again, &scene);
+    the_figures_show_the_maps(&out, &again, &scene);
     // Streamed in small blocks (a tenth of the quick session's traces at most resident) the
     // fit gives exactly the same maps as with all of them in one block.
     let small = 1 << 20;
@@ -206,6 +207,21 @@ fn fit_checks_agree_with_the_truth(
     assert_eq!(q["fitted"]["pixels"], valid.reflectance.iter().filter(|&&v| v).count());
     assert_eq!(q["roughness_determined"]["pixels"], expected.roughness_determined.pixels);
     assert_eq!(q["unmeasured"], serde_json::json!([]));
+    // The camera of the maps' pixel grid as documented (world → camera, a point X at R·X + t):
+    // the board frame's pose puts the camera where the scene's is.
+    let (k, pose) = scene.spec.camera.model();
+    assert_eq!((q["camera"]["fx"].as_f64(), q["camera"]["cx"].as_f64()), (Some(k.fx), Some(k.cx)));
+    let v3 = |v: &serde_json::Value| -> [f64; 3] { std::array::from_fn(|j| v[j].as_f64().unwrap()) };
+    let fitted_pose =
+        lightrig_imaging::calib::Pose { rvec: v3(&q["camera"]["rvec"]), tvec: v3(&q["camera"]["tvec"]) };
+    // Measured on the quick demo (a 7 × 4 board at 80 × 60 px): 2.4 mm off at 350 mm, the
+    // optical axis 0.39° off.
+    let (a, b) = (fitted_pose.camera_centre(), pose.camera_centre());
+    let off = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
+    assert!(off < 5.0, "camera centre {a:?} against the scene's {b:?}");
+    let (za, zb) = (fitted_pose.rotation()[2], pose.rotation()[2]);
+    let axis_deg = (za[0] * zb[0] + za[1] * zb[1] + za[2] * zb[2]).clamp(-1.0, 1.0).acos().to_degrees();
+    assert!(axis_deg < 1.0, "optical axis {axis_deg}° off the scene's");
     assert_eq!(q["warnings"], serde_json::json!([]), "{q}");
     let layers = lightrig_imaging::io::read_exr_layers(out.join("fit/maps.exr")).unwrap();
     let layer = |name: &str| layers.iter().find(|l| l.name == name);
@@ -263,6 +279,48 @@ fn fit_checks_agree_with_the_truth(
     assert_eq!(q.unmeasured.len(), 2, "{:?}", q.unmeasured);
     assert!(q.unmeasured[0].starts_with("height: the session has no stripe pass"), "{:?}", q.unmeasured);
     assert!(q.unmeasured[1].starts_with("translucency: "), "{:?}", q.unmeasured);
+}
+
+/// The report's figures (truth | fit | error per map) and its HTML page: every map shown, and
+/// the pixels of the roughness figure's fit panel are the fitted α through the colour map,
+/// grey outside the sample.
+fn the_figures_show_the_maps(out: &std::path::Path, m: &lightrig_host::fit::lls::LlsMaps, scene: &LlsScene) {
+    use lightrig_imaging::figure::{viridis, MASKED};
+    let text = std::fs::read_to_string(out.join("report.md")).unwrap();
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    for map in ["diffuse", "specular", "roughness", "height", "normal", "translucency"] {
+        assert!(text.contains(&format!("](fit/compare-{map}.png)")), "{map} in report.md");
+        assert!(html.contains(&format!("<img src=\"fit/compare-{map}.png\"")), "{map} in report.html");
+    }
+    assert!(html.starts_with("<!DOCTYPE html>") && html.contains("<table>"), "{html}");
+    let img = lightrig_imaging::io::read(out.join("fit/compare-roughness.png")).unwrap();
+    let (w, h) = (m.width, m.height);
+    let zoom = (240 / w).max(1);
+    // Three panels with a gap of one zoom between, and the colour bars beneath.
+    assert_eq!((img.width, img.height), (3 * w * zoom + 2 * zoom, h * zoom + 3 * zoom));
+    let px = |x: u32, y: u32| -> [f32; 3] {
+        let i = ((y * img.width + x) * 3) as usize;
+        [img.data[i], img.data[i + 1], img.data[i + 2]]
+    };
+    let (mut shown, mut masked) = (0, 0);
+    for y in 0..h {
+        for x in 0..w {
+            let i = (y * w + x) as usize;
+            let got = px(w * zoom + zoom + x * zoom + zoom / 2, y * zoom + zoom / 2);
+            let want = if scene.truth[i].region == Region::Sample && m.fitted[i] {
+                shown += 1;
+                viridis(m.fit[i].alpha as f32 / 0.32)
+            } else {
+                masked += 1;
+                MASKED
+            };
+            assert!(
+                (0..3).all(|c| (got[c] - want[c]).abs() <= 0.6 / 255.0),
+                "pixel ({x}, {y}): {got:?} for {want:?}"
+            );
+        }
+    }
+    assert!(shown > 1500 && masked > 100, "{shown} shown, {masked} masked");
 }
 
 /// A camera with a display gamma: with the response recovered from an exposure series and

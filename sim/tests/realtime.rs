@@ -158,6 +158,23 @@ fn armed_states(dir: &Path) -> Vec<(u64, u8)> {
         .collect()
 }
 
+/// The journal's `Fault` events.
+fn faults(dir: &Path) -> Vec<Record> {
+    journal_records(dir)
+        .unwrap()
+        .into_iter()
+        .filter(|r| matches!(r, Record::Event { event: Event::Fault { .. }, .. }))
+        .collect()
+}
+
+/// The session is done with one frame for every trigger of every step.
+fn assert_every_frame(session: &Session, plan: &Plan) {
+    assert!(session.is_done());
+    for step in &plan.steps {
+        assert_eq!(session.frames_of(step.id).len(), step.shot_count(), "step {}", step.id);
+    }
+}
+
 #[test]
 fn a_person_at_a_prompt_and_slow_frame_reads_do_not_time_the_host_out() {
     let rig = RealTimeRig::start();
@@ -178,15 +195,8 @@ fn a_person_at_a_prompt_and_slow_frame_reads_do_not_time_the_host_out() {
     .unwrap();
     // The host was busy far longer than the device's heartbeat timeout, several times over.
     assert!(started.elapsed() > 4 * BUSY, "{:?}", started.elapsed());
-    assert!(session.is_done());
-    for step in &plan.steps {
-        assert_eq!(session.frames_of(step.id).len(), step.shot_count(), "step {}", step.id);
-    }
-    let faults: Vec<_> = journal_records(&dir)
-        .unwrap()
-        .into_iter()
-        .filter(|r| matches!(r, Record::Event { event: Event::Fault { .. }, .. }))
-        .collect();
+    assert_every_frame(&session, &plan);
+    let faults = faults(&dir);
     assert_eq!(faults, vec![], "no fault while the host was busy");
     // The lasers were disarmed for the whole time the person was at the rig: disarmed before
     // the prompt, armed again only after it, at least BUSY later on the device's clock.
@@ -225,16 +235,9 @@ fn a_slow_disk_does_not_time_the_host_out() {
     )
     .unwrap();
     assert!(started.elapsed() > 10 * delay, "the disk was slow: {:?}", started.elapsed());
-    assert!(session.is_done());
-    for step in &plan.steps {
-        assert_eq!(session.frames_of(step.id).len(), step.shot_count(), "step {}", step.id);
-    }
+    assert_every_frame(&session, &plan);
     drop(session);
-    let faults: Vec<_> = journal_records(&dir)
-        .unwrap()
-        .into_iter()
-        .filter(|r| matches!(r, Record::Event { event: Event::Fault { .. }, .. }))
-        .collect();
+    let faults = faults(&dir);
     assert_eq!(faults, vec![], "no fault while the disk was slow");
     std::fs::remove_dir_all(&dir).unwrap();
 }
@@ -254,16 +257,9 @@ fn a_camera_slow_between_steps_does_not_time_the_host_out() {
         Session::create(&dir, Manifest::new("# test rig", client.info(), plan_summary(&plan))).unwrap();
     let mut camera = SlowCamera { quick: true, slow_between_steps: true, ..Default::default() };
     acquire::run(&mut client, &mut session, &plan, &mut camera, |_| {}).unwrap();
-    assert!(session.is_done());
-    for step in &plan.steps {
-        assert_eq!(session.frames_of(step.id).len(), step.shot_count(), "step {}", step.id);
-    }
+    assert_every_frame(&session, &plan);
     drop(session);
-    let faults: Vec<_> = journal_records(&dir)
-        .unwrap()
-        .into_iter()
-        .filter(|r| matches!(r, Record::Event { event: Event::Fault { .. }, .. }))
-        .collect();
+    let faults = faults(&dir);
     assert_eq!(faults, vec![], "no fault between the steps");
     std::fs::remove_dir_all(&dir).unwrap();
 }

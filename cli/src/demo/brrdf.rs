@@ -361,6 +361,6 @@ fn write_report(r: &BrrdfDemoResult, files: &[PathBuf], opts: &BrrdfDemoOptions)
         ));
     }
     rep.outputs(files);
-    std::fs::write(&r.report, &rep.0).map_err(io(&r.report))?;
+    rep.write(&r.report)?;
     Ok(())
 }

@@ -823,6 +823,6 @@ fn write_report(
     }
     rep.line(format!("Interpolation: {:?}.", f.fill));
     rep.outputs(files);
-    std::fs::write(&r.report, &rep.0).map_err(io(&r.report))?;
+    rep.write(&r.report)?;
     Ok(())
 }

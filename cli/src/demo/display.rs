@@ -10,9 +10,11 @@ use std::path::{Path, PathBuf};
 
 use lightrig_firmware::synth::Synth;
 use lightrig_host::fit::display::{self as fit, Shown, CALIBRATION_FILE};
+use lightrig_imaging::figure::{histogram, row, Panel};
+use lightrig_imaging::io::{write_png, BitDepth};
 use lightrig_pipelines::display::calibration::Calibration;
 use lightrig_pipelines::display::mapping::{golden_phase, partial_roughness, X_FREQUENCIES};
-use lightrig_pipelines::display::slopes::{arcsine_cdf, ks_distance, ks_to_gaussian};
+use lightrig_pipelines::display::slopes::{arcsine_cdf, ks_distance, ks_to_gaussian, moments, normal_cdf};
 use lightrig_protocol::sequence::Partial;
 use lightrig_sim::scenes::display::DisplayScene;
 use lightrig_sim::scenes::scene_for;
@@ -58,6 +60,11 @@ pub struct DisplayDemoResult {
     pub ks_one_sine: f64,
     /// `(partials, KS to a Gaussian)`.
     pub ks_gaussian: Vec<(usize, f64)>,
+    /// The slope histograms as pictures: `(file relative to the output directory, caption)`.
+    pub histograms: Vec<(String, String)>,
+    /// The highlights the camera saw after the correction, one panel per target: `(file,
+    /// caption)`.
+    pub lobes: (String, String),
     /// `report.md`.
     pub report: PathBuf,
 }
@@ -182,6 +189,7 @@ pub fn run_display(opts: &DisplayDemoOptions) -> Result<DisplayDemoResult, CliEr
     let corrected =
         fit::measure(&session(out, "corrected", rig_text(Some((&sweep, &rel))), opts)?, &mut again)
             .map_err(failure)?;
+    let lobes = write_lobes(&out.join("corrected").join("session"), &corrected, out)?;
     // 4. The simulated surface's slopes: one sine (Eq. 5.6), then 1, 3, 5, 7 partials.
     let scene = DisplayScene::small_water(16, 16);
     let k = |f: f64| scene.liquid.wave_number(f) * scene.actuators[0].response(&scene.liquid, f).norm();
@@ -194,12 +202,47 @@ pub fn run_display(opts: &DisplayDemoOptions) -> Result<DisplayDemoResult, CliEr
     let one = slopes(&[(f1, 0.03)]);
     let rho = k(f1) * 0.03;
     let ks_one_sine = ks_distance(&one, |d| arcsine_cdf(d, rho, 0.0));
+    // Each distribution as a histogram beside its model (40 bins, 6 px each, 160 px tall).
+    let mut histograms = Vec::new();
+    let mut picture =
+        |name: &str, samples: &[f64], range: (f64, f64), cdf: &dyn Fn(f64) -> f64, caption: String| {
+            let file = format!("{name}.png");
+            let img = histogram(samples, range, 40, cdf, (6, 160));
+            write_png(out.join(&file), &img, BitDepth::Eight).map_err(failure)?;
+            histograms.push((file, caption));
+            Ok::<(), CliError>(())
+        };
+    picture(
+        "slopes-one-sine",
+        &one,
+        (-2.2 * rho, 2.2 * rho),
+        &|d| arcsine_cdf(d, rho, 0.0),
+        format!(
+            "reflection angle δ of one sine at {f1} Hz, ±{:.3} rad: the surface's histogram (bars) and \
+             Eq. 5.6's arcsine distribution (marks)",
+            2.2 * rho
+        ),
+    )?;
     let mut ks_gaussian = Vec::new();
     for n in [1usize, 3, 5, 7] {
         // Equal roughness per partial for α = 0.08 over n partials.
         let r = partial_roughness(0.08, n);
         let p: Vec<(f64, f64)> = X_FREQUENCIES[..n].iter().map(|&f| (f, r / k(f))).collect();
-        ks_gaussian.push((n, ks_to_gaussian(&slopes(&p))));
+        let d = slopes(&p);
+        ks_gaussian.push((n, ks_to_gaussian(&d)));
+        let (mean, var) = moments(&d);
+        let sd = var.sqrt();
+        picture(
+            &format!("slopes-{n}-partials"),
+            &d,
+            (mean - 4.0 * sd, mean + 4.0 * sd),
+            &|x| normal_cdf(x, mean, sd),
+            format!(
+                "δ of {n} partial(s) for α = 0.08, mean ± 4 sd ({:.3} rad): histogram (bars) and the Gaussian \
+                 of the same mean and variance (marks)",
+                4.0 * sd
+            ),
+        )?;
     }
     let result = DisplayDemoResult {
         calibration: again,
@@ -208,10 +251,41 @@ pub fn run_display(opts: &DisplayDemoOptions) -> Result<DisplayDemoResult, CliEr
         corrected,
         ks_one_sine,
         ks_gaussian,
+        histograms,
+        lobes,
         report: out.join("report.md"),
     };
     write_report(&result, &cal, opts)?;
     Ok(result)
+}
+
+/// `out/lobes.png`: each target's first frame of the display session in `dir` (the screen as
+/// the camera saw it), through the colour map from 0 to its own peak, in the order of `shown`.
+fn write_lobes(dir: &Path, shown: &[Shown], out: &Path) -> Result<(String, String), CliError> {
+    let (s, _) = lightrig_host::session::Session::read(dir).map_err(failure)?;
+    let camera = s.pipeline_camera(None).map_err(failure)?;
+    let mut panels = Vec::new();
+    for sh in shown {
+        let frames = s.camera_frames_of(sh.step, camera);
+        let f = frames.first().ok_or_else(|| failure(format!("step {} has no frame", sh.step)))?;
+        let img = lightrig_imaging::io::read(dir.join(&f.file)).map_err(failure)?;
+        let c = usize::from(img.channels.max(1));
+        let px: Vec<Option<f32>> = img.data.iter().step_by(c).map(|&v| Some(v)).collect();
+        let peak = px.iter().flatten().copied().fold(0.0, f32::max).max(f32::MIN_POSITIVE);
+        panels.push(Panel::scalar(img.width, img.height, &px, (0.0, peak)));
+    }
+    let file = "lobes.png".to_string();
+    write_png(out.join(&file), &row(&panels, 1), BitDepth::Eight).map_err(failure)?;
+    let each: Vec<String> = shown
+        .iter()
+        .map(|s| format!("[{}, {}] shown [{:.3}, {:.3}]", s.target[0], s.target[1], s.shown[0], s.shown[1]))
+        .collect();
+    let caption = format!(
+        "the highlight on the screen after one correction, left to right for the targets αx, αy {} \
+         (each from 0 to its own peak)",
+        each.join(", ")
+    );
+    Ok((file, caption))
 }
 
 fn write_report(r: &DisplayDemoResult, cal: &Calibration, opts: &DisplayDemoOptions) -> Result<(), CliError> {
@@ -270,6 +344,12 @@ fn write_report(r: &DisplayDemoResult, cal: &Calibration, opts: &DisplayDemoOpti
     for (n, ks) in &r.ks_gaussian {
         rep.line(format!("| {n} | {ks:.4} |"));
     }
-    std::fs::write(&r.report, &rep.0).map_err(io(&r.report))?;
+    rep.line("");
+    let (file, caption) = &r.lobes;
+    rep.line(format!("![{caption}]({file})\n\n*{caption}*\n"));
+    for (file, caption) in &r.histograms {
+        rep.line(format!("![{caption}]({file})\n\n*{caption}*\n"));
+    }
+    rep.write(&r.report)?;
     Ok(())
 }

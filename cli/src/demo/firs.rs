@@ -370,7 +370,7 @@ pub fn run_firs(opts: &FirsDemoOptions) -> Result<FirsDemoResult, CliError> {
     }
     let volume = if opts.volume { Some(run_volume(opts, &mut r)?) } else { None };
     let report_path = opts.out.join("report.md");
-    std::fs::write(&report_path, &r.0).map_err(io(&report_path))?;
+    r.write(&report_path)?;
     if opts.progress {
         println!("{}", r.0);
         println!("report: {}", report_path.display());

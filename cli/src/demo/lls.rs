@@ -645,9 +645,19 @@ pub fn run_lls(opts: &DemoOptions) -> Result<(LlsAccuracy, PathBuf), CliError> {
     if png.is_some() {
         r.line("\n![truth, GGX fit, 10 × |error| under the check light](fit/relight.png)\n");
     }
+    let figures = super::lls_figures::write_map_figures(scene, &maps, out)?;
+    r.line("\n## The maps: truth, fit, error\n");
+    r.line(
+        "Each figure: the scene's truth, the Ward fit and their error, over the fitted sample pixels \
+         (grey: outside the sample or not fitted); a colour bar under each panel drawn through the \
+         colour map, its range in the caption.\n",
+    );
+    for f in &figures {
+        r.line(format_args!("![{}]({})\n\n*{}*\n", f.caption, f.file, f.caption));
+    }
     r.outputs(&files);
     let report_path = out.join("report.md");
-    std::fs::write(&report_path, &r.0).map_err(io(&report_path))?;
+    r.write(&report_path)?;
     println!("{}", r.0);
     println!("report: {}", report_path.display());
     Ok((acc, report_path))

@@ -9,6 +9,7 @@ pub mod disco;
 pub mod display;
 pub mod firs;
 pub mod lls;
+pub mod lls_figures;
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -376,6 +377,29 @@ impl Report {
             let met = if *met { "yes" } else { "**no**" };
             let _ = writeln!(self.0, "| {name} | {v:.4} | {bound}{limit} | {met} |");
         }
+    }
+
+    /// Writes the report to `path` (`report.md`) and beside it as an HTML page
+    /// (`report.html`: the same text, its tables and pictures, for a browser).
+    pub fn write(&self, path: &std::path::Path) -> Result<(), crate::error::CliError> {
+        std::fs::write(path, &self.0).map_err(crate::error::io(path))?;
+        let html_path = path.with_extension("html");
+        std::fs::write(&html_path, self.html()).map_err(crate::error::io(&html_path))
+    }
+
+    /// The report as a standalone HTML page (CommonMark with tables, by pulldown-cmark).
+    pub fn html(&self) -> String {
+        use pulldown_cmark::{html, Options, Parser};
+        let title = self.0.lines().find_map(|l| l.strip_prefix("# ")).unwrap_or("lightrig report");
+        let mut body = String::new();
+        html::push_html(&mut body, Parser::new_ext(&self.0, Options::ENABLE_TABLES));
+        let escaped = title.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;");
+        format!(
+            "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n<title>{escaped}</title>\n\
+             <style>body {{ font-family: sans-serif; max-width: 60em; margin: 2em auto; }} \
+             table {{ border-collapse: collapse; }} td, th {{ border: 1px solid #ccc; padding: 0.2em 0.5em; }} \
+             img {{ image-rendering: pixelated; max-width: 100%; }}</style>\n</head>\n<body>\n{body}</body>\n</html>\n"
+        )
     }
 
     /// The files a fit wrote, one bullet each, after a heading line.

@@ -69,10 +69,33 @@ pub struct Quality {
     pub board_rms_px: f64,
     /// The specular strip: fitted ρs (median), the rig file's.
     pub specular_strip: [f64; 2],
+    /// The camera the maps' pixels are: the intrinsics the fit used and the pose the board
+    /// frame gave.
+    pub camera: CameraUsed,
     /// Maps the session's passes did not measure (not written), with why.
     pub unmeasured: Vec<String>,
     /// Checks that failed, each with what to look at.
     pub warnings: Vec<String>,
+}
+
+/// The camera of a fit's pixel grid (`quality.json` `camera`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct CameraUsed {
+    /// Frame size, pixels.
+    pub width: u32,
+    pub height: u32,
+    /// Pinhole intrinsics, pixels; pixel centres at whole coordinates, (0, 0) the top-left
+    /// pixel's centre.
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    /// Brown–Conrady distortion, OpenCV's order (k1, k2, p1, p2, k3).
+    pub distortion: [f64; 5],
+    /// World (mm; the sample plane z = 0, x along the gantry) to camera: Rodrigues rotation
+    /// vector and translation, mm; a point X is seen at R·X + t.
+    pub rvec: [f64; 3],
+    pub tvec: [f64; 3],
 }
 
 /// The masks of `m`.
@@ -118,6 +141,17 @@ pub fn assess(m: &LlsMaps, v: &Validity) -> Quality {
         residual: [quantile(0.5), quantile(0.95)],
         board_rms_px: m.registration_rms,
         specular_strip: [m.specular_strip.0, m.specular_strip.1],
+        camera: CameraUsed {
+            width: m.width,
+            height: m.height,
+            fx: m.intrinsics.fx,
+            fy: m.intrinsics.fy,
+            cx: m.intrinsics.cx,
+            cy: m.intrinsics.cy,
+            distortion: [m.intrinsics.k1, m.intrinsics.k2, m.intrinsics.p1, m.intrinsics.p2, m.intrinsics.k3],
+            rvec: m.pose.rvec,
+            tvec: m.pose.tvec,
+        },
         unmeasured: Vec::new(),
         warnings: Vec::new(),
     };
