@@ -230,6 +230,32 @@ fn brdf_display_calibrates_as_shipped_then_shows_asked_roughnesses() {
             let (want, got) = (r["alpha"][k].as_f64().unwrap(), r["shown"][k].as_f64().unwrap());
             assert!((got / want - 1.0).abs() < 0.1, "asked α {want}, shown {got}: {r}");
         }
+        assert!((0.0..0.5).contains(&r["shape_error"].as_f64().unwrap()), "{r}");
+    }
+    // A screen measured wrong is corrected at the fit (`--set plan.screen.…`), and shows: the
+    // same pictures read as 60 mm away give tilts about 50/60 as large.
+    let far = dir.join("far");
+    ok(
+        &lightrig(&[
+            "fit",
+            "display",
+            shown_session.to_str().unwrap(),
+            "--out",
+            far.to_str().unwrap(),
+            "--calibration",
+            cal_file.to_str().unwrap(),
+            "--set",
+            "plan.screen.distance_mm=60",
+        ]),
+        "fit display --set plan.screen.distance_mm=60",
+    );
+    let far_rows: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(far.join("shown.json")).unwrap()).unwrap();
+    for (r, f) in rows.iter().zip(far_rows.as_array().unwrap()) {
+        for k in 0..2 {
+            let ratio = f["shown"][k].as_f64().unwrap() / r["shown"][k].as_f64().unwrap();
+            assert!((ratio / (50.0 / 60.0) - 1.0).abs() < 0.05, "{ratio}: {r} then {f}");
+        }
     }
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -127,7 +127,7 @@ fn the_immersion_and_display_examples_plan() {
     let path = example("brdf-display.toml");
     let rig = RigFile::load(&path).unwrap();
     let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
-    assert_eq!(plan.steps.len(), 1 + 7);
+    assert_eq!(plan.steps.len(), 1 + 13, "the still surface and the 13 frequencies of the sweep");
     let sounding = |step: usize| -> Vec<(u8, Vec<u32>)> {
         plan.steps[step]
             .items()
@@ -141,7 +141,11 @@ fn the_immersion_and_display_examples_plan() {
             .collect()
     };
     assert_eq!(sounding(0), vec![], "the still surface");
-    assert_eq!(sounding(1), vec![(0, vec![101_000]), (1, vec![113_000])], "one sine per coil");
+    assert_eq!(
+        sounding(1),
+        vec![(0, vec![90_000]), (1, vec![100_000])],
+        "one sine per coil, the sweep's first"
+    );
     assert_eq!(plan.steps[1].meta["kind"], "sine");
     assert_eq!(plan.meta["liquid"], "water");
     // Raw patterns instead: every coil gets each pattern.

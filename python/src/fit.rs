@@ -251,6 +251,7 @@ pub fn fit_display<'py>(
                         sd.set_item("target", s.target.to_vec())?;
                         sd.set_item("asked", s.asked.to_vec())?;
                         sd.set_item("shown", s.shown.to_vec())?;
+                        sd.set_item("shape_error", s.shape_error)?;
                         sd.set_item("error", s.error().to_vec())
                     })?)?;
                 }

@@ -86,6 +86,7 @@ def test_display_calibration_is_the_demo_s(demos):
     for s in shown["shown"]:
         assert len(s["target"]) == len(s["shown"]) == 2
         assert all(abs(e) < 0.2 for e in s["error"]), s
+        assert 0.0 <= s["shape_error"] < 0.5, s
 
 
 def read_ply_vertices(path):

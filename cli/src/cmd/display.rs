@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use lightrig_host::bringup::{bring_up_with, BringUpHooks};
 use lightrig_host::client::{Client, Interrupt};
 use lightrig_host::plan::display::{coil_actions, partials_for};
-use lightrig_host::plan::from_rig::{display_calibration, display_calibration_at};
+use lightrig_host::plan::from_rig::{display_calibration, display_calibration_at, display_max_slope};
 use lightrig_host::rigfile::RigFile;
 use lightrig_host::transport::{Connect, Transport};
 use lightrig_pipelines::display::Calibration;
@@ -66,9 +66,10 @@ fn set(
     client: &mut Client<Box<dyn Transport>>,
     cal: &Calibration,
     alpha: [f64; 2],
+    max_slope: f64,
     ramp: u32,
 ) -> Result<(), CliError> {
-    let channels = partials_for(cal, alpha).map_err(|e| err(USAGE, e.to_string()))?;
+    let channels = partials_for(cal, alpha, max_slope).map_err(|e| err(USAGE, e.to_string()))?;
     send(client, &channels, ramp)
 }
 
@@ -93,16 +94,17 @@ pub fn run(args: &Args) -> Result<(), CliError> {
         None => display_calibration(&rig),
     }
     .map_err(|e| err(INPUT, e.to_string()))?;
+    let max_slope = display_max_slope(&rig).map_err(|e| err(INPUT, e.to_string()))?;
     let alpha = parse_alpha(&args.alpha).map_err(|e| err(USAGE, e))?;
     // Refuse before touching the device.
-    partials_for(&cal, alpha).map_err(|e| err(USAGE, e.to_string()))?;
+    partials_for(&cal, alpha, max_slope).map_err(|e| err(USAGE, e.to_string()))?;
     let spec = connect_spec(&rig, args.connect.as_ref());
     let (transport, _) = open(&rig, &spec)?;
     let mut client =
         bring_up_with(&rig, transport, &mut Hooks(on_ctrl_c())).map_err(|e| err(DEVICE, e.to_string()))?;
     let hz = f64::from(client.info().tick_hz);
     let ramp = (args.ramp_ms.max(0.0) * 1e-3 * hz).round() as u32;
-    set(&mut client, &cal, alpha, ramp)?;
+    set(&mut client, &cal, alpha, max_slope, ramp)?;
     eprintln!(
         "showing αx = {}, αy = {}; type another (AX,AY) and Enter to change it, end of input to fade and stop",
         alpha[0], alpha[1]
@@ -118,7 +120,7 @@ pub fn run(args: &Args) -> Result<(), CliError> {
             Ok(_) => {}
         }
         match parse_alpha(line.trim())
-            .and_then(|a| set(&mut client, &cal, a, ramp).map(|()| a).map_err(|e| e.message))
+            .and_then(|a| set(&mut client, &cal, a, max_slope, ramp).map(|()| a).map_err(|e| e.message))
         {
             Ok(a) => eprintln!("showing αx = {}, αy = {}", a[0], a[1]),
             Err(e) => eprintln!("refused: {e}"),

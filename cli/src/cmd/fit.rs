@@ -156,18 +156,19 @@ fn fit_display(session: &Path, calibration: Option<&Path>, out: &Path) -> ExitCo
                 }
             }
             display::Fitted::Shown(shown, _) => {
-                println!("step  target αx, αy    shown αx, αy    error");
+                println!("step  target αx, αy    shown αx, αy    error             lobe-shape error");
                 for s in &shown {
                     let e = s.error();
                     println!(
-                        "{:>4}  {:.4}, {:.4}  {:.4}, {:.4}  {:+.1} %, {:+.1} %",
+                        "{:>4}  {:.4}, {:.4}  {:.4}, {:.4}  {:+.1} %, {:+.1} %    {:.3}",
                         s.step,
                         s.target[0],
                         s.target[1],
                         s.shown[0],
                         s.shown[1],
                         100.0 * e[0],
-                        100.0 * e[1]
+                        100.0 * e[1],
+                        s.shape_error
                     );
                 }
             }

@@ -10,10 +10,14 @@ use std::path::{Path, PathBuf};
 
 use lightrig_firmware::synth::Synth;
 use lightrig_host::fit::display::{self as fit, Shown, CALIBRATION_FILE};
+use lightrig_host::plan::from_rig::display_screen;
 use lightrig_imaging::figure::{histogram, row, Panel};
 use lightrig_imaging::io::{write_png, BitDepth};
 use lightrig_pipelines::display::calibration::Calibration;
-use lightrig_pipelines::display::mapping::{golden_phase, partial_roughness, X_FREQUENCIES};
+use lightrig_pipelines::display::lobe::fit_ward;
+use lightrig_pipelines::display::mapping::{
+    bell_ratio, golden_phase, partial_roughness, slope_roughness, X_FREQUENCIES, Y_FREQUENCIES,
+};
 use lightrig_pipelines::display::slopes::{arcsine_cdf, ks_distance, ks_to_gaussian, moments, normal_cdf};
 use lightrig_protocol::sequence::Partial;
 use lightrig_sim::scenes::display::DisplayScene;
@@ -60,6 +64,11 @@ pub struct DisplayDemoResult {
     pub ks_one_sine: f64,
     /// `(partials, KS to a Gaussian)`.
     pub ks_gaussian: Vec<(usize, f64)>,
+    /// Ward's lobe fitted to the screen's picture of `n` partials per axis for α = 0.08:
+    /// `(n, α the fit found on x and y, shape error)`.
+    pub ward_shape: Vec<(usize, [f64; 2], f64)>,
+    /// The rig file's bound on the total slope, rad (`[plan] max_slope_deg`).
+    pub max_slope: f64,
     /// The slope histograms as pictures: `(file relative to the output directory, caption)`.
     pub histograms: Vec<(String, String)>,
     /// The highlights the camera saw after the correction, one panel per target: `(file,
@@ -100,8 +109,9 @@ fn rig_text(alphas: Option<(&[[f64; 2]], &str)>) -> String {
         Some((alphas, cal)) => {
             let list: Vec<String> = alphas.iter().map(|a| format!("[{}, {}]", a[0], a[1])).collect();
             let plan = format!("alphas = [{}]\ncalibration = \"{cal}\"\n", list.join(", "));
-            let cut = shipped.find("\n[plan.calibrate]").expect("the shipped rig file calibrates");
-            format!("{}\n{plan}", &shipped[..cut])
+            let calibrate = "[plan.calibrate]\ndrive = 0.03";
+            assert!(shipped.contains(calibrate), "the shipped rig file calibrates");
+            shipped.replacen(calibrate, &plan, 1)
         }
     }
 }
@@ -191,13 +201,25 @@ pub fn run_display(opts: &DisplayDemoOptions) -> Result<DisplayDemoResult, CliEr
             .map_err(failure)?;
     let lobes = write_lobes(&out.join("corrected").join("session"), &corrected, out)?;
     // 4. The simulated surface's slopes: one sine (Eq. 5.6), then 1, 3, 5, 7 partials.
-    let scene = DisplayScene::small_water(16, 16);
-    let k = |f: f64| scene.liquid.wave_number(f) * scene.actuators[0].response(&scene.liquid, f).norm();
-    let slopes = |partials: &[(f64, f64)]| -> Vec<f64> {
-        let (before, now) = played(partials);
-        // Reflection angles in the small-angle model of Eq. 5.6 and figure 5.8: δ = 2·slope.
-        scene.slopes(0, 48_000.0, &before, &now).iter().map(|s| 2.0 * s).collect()
+    let side = lightrig_sim::scenes::display::SCREEN_PIXELS;
+    let scene = DisplayScene::small_water(side, side);
+    let kh = |axis: usize, f: f64| {
+        scene.liquid.wave_number(f) * scene.actuators[axis].response(&scene.liquid, f).norm()
     };
+    let k = |f: f64| kh(0, f);
+    let gradients = |axis: usize, partials: &[(f64, f64)]| -> Vec<f64> {
+        let (before, now) = played(partials);
+        scene.slopes(axis, 48_000.0, &before, &now)
+    };
+    // Reflection angles in the small-angle model of Eq. 5.6 and figure 5.8: δ = 2·slope.
+    let slopes =
+        |partials: &[(f64, f64)]| -> Vec<f64> { gradients(0, partials).iter().map(|s| 2.0 * s).collect() };
+    let shipped = lightrig_host::rigfile::RigFile::parse(
+        include_str!("../../../docs/rigs/brdf-display.toml"),
+        Path::new("docs/rigs/brdf-display.toml"),
+    )
+    .map_err(failure)?;
+    let screen = display_screen(&shipped).map_err(failure)?.screen(side, side);
     let f1 = X_FREQUENCIES[4];
     let one = slopes(&[(f1, 0.03)]);
     let rho = k(f1) * 0.03;
@@ -224,12 +246,20 @@ pub fn run_display(opts: &DisplayDemoOptions) -> Result<DisplayDemoResult, CliEr
         ),
     )?;
     let mut ks_gaussian = Vec::new();
+    let mut ward_shape = Vec::new();
     for n in [1usize, 3, 5, 7] {
-        // Equal roughness per partial for α = 0.08 over n partials.
-        let r = partial_roughness(0.08, n);
+        // Equal roughness per partial for α = 0.08 over n partials, as the solver plans it.
+        let r = partial_roughness(slope_roughness(0.08), n) / bell_ratio(n);
         let p: Vec<(f64, f64)> = X_FREQUENCIES[..n].iter().map(|&f| (f, r / k(f))).collect();
         let d = slopes(&p);
         ks_gaussian.push((n, ks_to_gaussian(&d)));
+        // The same on both axes, as the screen shows it, against Ward's lobe.
+        let py: Vec<(f64, f64)> = Y_FREQUENCIES[..n].iter().map(|&f| (f, r / kh(1, f))).collect();
+        let (gx, gy) = (gradients(0, &p), gradients(1, &py));
+        let both: Vec<(f64, f64)> = gx.iter().copied().zip(gy.iter().copied()).collect();
+        let pic: Vec<f32> = scene.picture_of(&both).iter().map(|&v| v as f32).collect();
+        let fit = fit_ward(&pic, side as usize, side as usize, &screen, cal.beam_px);
+        ward_shape.push((n, fit.alpha, fit.shape_error));
         let (mean, var) = moments(&d);
         let sd = var.sqrt();
         picture(
@@ -251,6 +281,8 @@ pub fn run_display(opts: &DisplayDemoOptions) -> Result<DisplayDemoResult, CliEr
         corrected,
         ks_one_sine,
         ks_gaussian,
+        ward_shape,
+        max_slope: lightrig_host::plan::from_rig::display_max_slope(&shipped).map_err(failure)?,
         histograms,
         lobes,
         report: out.join("report.md"),
@@ -307,7 +339,7 @@ fn write_report(r: &DisplayDemoResult, cal: &Calibration, opts: &DisplayDemoOpti
     rep.line("|---|---|---|---|---|");
     let liquid = cal.liquid().map_err(failure)?;
     for (k, a) in cal.axes.iter().enumerate() {
-        let (max, limit) = a.axis(["x", "y"][k]).reachable(&liquid).map_err(failure)?;
+        let (max, limit) = a.axis(["x", "y"][k], r.max_slope).reachable(&liquid).map_err(failure)?;
         for (i, (f, h)) in a.frequencies_hz.iter().zip(&a.response_m).enumerate() {
             let reach = if i == 0 { format!("≤ {max:.3} ({limit})") } else { String::new() };
             rep.line(format!("| {} | {} | {f} | {:.1} | {reach} |", ["x", "y"][k], a.coil, h * 1e6));
@@ -317,12 +349,14 @@ fn write_report(r: &DisplayDemoResult, cal: &Calibration, opts: &DisplayDemoOpti
         rep.line("");
         rep.line(format!("## {name}"));
         rep.line("");
-        rep.line("| target αx | target αy | asked αx | asked αy | shown αx | shown αy | error x | error y |");
-        rep.line("|---|---|---|---|---|---|---|---|");
+        rep.line(
+            "| target αx | target αy | asked αx | asked αy | shown αx | shown αy | error x | error y | lobe-shape error |",
+        );
+        rep.line("|---|---|---|---|---|---|---|---|---|");
         for s in v.iter() {
             let e = s.error();
             rep.line(format!(
-                "| {} | {} | {:.4} | {:.4} | {:.4} | {:.4} | {:+.2} % | {:+.2} % |",
+                "| {} | {} | {:.4} | {:.4} | {:.4} | {:.4} | {:+.2} % | {:+.2} % | {:.4} |",
                 s.target[0],
                 s.target[1],
                 s.asked[0],
@@ -330,7 +364,8 @@ fn write_report(r: &DisplayDemoResult, cal: &Calibration, opts: &DisplayDemoOpti
                 s.shown[0],
                 s.shown[1],
                 100.0 * e[0],
-                100.0 * e[1]
+                100.0 * e[1],
+                s.shape_error
             ));
         }
     }
@@ -339,10 +374,18 @@ fn write_report(r: &DisplayDemoResult, cal: &Calibration, opts: &DisplayDemoOpti
     rep.line("");
     rep.line(format!("One sine at {} Hz against Eq. 5.6: KS {:.4}.", X_FREQUENCIES[4], r.ks_one_sine));
     rep.line("");
-    rep.line("| partials | KS to a Gaussian |");
-    rep.line("|---|---|");
-    for (n, ks) in &r.ks_gaussian {
-        rep.line(format!("| {n} | {ks:.4} |"));
+    rep.line(
+        "Each row: `n` partials per axis planned for α = 0.08 (the first `n` of each coil's \
+         frequencies, driven through the true response): the KS distance of the x slope from the \
+         Gaussian of its own moments, and, on both coils as the screen shows it, Ward's lobe fitted \
+         to the picture: the α it finds and the lobe-shape error (the total-variation distance \
+         between the picture and the fitted lobe).",
+    );
+    rep.line("");
+    rep.line("| partials | KS to a Gaussian | Ward fit αx | Ward fit αy | lobe-shape error |");
+    rep.line("|---|---|---|---|---|");
+    for ((n, ks), (_, a, shape)) in r.ks_gaussian.iter().zip(&r.ward_shape) {
+        rep.line(format!("| {n} | {ks:.4} | {:.4} | {:.4} | {shape:.4} |", a[0], a[1]));
     }
     rep.line("");
     let (file, caption) = &r.lobes;

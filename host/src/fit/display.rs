@@ -1,19 +1,22 @@
 //! `lightrig fit display`: a BRDF display session's frames (the camera's pictures of the screen
-//! the reflected beam lands on) → each step's spread of reflection angles
-//! (`lightrig_pipelines::display::lobe`) → from a calibration session, each coil's response
-//! `|H(f)|` at its partials' frequencies; from a display session, the α each target showed,
-//! which the calibration keeps for the next plan (the closed loop).
+//! the reflected beam lands on, through the rig file's `[plan.screen]`) → from a calibration
+//! session, each step's spread of facet tilts and so each coil's response `|H(f)|` at its
+//! partials' frequencies; from a display session, Ward's lobe fitted to each target's picture
+//! (`lightrig_pipelines::display::lobe`): the α it showed and how far its shape is from
+//! Ward's. The calibration keeps what each target showed for the next plan (the closed loop).
 
 use std::path::Path;
 
 use lightrig_pipelines::display::calibration::{AxisCalibration, Calibration, FORMAT};
-use lightrig_pipelines::display::lobe::{single_sine_roughness, spread, surface_variance, Spread};
-use lightrig_pipelines::display::mapping::alpha_of_variance;
-use lightrig_pipelines::display::Liquid;
+use lightrig_pipelines::display::lobe::{
+    fit_ward, pixel_spread, single_sine_roughness, spread, surface_variance, Spread,
+};
+use lightrig_pipelines::display::mapping::{X_FREQUENCIES, Y_FREQUENCIES};
+use lightrig_pipelines::display::{Liquid, Screen};
 use serde_json::Value;
 
 use super::{fail, FitError};
-use crate::plan::from_rig::display_coils;
+use crate::plan::from_rig::{display_coils, display_screen};
 use crate::rigfile::RigFile;
 use crate::session::Session;
 
@@ -26,18 +29,22 @@ pub struct Seen {
     pub name: String,
     /// The step's `meta` (`kind`: `still`, `sine`, `display`; what it showed).
     pub meta: Value,
-    /// The spread of reflection angles, averaged over the step's captures.
+    /// The mean of the step's captures (the first channel), row-major.
+    pub picture: Vec<f32>,
+    /// The facet tilts the picture holds ([`spread`]).
     pub spread: Spread,
 }
 
-/// A display session's steps as the camera saw them, with the plan's liquid and screen pitch.
+/// A display session's steps as the camera saw them, with the plan's liquid and screen.
 pub struct DisplaySession {
     /// The rig file the session was planned from.
     pub rig: RigFile,
     /// The liquid.
     pub liquid: Liquid,
-    /// Angle per screen pixel, rad.
-    pub pitch_rad: f64,
+    /// The screen, for the camera's pictures.
+    pub screen: Screen,
+    /// The pictures' size, pixels.
+    pub size: (usize, usize),
     /// Each done step.
     pub steps: Vec<Seen>,
 }
@@ -61,36 +68,52 @@ pub fn read(dir: &Path) -> Result<DisplaySession, FitError> {
     let liquid_name = meta.get("liquid").and_then(Value::as_str).unwrap_or("water");
     let liquid = Liquid::preset(liquid_name)
         .ok_or_else(|| fail(format!("{}: liquid `{liquid_name}` is not a known preset", dir.display())))?;
-    let pitch_rad = meta.get("screen_rad_per_px").and_then(Value::as_f64).ok_or_else(|| {
-        fail(format!(
-            "{}: the plan does not say the screen's pitch (plan.meta.screen_rad_per_px)",
-            dir.display()
-        ))
-    })?;
+    let screen_spec = display_screen(&rig).map_err(|e| fail(e.to_string()))?;
     let camera = s.pipeline_camera(None).map_err(fail)?;
-    let mut steps = Vec::new();
+    let mut size = None;
+    let mut pictures = Vec::new();
     for p in &m.plan.steps {
         let frames = s.camera_frames_of(p.id, camera);
         if frames.is_empty() {
             return Err(fail(format!("{}: step {} ({}) has no frame", dir.display(), p.id, p.name)));
         }
-        let mut sum = Spread { mean: [0.0; 2], var: [0.0; 2] };
+        let mut sum: Vec<f32> = Vec::new();
         for f in &frames {
             let path = dir.join(&f.file);
             let img =
                 lightrig_imaging::io::read(&path).map_err(|e| fail(format!("{}: {e}", path.display())))?;
+            let wh = (img.width as usize, img.height as usize);
+            if *size.get_or_insert(wh) != wh {
+                return Err(fail(format!(
+                    "{}: {}×{} where the session's other frames are {}×{}",
+                    path.display(),
+                    wh.0,
+                    wh.1,
+                    size.unwrap_or(wh).0,
+                    size.unwrap_or(wh).1
+                )));
+            }
             let c = usize::from(img.channels.max(1));
-            let px: Vec<f32> = img.data.iter().step_by(c).copied().collect();
-            let one = spread(&px, img.width as usize, img.height as usize, pitch_rad);
-            for a in 0..2 {
-                sum.mean[a] += one.mean[a] / frames.len() as f64;
-                sum.var[a] += one.var[a] / frames.len() as f64;
+            let px = img.data.iter().step_by(c);
+            if sum.is_empty() {
+                sum = px.map(|v| v / frames.len() as f32).collect();
+            } else {
+                sum.iter_mut().zip(px).for_each(|(a, v)| *a += v / frames.len() as f32);
             }
         }
         let meta = p.extra.get("meta").cloned().unwrap_or(Value::Null);
-        steps.push(Seen { step: p.id, name: p.name.clone(), meta, spread: sum });
+        pictures.push((p.id, p.name.clone(), meta, sum));
     }
-    Ok(DisplaySession { rig, liquid, pitch_rad, steps })
+    let size = size.unwrap_or((0, 0));
+    let screen = screen_spec.screen(size.0 as u32, size.1 as u32);
+    let steps = pictures
+        .into_iter()
+        .map(|(step, name, meta, picture)| {
+            let spread = spread(&picture, size.0, size.1, &screen);
+            Seen { step, name, meta, picture, spread }
+        })
+        .collect();
+    Ok(DisplaySession { rig, liquid, screen, size, steps })
 }
 
 fn kind(s: &Seen) -> &str {
@@ -98,8 +121,9 @@ fn kind(s: &Seen) -> &str {
 }
 
 /// A calibration session (`[plan.calibrate]`) → the display's calibration: the still step's
-/// spread is the beam's own; step `i`'s spread on each axis is one sine's, `2ρ²`, so
-/// `|H(fᵢ)| = ρ / (k(fᵢ)·drive)`.
+/// spread is the beam's own; step `i`'s spread on each axis is one sine's, `ρ²/2` in facet
+/// tilt, so `|H(fᵢ)| = ρ / (k(fᵢ)·drive)` at the sweep's frequencies; the display's partials
+/// (`mapping::X_FREQUENCIES`, `Y_FREQUENCIES`) are driven through `|H|` interpolated.
 pub fn calibration(d: &DisplaySession) -> Result<Calibration, FitError> {
     let still = d
         .steps
@@ -113,8 +137,11 @@ pub fn calibration(d: &DisplaySession) -> Result<Calibration, FitError> {
         max_drive: c.max_amplitude,
         frequencies_hz: Vec::new(),
         response_m: Vec::new(),
+        partials_hz: Vec::new(),
         seen: Vec::new(),
     });
+    axes[0].partials_hz = X_FREQUENCIES.to_vec();
+    axes[1].partials_hz = Y_FREQUENCIES.to_vec();
     let mut drive = 0.0;
     for s in d.steps.iter().filter(|s| kind(s) == "sine") {
         let f = s.meta.get("frequencies_hz").and_then(Value::as_array);
@@ -144,8 +171,9 @@ pub fn calibration(d: &DisplaySession) -> Result<Calibration, FitError> {
         format: FORMAT,
         liquid: d.liquid.name.to_string(),
         drive,
-        pitch_rad: d.pitch_rad,
+        screen: d.screen,
         beam_var: still.spread.var,
+        beam_px: pixel_spread(&still.picture, d.size.0, d.size.1).var.map(|v| v.max(0.0).sqrt()),
         axes,
     })
 }
@@ -159,8 +187,10 @@ pub struct Shown {
     pub target: [f64; 2],
     /// The α it asked of the solver (the closed loop's correction included).
     pub asked: [f64; 2],
-    /// The α the camera saw.
+    /// The α the camera saw: Ward's lobe fitted to the step's picture.
     pub shown: [f64; 2],
+    /// How far the displayed bell is from Ward's shape (`WardFit::shape_error`).
+    pub shape_error: f64,
 }
 
 impl Shown {
@@ -170,10 +200,10 @@ impl Shown {
     }
 }
 
-/// A display session (`alphas`) → what each target showed, the still beam's spread (from
-/// `cal`) removed. `cal` learns each `asked → shown` pair for the next plan.
+/// A display session (`alphas`) → what each target showed: Ward's lobe fitted to its picture,
+/// blurred by the still beam's spot (from `cal`). `cal` learns each `asked → shown` pair for
+/// the next plan.
 pub fn measure(d: &DisplaySession, cal: &mut Calibration) -> Result<Vec<Shown>, FitError> {
-    let still = Spread { mean: [0.0; 2], var: cal.beam_var };
     let mut out = Vec::new();
     for s in d.steps.iter().filter(|s| kind(s) == "display") {
         let pair = |key: &str| -> Result<[f64; 2], FitError> {
@@ -185,11 +215,12 @@ pub fn measure(d: &DisplaySession, cal: &mut Calibration) -> Result<Vec<Shown>, 
             }
         };
         let (target, asked) = (pair("alpha")?, pair("asked")?);
-        let shown = surface_variance(&s.spread, &still).map(alpha_of_variance);
+        let fit = fit_ward(&s.picture, d.size.0, d.size.1, &d.screen, cal.beam_px);
+        let shown = fit.alpha;
         for k in 0..2 {
             cal.axes[k].saw(asked[k], shown[k]);
         }
-        out.push(Shown { step: s.step, target, asked, shown });
+        out.push(Shown { step: s.step, target, asked, shown, shape_error: fit.shape_error });
     }
     if out.is_empty() {
         return Err(fail("the session shows no α target (`alphas` in the rig file's [plan])"));
@@ -239,12 +270,19 @@ pub fn fit_session(
         ))
     })?;
     let text = std::fs::read_to_string(path).map_err(|e| fail(format!("{}: {e}", path.display())))?;
-    let mut cal: Calibration = serde_json::from_str(&text)
-        .map_err(|e| fail(format!("{}: not a display calibration: {e}", path.display())))?;
+    let mut cal = Calibration::from_json(&text).map_err(|e| fail(format!("{}: {e}", path.display())))?;
     let shown = measure(&d, &mut cal)?;
     let rows: Vec<Value> = shown
         .iter()
-        .map(|s| serde_json::json!({ "step": s.step, "alpha": s.target, "asked": s.asked, "shown": s.shown }))
+        .map(|s| {
+            serde_json::json!({
+                "step": s.step,
+                "alpha": s.target,
+                "asked": s.asked,
+                "shown": s.shown,
+                "shape_error": s.shape_error,
+            })
+        })
         .collect();
     let a = write("shown.json", serde_json::to_string_pretty(&rows).expect("serializes"))?;
     let b = write(CALIBRATION_FILE, serde_json::to_string_pretty(&cal).expect("serializes"))?;

@@ -50,8 +50,8 @@ thread_local! {
 /// Runs `fit` with `overrides` applied to the rig file of the session it reads
 /// (`lightrig fit --set`): a fit's geometry measured wrong (the tube's height, a target's
 /// depth) is corrected without acquiring again. Only what no acquisition step used may
-/// change: keys under `plan.fit` and a camera's `response`; any other key describes how the
-/// session was taken and is refused. Every fit reads its session's rig file through
+/// change: keys under `plan.fit`, the display's `plan.screen` (where the screen stands) and a
+/// camera's `response`; any other key describes how the session was taken and is refused. Every fit reads its session's rig file through
 /// [`session_rig`], on the thread that calls it, so the overrides reach each pipeline
 /// without a parameter of its own.
 pub fn with_overrides<T>(overrides: &[Override], fit: impl FnOnce() -> T) -> Result<T, FitError> {
@@ -61,10 +61,11 @@ pub fn with_overrides<T>(overrides: &[Override], fit: impl FnOnce() -> T) -> Res
             .strip_prefix("camera[")
             .and_then(|k| k.split_once("]."))
             .is_some_and(|(_, f)| f == "response");
-        if !(o.key.starts_with("plan.fit.") || camera_response) {
+        if !(o.key.starts_with("plan.fit.") || o.key.starts_with("plan.screen.") || camera_response) {
             return Err(fail(format!(
-                "--set {o}: a fit changes only what the fit alone reads, keys under plan.fit and a \
-                 camera's response (camera[N].response); `{}` describes how the session was acquired: \
+                "--set {o}: a fit changes only what the fit alone reads, keys under plan.fit and \
+                 plan.screen and a camera's response (camera[N].response); `{}` describes how the \
+                 session was acquired: \
                  acquire again with `lightrig acquire … --set {o}`",
                 o.key
             )));

@@ -7,7 +7,8 @@
 //! sequence's coils only on a fault, so the step does it explicitly).
 //!
 //! Targets come from [`calibration_targets`] (a still surface, then one sine per coil per step
-//! at a known drive: what `lightrig fit display` turns into the coils' responses) or from
+//! at a known drive, sweeping the band the partials lie in: what `lightrig fit display` turns
+//! into the coils' responses) or from
 //! [`alpha_targets`] (Ward roughness per axis, solved through a calibration by
 //! `lightrig_pipelines::display`), or as raw partials from the rig file's `[plan.patterns]`.
 
@@ -32,9 +33,9 @@ pub fn partial(f: f64, drive: f64, phase: f64) -> Partial {
     }
 }
 
-/// The calibration: a still surface (the beam's own spread), then step `i` plays partial `i`
-/// of each axis alone on that axis' coil at `drive`. `axes`: each axis' coil channel and
-/// frequencies (the same count on both).
+/// The calibration: a still surface (the beam's own spread), then step `i` plays frequency `i`
+/// of each axis' sweep alone on that axis' coil at `drive`. `axes`: each axis' coil channel and
+/// sweep (`mapping::X_SWEEP`, `Y_SWEEP`; the shorter one sets the count).
 pub fn calibration_targets(axes: &[(u8, Vec<f64>); 2], drive: f64) -> Vec<Target> {
     let mut out = vec![Target {
         name: "still".into(),
@@ -54,12 +55,17 @@ pub fn calibration_targets(axes: &[(u8, Vec<f64>); 2], drive: f64) -> Vec<Target
 }
 
 /// Targets showing Ward roughness `(αx, αy)` each, solved through `cal` (asking, per axis, for
-/// what the camera's earlier views say shows the target: [`AxisCalibration::asked_for`]).
+/// what the camera's earlier views say shows the target: [`AxisCalibration::asked_for`]), the
+/// total slope's standard deviation bounded by `max_slope` rad.
 ///
 /// [`AxisCalibration::asked_for`]: lightrig_pipelines::display::AxisCalibration::asked_for
-pub fn alpha_targets(cal: &Calibration, alphas: &[[f64; 2]]) -> Result<Vec<Target>, DisplayError> {
+pub fn alpha_targets(
+    cal: &Calibration,
+    alphas: &[[f64; 2]],
+    max_slope: f64,
+) -> Result<Vec<Target>, DisplayError> {
     let liquid = cal.liquid().map_err(DisplayError::UnknownLiquid)?;
-    let axes = [cal.axes[0].axis("x"), cal.axes[1].axis("y")];
+    let axes = [cal.axes[0].axis("x", max_slope), cal.axes[1].axis("y", max_slope)];
     alphas
         .iter()
         .map(|a| {
@@ -90,8 +96,12 @@ pub fn alpha_targets(cal: &Calibration, alphas: &[[f64; 2]]) -> Result<Vec<Targe
 
 /// Each axis' coil channel and the partials that show `alpha` through `cal` (what a live
 /// display sends, `Immediate` `VoiceCoil` actions with a ramp).
-pub fn partials_for(cal: &Calibration, alpha: [f64; 2]) -> Result<Vec<(u8, Vec<Partial>)>, DisplayError> {
-    Ok(alpha_targets(cal, &[alpha])?.remove(0).channels)
+pub fn partials_for(
+    cal: &Calibration,
+    alpha: [f64; 2],
+    max_slope: f64,
+) -> Result<Vec<(u8, Vec<Partial>)>, DisplayError> {
+    Ok(alpha_targets(cal, &[alpha], max_slope)?.remove(0).channels)
 }
 
 /// `Immediate` actions that take each channel to its partials over `ramp` ticks (an empty

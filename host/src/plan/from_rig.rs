@@ -118,9 +118,10 @@ fn method_keys(method: Method) -> &'static [&'static str] {
             "coils",
             "exposure_us",
             "liquid",
+            "max_slope_deg",
             "patterns",
             "ramp_ms",
-            "screen_mrad_per_px",
+            "screen",
             "settle_ms",
         ],
         Method::Bispectral => &["exposures_us", "fit", "gonio", "pairs", "sample", "steer"],
@@ -160,6 +161,11 @@ const TABLE_KEYS: &[(Option<Method>, &str, &[&str])] = &[
         &["bins", "detection", "pca_angles", "select", "spectralon", "specular_deg"],
     ),
     (Some(Method::BrdfDisplay), "calibrate", &["drive"]),
+    (
+        Some(Method::BrdfDisplay),
+        "screen",
+        &["centre_px", "distance_mm", "incidence_deg", "pitch_mm", "tilt_deg"],
+    ),
 ];
 
 /// Refuses a key of `[plan]` (or of a sub-table read key by key) that nothing reads, with the
@@ -632,7 +638,7 @@ fn targets(rig: &RigFile) -> Result<Vec<serde_json::Value>, RigError> {
 }
 
 fn display_plan(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
-    use lightrig_pipelines::display::mapping::{X_FREQUENCIES, Y_FREQUENCIES};
+    use lightrig_pipelines::display::mapping::{X_SWEEP, Y_SWEEP};
     use lightrig_pipelines::display::Liquid;
     if rig.voice_coils.is_empty() {
         return Err(rig.error("voice_coil", "a BRDF display needs at least one [[voice_coil]]"));
@@ -650,8 +656,13 @@ fn display_plan(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
     if Liquid::preset(liquid_name).is_none() {
         return Err(rig.error("plan.liquid", format!("`{liquid_name}`: known liquids are water, galinstan")));
     }
-    let pitch_rad = num(rig, "screen_mrad_per_px", Some(12.5))? / 1000.0;
-    let meta = serde_json::json!({ "liquid": liquid_name, "screen_rad_per_px": pitch_rad });
+    let screen = display_screen(rig)?;
+    let max_slope = display_max_slope(rig)?;
+    let meta = serde_json::json!({
+        "liquid": liquid_name,
+        "screen": screen,
+        "max_slope_rad": max_slope,
+    });
     let targets = match modes[0] {
         "patterns" => pattern_targets(rig)?,
         "calibrate" => {
@@ -672,8 +683,7 @@ fn display_plan(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
                     ));
                 }
             }
-            let axes =
-                [(coils[0].channel, X_FREQUENCIES.to_vec()), (coils[1].channel, Y_FREQUENCIES.to_vec())];
+            let axes = [(coils[0].channel, X_SWEEP.to_vec()), (coils[1].channel, Y_SWEEP.to_vec())];
             display::calibration_targets(&axes, drive)
         }
         _ => {
@@ -688,7 +698,8 @@ fn display_plan(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
                 };
                 alphas.push([v(&pair[0])?, v(&pair[1])?]);
             }
-            display::alpha_targets(&cal, &alphas).map_err(|e| rig.error("plan.alphas", e.to_string()))?
+            display::alpha_targets(&cal, &alphas, max_slope)
+                .map_err(|e| rig.error("plan.alphas", e.to_string()))?
         }
     };
     let cameras = plan_cameras(rig)?;
@@ -711,6 +722,91 @@ fn display_plan(rig: &RigFile, hz: u32) -> Result<Plan, RigError> {
         meta,
     };
     display::plan(&p).map_err(|e| rig.error("plan", e.0))
+}
+
+/// Where the display's screen stands: `[plan.screen]`, `distance_mm` from the spot along the
+/// mirror direction, `pitch_mm` of screen per camera pixel, the beam's `incidence_deg`, the
+/// screen's `tilt_deg` from facing the mirror direction (0 by default) and `centre_px = [x, y]`,
+/// where the mirror direction meets the picture (its centre by default: `None`).
+pub fn display_screen(rig: &RigFile) -> Result<DisplayScreen, RigError> {
+    let t = rig.plan.get("screen").and_then(|v| v.as_table()).ok_or_else(|| {
+        rig.error(
+            "plan.screen",
+            "a BRDF display needs its screen: `[plan.screen]` with distance_mm, pitch_mm and incidence_deg \
+             (docs/rigs/README.md)",
+        )
+    })?;
+    let get =
+        |key: &str, default: Option<f64>, ok: &dyn Fn(f64) -> bool, range: &str| -> Result<f64, RigError> {
+            let field = format!("plan.screen.{key}");
+            let v = match t.get(key) {
+                None => {
+                    return default
+                        .ok_or_else(|| rig.error("plan.screen", format!("`{key}` is required ({range})")))
+                }
+                Some(v) => v.as_float().or_else(|| v.as_integer().map(|i| i as f64)),
+            };
+            v.filter(|v| ok(*v)).ok_or_else(|| rig.error(&field, format!("must be a number, {range}")))
+        };
+    let centre_px = match t.get("centre_px") {
+        None => None,
+        Some(v) => {
+            let xy: Option<Vec<f64>> = v.as_array().filter(|a| a.len() == 2).and_then(|a| {
+                a.iter().map(|x| x.as_float().or_else(|| x.as_integer().map(|i| i as f64))).collect()
+            });
+            Some(
+                xy.map(|xy| [xy[0], xy[1]])
+                    .ok_or_else(|| rig.error("plan.screen.centre_px", "must be [x, y], pixels"))?,
+            )
+        }
+    };
+    Ok(DisplayScreen {
+        distance_m: get("distance_mm", None, &|v| v > 0.0, "mm, above 0")? / 1000.0,
+        pitch_m: get("pitch_mm", None, &|v| v > 0.0, "mm of screen per camera pixel, above 0")? / 1000.0,
+        incidence_rad: get("incidence_deg", None, &|v| (0.0..80.0).contains(&v), "degrees, 0 to 80")?
+            .to_radians(),
+        tilt_rad: get("tilt_deg", Some(0.0), &|v| v.abs() < 80.0, "degrees, −80 to 80")?.to_radians(),
+        centre_px,
+    })
+}
+
+/// The display's screen as the rig file gives it ([`display_screen`]).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct DisplayScreen {
+    /// From the spot along the mirror direction, m.
+    pub distance_m: f64,
+    /// Screen per camera pixel, m.
+    pub pitch_m: f64,
+    /// The beam's incidence, rad.
+    pub incidence_rad: f64,
+    /// The screen's turn from facing the mirror direction, rad.
+    pub tilt_rad: f64,
+    /// Where the mirror direction meets the picture, pixels; `None`: its centre.
+    pub centre_px: Option<[f64; 2]>,
+}
+
+impl DisplayScreen {
+    /// The pipeline's screen for a `width × height` picture.
+    pub fn screen(&self, width: u32, height: u32) -> lightrig_pipelines::display::Screen {
+        lightrig_pipelines::display::Screen {
+            distance_m: self.distance_m,
+            pitch_m: self.pitch_m,
+            incidence_rad: self.incidence_rad,
+            tilt_rad: self.tilt_rad,
+            centre_px: self.centre_px.unwrap_or([f64::from(width) / 2.0, f64::from(height) / 2.0]),
+        }
+    }
+}
+
+/// `[plan] max_slope_deg`: the bound on the total slope's standard deviation per axis, rad
+/// (`mapping::LINEAR_LIMIT`, Eq. 5.1's 5°, without it).
+pub fn display_max_slope(rig: &RigFile) -> Result<f64, RigError> {
+    let deg =
+        num(rig, "max_slope_deg", Some(lightrig_pipelines::display::mapping::LINEAR_LIMIT.to_degrees()))?;
+    if !(deg > 0.0 && deg <= 30.0) {
+        return Err(rig.error("plan.max_slope_deg", format!("{deg}: give degrees, above 0 and at most 30")));
+    }
+    Ok(deg.to_radians())
 }
 
 /// The x and y axes' coils: `[plan] coils = ["NAME", "NAME"]`, else the first two
@@ -762,9 +858,8 @@ pub fn display_calibration_at(
 ) -> Result<lightrig_pipelines::display::Calibration, RigError> {
     let text = std::fs::read_to_string(path)
         .map_err(|e| rig.error("plan.calibration", format!("{}: {e}", path.display())))?;
-    let cal: lightrig_pipelines::display::Calibration = serde_json::from_str(&text).map_err(|e| {
-        rig.error("plan.calibration", format!("{}: not a display calibration: {e}", path.display()))
-    })?;
+    let cal = lightrig_pipelines::display::Calibration::from_json(&text)
+        .map_err(|e| rig.error("plan.calibration", format!("{}: {e}", path.display())))?;
     let coils = display_coils(rig)?;
     for (k, c) in coils.iter().enumerate() {
         if cal.axes[k].channel != c.channel {

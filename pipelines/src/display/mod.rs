@@ -5,9 +5,11 @@
 //! - [`calibration`]: the calibration file: responses, the still beam, the closed loop's pairs.
 //! - [`liquid`]: the dispersion relation of capillary–gravity waves and their viscous damping
 //!   (water, and the gallium alloy of section 5.5.4).
-//! - [`mapping`]: Ward `α` → reflection variance → each partial's roughness → wave number →
+//! - [`mapping`]: Ward `α` → facet-tilt variance `α²/2` → each partial's roughness → wave number →
 //!   surface amplitude → coil drive through the measured response, with the reachable range.
-//! - [`lobe`]: the displayed lobe's spread read off a camera picture of the screen.
+//! - [`screen`]: the flat screen the reflected beam lands on: each camera pixel's facet tilt.
+//! - [`lobe`]: the displayed lobe read off a camera picture of the screen: its moments, and
+//!   Ward's lobe fitted to it.
 //! - [`slopes`]: the single sine's arcsine law (Eq. 5.6) and the distance of a slope
 //!   distribution from a Gaussian.
 
@@ -15,8 +17,10 @@ pub mod calibration;
 pub mod liquid;
 pub mod lobe;
 pub mod mapping;
+pub mod screen;
 pub mod slopes;
 
 pub use calibration::{AxisCalibration, Calibration};
 pub use liquid::Liquid;
 pub use mapping::{Axis, DisplayError, PartialDrive, Response};
+pub use screen::Screen;

@@ -65,6 +65,89 @@ pub fn ks_to_gaussian(samples: &[f64]) -> f64 {
     ks_distance(samples, |x| normal_cdf(x, mean, var.sqrt()))
 }
 
+/// The standard deviation of the Gaussian that fits the samples' histogram best by least
+/// squares (bins of a tenth of their standard deviation over ±4 of them, centred on their
+/// mean): what fitting a bell to a picture of them finds. For a Gaussian's samples it is their
+/// standard deviation; a flatter-topped distribution (a sum of few sines) fits wider.
+pub fn fitted_gaussian_sd(samples: &[f64]) -> f64 {
+    let (mean, var) = moments(samples);
+    let sd = var.sqrt();
+    if sd.is_nan() || sd <= 0.0 {
+        return 0.0;
+    }
+    let (bins, width) = (80usize, sd / 10.0);
+    let mut hist = vec![0.0; bins];
+    for s in samples {
+        let b = ((s - mean) / width + bins as f64 / 2.0).floor();
+        if (0.0..bins as f64).contains(&b) {
+            hist[b as usize] += 1.0;
+        }
+    }
+    let centres: Vec<f64> = (0..bins).map(|i| (i as f64 + 0.5 - bins as f64 / 2.0) * width).collect();
+    // The residual after the best scale, for a trial width.
+    let cost = |s: f64| {
+        let g: Vec<f64> = centres.iter().map(|x| (-x * x / (2.0 * s * s)).exp()).collect();
+        let a = g.iter().zip(&hist).map(|(g, h)| g * h).sum::<f64>() / g.iter().map(|g| g * g).sum::<f64>();
+        g.iter().zip(&hist).map(|(g, h)| (h - a * g).powi(2)).sum::<f64>()
+    };
+    // Golden-section search over half to twice the standard deviation.
+    let (mut lo, mut hi) = (0.5 * sd, 2.0 * sd);
+    let r = (5f64.sqrt() - 1.0) / 2.0;
+    let (mut c, mut d) = (hi - r * (hi - lo), lo + r * (hi - lo));
+    for _ in 0..80 {
+        if cost(c) < cost(d) {
+            hi = d;
+        } else {
+            lo = c;
+        }
+        c = hi - r * (hi - lo);
+        d = lo + r * (hi - lo);
+    }
+    0.5 * (lo + hi)
+}
+
+/// The same for a 2-D distribution of independent axes, as a picture shows it: each axis
+/// scaled by its standard deviation, the width (in those units) of the round Gaussian that
+/// fits the 2-D histogram best by least squares (bins of an eighth over ±4).
+pub fn fitted_gaussian_sd_2d(xs: &[f64], ys: &[f64]) -> f64 {
+    let ((mx, vx), (my, vy)) = (moments(xs), moments(ys));
+    if vx.is_nan() || vy.is_nan() || vx <= 0.0 || vy <= 0.0 {
+        return 0.0;
+    }
+    let (sx, sy) = (vx.sqrt(), vy.sqrt());
+    let (side, width) = (64usize, 1.0 / 8.0);
+    let mut hist = vec![0.0; side * side];
+    for (x, y) in xs.iter().zip(ys) {
+        let bx = ((x - mx) / sx / width + side as f64 / 2.0).floor();
+        let by = ((y - my) / sy / width + side as f64 / 2.0).floor();
+        if (0.0..side as f64).contains(&bx) && (0.0..side as f64).contains(&by) {
+            hist[by as usize * side + bx as usize] += 1.0;
+        }
+    }
+    let r2: Vec<f64> = (0..side * side)
+        .map(|i| {
+            let c = |k: usize| (k as f64 + 0.5 - side as f64 / 2.0) * width;
+            c(i % side).powi(2) + c(i / side).powi(2)
+        })
+        .collect();
+    let cost = |s: f64| {
+        let g: Vec<f64> = r2.iter().map(|r| (-r / (2.0 * s * s)).exp()).collect();
+        let a = g.iter().zip(&hist).map(|(g, h)| g * h).sum::<f64>() / g.iter().map(|g| g * g).sum::<f64>();
+        g.iter().zip(&hist).map(|(g, h)| (h - a * g).powi(2)).sum::<f64>()
+    };
+    let (mut lo, mut hi) = (0.5, 2.0);
+    let r = (5f64.sqrt() - 1.0) / 2.0;
+    for _ in 0..60 {
+        let (c, d) = (hi - r * (hi - lo), lo + r * (hi - lo));
+        if cost(c) < cost(d) {
+            hi = d;
+        } else {
+            lo = c;
+        }
+    }
+    0.5 * (lo + hi)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -125,5 +208,32 @@ mod tests {
         for (x, want) in [(0.0, 0.0), (0.5, 0.520_499_877_8), (1.0, 0.842_700_792_9), (2.0, 0.995_322_265)] {
             assert!((erf(x) - want).abs() < 2e-7 && (erf(-x) + want).abs() < 2e-7, "{x}");
         }
+    }
+
+    #[test]
+    fn a_gaussians_fitted_width_is_its_standard_deviation_and_a_sines_is_wider() {
+        // A Gaussian's quantiles, evenly spaced in probability (inverse cdf by bisection).
+        let inv = |p: f64| {
+            let (mut lo, mut hi) = (-10.0, 10.0);
+            for _ in 0..80 {
+                let mid = 0.5 * (lo + hi);
+                if normal_cdf(mid, 0.0, 2.0) < p {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            0.5 * (lo + hi)
+        };
+        let g: Vec<f64> = (0..50_000).map(|i| inv((f64::from(i) + 0.5) / 50_000.0)).collect();
+        assert!((fitted_gaussian_sd(&g) / 2.0 - 1.0).abs() < 0.01, "{}", fitted_gaussian_sd(&g));
+        // Paired with a scrambled copy (a stride coprime to the count): independent axes.
+        let ys: Vec<f64> = (0..g.len()).map(|i| g[(i * 7919) % g.len()]).collect();
+        let xs = &g[..];
+        assert!((fitted_gaussian_sd_2d(xs, &ys) - 1.0).abs() < 0.02, "{}", fitted_gaussian_sd_2d(xs, &ys));
+        // One sine: flatter-topped, fitted wider than its standard deviation.
+        let s: Vec<f64> = (0..50_000).map(|i| (f64::from(i) * 0.001).sin()).collect();
+        let (_, var) = moments(&s);
+        assert!(fitted_gaussian_sd(&s) / var.sqrt() > 1.2);
     }
 }

@@ -1,7 +1,7 @@
 //! The BRDF display's liquid (thesis chapter 5): two voice coils, one per axis, each driving a
 //! paddle whose motion launches plane waves across a liquid layer towards the displayed spot;
-//! a laser beam (or a distant point light) at normal incidence is reflected by the spot onto a
-//! screen the camera views. What the camera integrates over its exposure is the time-averaged
+//! a laser beam arriving at incidence `β` is reflected by the spot onto a flat screen the
+//! camera views. What the camera integrates over its exposure is the time-averaged
 //! distribution of reflection directions: the displayed lobe.
 //!
 //! The scene reads each coil's **samples as the simulated controller played them**
@@ -12,16 +12,20 @@
 //! viscous decay `e^(−κ·d)` of [`Liquid`]. So the true response is
 //! `H(f) = P(f)·e^(−(κ + i·k)·d)` (surface amplitude at the spot per unit drive), and the slope
 //! there along the axis is `s(t) = ℱ⁻¹[−i·k(f)·H(f)·ℱ[u]]`, done with one FFT per coil per
-//! frame. A ray reflects to `δ = 2·atan(s)` on each axis (the waves on the two axes cross at
-//! right angles and, being small, add).
+//! frame. The waves on the two axes cross at right angles and add: the surface's gradient is
+//! `(sx, sy)`.
 //!
-//! The screen: pixel `(x, y)` sees the reflection angles `δ = ((x + ½ − w/2)·p, (y + ½ − h/2)·p)`
-//! with `p` the angular pitch; the beam has a Gaussian profile of `beam_sigma` rad. The
-//! picture is a histogram of `δ(t)` over the exposure's samples (bilinear splats), blurred by
-//! the beam, normalised so that a still beam's peak has radiance [`DisplayScene::peak`].
+//! The optics are exact: each sample's facet (normal `∝ (−sx, −sy, 1)`) mirrors the beam, and
+//! the reflected ray is intersected with the screen's plane ([`ScreenView`]: a flat screen at
+//! a distance, facing the mirror direction or turned from it, a camera pixel per square patch
+//! of it). The picture is a histogram of where the rays land over the exposure's samples
+//! (each ray the beam's Gaussian spot, `beam_sigma` rad at the screen's distance, integrated
+//! over every pixel it touches), normalised so that a still beam on a pixel's centre peaks at
+//! radiance [`DisplayScene::peak`].
 
 use std::sync::{Arc, Mutex};
 
+use lightrig_pipelines::display::slopes::erf;
 use lightrig_pipelines::display::Liquid;
 use rustfft::num_complex::Complex;
 use rustfft::FftPlanner;
@@ -62,6 +66,55 @@ impl Actuator {
 /// The screen picture's side, pixels (`scene_for`'s).
 pub const SCREEN_PIXELS: u32 = 192;
 
+/// Where the screen stands, as the scene draws it (the rig file's `[plan.screen]`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScreenView {
+    /// From the spot to the screen along the mirror direction, m.
+    pub distance_m: f64,
+    /// Side of the patch of screen one pixel sees, m.
+    pub pitch_m: f64,
+    /// The beam's incidence on the still liquid, in the x–z plane, coming from −x, rad.
+    pub incidence_rad: f64,
+    /// The screen turned from facing the mirror direction, about its vertical, rad.
+    pub tilt_rad: f64,
+    /// Image position (pixels from the top-left corner) of the mirror direction.
+    pub centre_px: [f64; 2],
+}
+
+impl ScreenView {
+    /// The screen of the demo's rig file: 50 mm from the spot, 0.6 mm per pixel of a `side`
+    /// pixel picture centred on the mirror direction, the beam 10° off the normal.
+    pub fn demo(side: u32) -> Self {
+        ScreenView {
+            distance_m: 0.05,
+            pitch_m: 0.6e-3 * f64::from(SCREEN_PIXELS) / f64::from(side.max(1)),
+            incidence_rad: 10f64.to_radians(),
+            tilt_rad: 0.0,
+            centre_px: [f64::from(side) / 2.0; 2],
+        }
+    }
+
+    /// Where a ray leaving the spot along `r` meets the screen, in image pixels (continuous),
+    /// if it does (in front of the spot).
+    pub fn land(&self, r: [f64; 3]) -> Option<(f64, f64)> {
+        let (sb, cb) = self.incidence_rad.sin_cos();
+        // The screen's frame: its normal starts on the mirror direction (sin β, 0, cos β) and
+        // is turned by the tilt about the vertical y; image x lies in the x–z plane.
+        let (st, ct) = self.tilt_rad.sin_cos();
+        let normal = [sb * ct + cb * st, 0.0, cb * ct - sb * st];
+        let across = [cb * ct - sb * st, 0.0, -(sb * ct + cb * st)];
+        let centre = [self.distance_m * sb, 0.0, self.distance_m * cb];
+        let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        let along = dot(r, normal);
+        if along <= 0.0 {
+            return None;
+        }
+        let t = dot(centre, normal) / along;
+        let hit = [r[0] * t - centre[0], r[1] * t - centre[1], r[2] * t - centre[2]];
+        Some((self.centre_px[0] + dot(hit, across) / self.pitch_m, self.centre_px[1] + hit[1] / self.pitch_m))
+    }
+}
+
 /// The display scene.
 pub struct DisplayScene {
     /// The liquid.
@@ -70,9 +123,9 @@ pub struct DisplayScene {
     pub actuators: [Actuator; 2],
     /// Image size, pixels.
     pub size: (u32, u32),
-    /// Angle one pixel spans on the screen, rad.
-    pub pitch: f64,
-    /// The beam's Gaussian σ on the screen, rad.
+    /// The screen.
+    pub screen: ScreenView,
+    /// The beam's Gaussian spot, σ as an angle from the spot, rad.
     pub beam_sigma: f64,
     /// Radiance of a still beam's peak.
     pub peak: f64,
@@ -85,18 +138,19 @@ pub struct DisplayScene {
 impl DisplayScene {
     /// The thesis's small setup 2 on water: efficiency peak near 200 Hz (coils of slightly
     /// different make, so each needs its own calibration), the spot 10 mm from each paddle;
-    /// a `width × height` view of the screen spanning ±1.2 rad on its wider side (α = 0.14
-    /// spreads reflections with σ = 0.28 rad: the screen holds ±4σ of it).
+    /// a `width × height` view of the demo's screen ([`ScreenView::demo`]: ±49° about the
+    /// mirror direction on the wider side, where α = 0.14 reflects with σ ≈ 0.2 rad).
     pub fn small_water(width: u32, height: u32) -> Self {
         let a = Actuator { gain_m: 5.0e-4, resonance_hz: 190.0, q: 2.0, distance_m: 0.010 };
         let b = Actuator { gain_m: 4.0e-4, resonance_hz: 215.0, q: 2.5, distance_m: 0.012 };
-        let pitch = 2.4 / f64::from(width.max(height));
+        let mut screen = ScreenView::demo(width.max(height));
+        screen.centre_px = [f64::from(width) / 2.0, f64::from(height) / 2.0];
         DisplayScene {
             liquid: Liquid::WATER,
             actuators: [a, b],
             size: (width, height),
-            pitch,
-            beam_sigma: 1.5 * pitch,
+            screen,
+            beam_sigma: 0.018,
             peak: 1.0,
             rates_hz: [48_000.0; 2],
             cache: Mutex::new(None),
@@ -138,9 +192,9 @@ impl DisplayScene {
         buf[before.len()..n_total].iter().map(|c| c.re / n as f64).collect()
     }
 
-    /// Reflection angles `(δx, δy)` over the exposure, one per sample (both coils run at the
-    /// same rate; a silent axis stays level).
-    pub fn reflections(&self, state: &RigState) -> Vec<(f64, f64)> {
+    /// The surface's gradient `(∂h/∂x, ∂h/∂y)` at the spot over the exposure, one per sample
+    /// (both coils run at the same rate; a silent axis stays level).
+    pub fn gradients(&self, state: &RigState) -> Vec<(f64, f64)> {
         let axis = |a: usize| {
             let now = state.coils.get(a).map_or(&[][..], Vec::as_slice);
             let before = state.coils_before.get(a).map_or(&[][..], Vec::as_slice);
@@ -151,7 +205,7 @@ impl DisplayScene {
         (0..n)
             .map(|i| {
                 let s = |v: &[f64]| v.get(i).copied().unwrap_or(0.0);
-                (2.0 * s(&sx).atan(), 2.0 * s(&sy).atan())
+                (s(&sx), s(&sy))
             })
             .collect()
     }
@@ -171,55 +225,55 @@ impl DisplayScene {
 
     /// The screen over the exposure.
     fn draw(&self, state: &RigState) -> Vec<f64> {
-        let (w, h) = (self.size.0 as usize, self.size.1 as usize);
-        let mut rays = self.reflections(state);
-        if rays.is_empty() {
+        let mut gradients = self.gradients(state);
+        if gradients.is_empty() {
             // Silent coils: a still surface, the beam straight back.
-            rays.push((0.0, 0.0));
+            gradients.push((0.0, 0.0));
         }
-        let mut hist = vec![0.0; w * h];
-        let weight = 1.0 / rays.len() as f64;
-        for (dx, dy) in rays {
-            let fx = dx / self.pitch + w as f64 / 2.0 - 0.5;
-            let fy = dy / self.pitch + h as f64 / 2.0 - 0.5;
-            let (x0, y0) = (fx.floor(), fy.floor());
-            let (tx, ty) = (fx - x0, fy - y0);
-            for (ox, oy, wgt) in [
-                (0, 0, (1.0 - tx) * (1.0 - ty)),
-                (1, 0, tx * (1.0 - ty)),
-                (0, 1, (1.0 - tx) * ty),
-                (1, 1, tx * ty),
-            ] {
-                let (x, y) = (x0 as i64 + ox, y0 as i64 + oy);
-                if (0..w as i64).contains(&x) && (0..h as i64).contains(&y) {
-                    hist[y as usize * w + x as usize] += weight * wgt;
-                }
-            }
-        }
-        // The beam's profile, separable; a still beam's peak becomes `peak`.
-        let s = self.beam_sigma / self.pitch;
-        let r = (4.0 * s).ceil() as i64;
-        let kernel: Vec<f64> = (-r..=r).map(|i| (-(i as f64).powi(2) / (2.0 * s * s)).exp()).collect();
-        let blur = |src: &[f64], stride: usize, len: usize, lines: usize, line_stride: usize| {
-            let mut out = vec![0.0; src.len()];
-            for l in 0..lines {
-                for i in 0..len {
-                    let mut acc = 0.0;
-                    for (t, kv) in kernel.iter().enumerate() {
-                        let j = i as i64 + t as i64 - r;
-                        if (0..len as i64).contains(&j) {
-                            acc += kv * src[l * line_stride + j as usize * stride];
-                        }
-                    }
-                    out[l * line_stride + i * stride] = acc;
-                }
-            }
-            out
-        };
-        let along_x = blur(&hist, 1, w, h, w);
-        let both = blur(&along_x, w, h, w, 1);
-        both.into_iter().map(|v| v * self.peak).collect()
+        self.picture_of(&gradients)
     }
+
+    /// The screen's picture when the spot's gradient runs through `gradients` `(∂h/∂x, ∂h/∂y)`
+    /// over the exposure.
+    pub fn picture_of(&self, gradients: &[(f64, f64)]) -> Vec<f64> {
+        let (w, h) = (self.size.0 as usize, self.size.1 as usize);
+        let (sb, cb) = self.screen.incidence_rad.sin_cos();
+        // Towards the light.
+        let wi = [-sb, 0.0, cb];
+        let mut hist = vec![0.0; w * h];
+        let weight = 1.0 / gradients.len().max(1) as f64;
+        // The spot's σ on the screen, pixels.
+        let sigma = (self.beam_sigma * self.screen.distance_m / self.screen.pitch_m).max(1e-6);
+        for &(gx, gy) in gradients {
+            let norm = (gx * gx + gy * gy + 1.0).sqrt();
+            let n = [-gx / norm, -gy / norm, 1.0 / norm];
+            let c = 2.0 * (wi[0] * n[0] + wi[1] * n[1] + wi[2] * n[2]);
+            let r = [c * n[0] - wi[0], c * n[1] - wi[1], c * n[2] - wi[2]];
+            let Some((px, py)) = self.screen.land(r) else { continue };
+            // The beam's Gaussian spot about where the ray lands, integrated over each pixel.
+            let (wx, x0) = spot_weights(px, sigma, w);
+            let (wy, y0) = spot_weights(py, sigma, h);
+            for (j, vy) in wy.iter().enumerate() {
+                let row = (y0 + j) * w + x0;
+                for (i, vx) in wx.iter().enumerate() {
+                    hist[row + i] += weight * vx * vy;
+                }
+            }
+        }
+        // A still beam landing on a pixel's centre peaks at `peak`.
+        let centre = erf(0.5 / (sigma * std::f64::consts::SQRT_2));
+        let norm = self.peak / (centre * centre);
+        hist.into_iter().map(|v| v * norm).collect()
+    }
+}
+
+/// The share of a Gaussian of `sigma` pixels about `at` (pixels, continuous) that falls in
+/// each pixel of a line `n` long, from the first pixel within 5σ: `(shares, first)`.
+fn spot_weights(at: f64, sigma: f64, n: usize) -> (Vec<f64>, usize) {
+    let lo = (at - 5.0 * sigma).floor().clamp(0.0, n as f64) as usize;
+    let hi = (at + 5.0 * sigma).ceil().clamp(0.0, n as f64) as usize;
+    let cdf = |x: f64| 0.5 * (1.0 + erf((x - at) / (sigma * std::f64::consts::SQRT_2)));
+    ((lo..hi).map(|i| cdf(i as f64 + 1.0) - cdf(i as f64)).collect(), lo)
 }
 
 /// A key for an exposure's coil samples, cheap enough to take per pixel: where they lie, how
@@ -251,8 +305,10 @@ impl Scene for DisplayScene {
 mod tests {
     use super::*;
     use lightrig_firmware::synth::Synth;
-    use lightrig_pipelines::display::mapping::{golden_phase, Axis, Response, X_FREQUENCIES, Y_FREQUENCIES};
-    use lightrig_pipelines::display::slopes::{arcsine_cdf, ks_distance, ks_to_gaussian, moments};
+    use lightrig_pipelines::display::mapping::{
+        golden_phase, ward_of_slope_roughness, Axis, Response, X_FREQUENCIES, Y_FREQUENCIES,
+    };
+    use lightrig_pipelines::display::slopes::{arcsine_cdf, fitted_gaussian_sd, ks_distance, ks_to_gaussian};
     use lightrig_protocol::sequence::Partial;
 
     const RATE: u32 = 48_000;
@@ -278,7 +334,7 @@ mod tests {
     }
 
     fn true_response(scene: &DisplayScene, axis: usize) -> Response {
-        let points = (20..=80)
+        let points = (10..=80)
             .map(|i| f64::from(i) * 5.0)
             .map(|f| (f, scene.actuators[axis].response(&scene.liquid, f).norm()))
             .collect();
@@ -297,6 +353,43 @@ mod tests {
                 (20..=160).map(|i| f64::from(i) * 5.0).max_by(|a, b| eff(*a).total_cmp(&eff(*b))).unwrap();
             assert!((150.0..260.0).contains(&best), "axis {axis}: {best} Hz");
         }
+    }
+
+    #[test]
+    fn a_tilted_surface_sends_the_beam_where_the_mirror_law_says() {
+        // Beam straight down, screen square on 50 mm up, 0.5 mm per pixel, centre (32, 32):
+        // a gradient g along x turns the normal by atan g towards −x, the reflection by twice
+        // that, so the spot lands D·tan(2·atan g) from the centre towards −x.
+        let mut scene = DisplayScene::small_water(64, 64);
+        scene.screen = ScreenView {
+            distance_m: 0.05,
+            pitch_m: 0.5e-3,
+            incidence_rad: 0.0,
+            tilt_rad: 0.0,
+            centre_px: [32.0, 32.0],
+        };
+        // A spot of 2 px: its pixel-integrated centroid is where it landed, to 1e-4 px (the
+        // error function's approximation errs by 1.5e-7).
+        scene.beam_sigma = 0.02;
+        for (g, axis) in [(0.1, 0), (-0.05, 1)] {
+            let grad = if axis == 0 { (g, 0.0) } else { (0.0, g) };
+            let pic = scene.picture_of(&[grad]);
+            let off = 0.05 * (2.0 * f64::atan(g)).tan() / 0.5e-3;
+            let (mut m0, mut mx, mut my) = (0.0, 0.0, 0.0);
+            for (i, v) in pic.iter().enumerate() {
+                m0 += v;
+                mx += v * ((i % 64) as f64 + 0.5);
+                my += v * ((i / 64) as f64 + 0.5);
+            }
+            let (x, y) = (mx / m0, my / m0);
+            let want = if axis == 0 { (32.0 - off, 32.0) } else { (32.0, 32.0 - off) };
+            assert!((x - want.0).abs() < 1e-4 && (y - want.1).abs() < 1e-4, "{g}: ({x}, {y}) vs {want:?}");
+        }
+        // At incidence β the still surface mirrors the beam onto the centre of a screen that
+        // faces the mirror direction, and a ray away from the screen misses it.
+        scene.screen.incidence_rad = 0.3;
+        assert_eq!(scene.screen.land([0.3f64.sin(), 0.0, 0.3f64.cos()]), Some((32.0, 32.0)));
+        assert_eq!(scene.screen.land([-0.3f64.sin(), 0.0, -0.3f64.cos()]), None);
     }
 
     #[test]
@@ -322,21 +415,19 @@ mod tests {
                 frequencies: freqs.to_vec(),
                 response: true_response(&scene, axis),
                 max_drive: 0.5,
+                max_slope: 6f64.to_radians(),
             };
             for alpha in [0.02, 0.08, 0.14] {
                 let p = a.solve(alpha, &scene.liquid).unwrap();
                 let partials: Vec<_> =
                     p.iter().enumerate().map(|(i, q)| (q.frequency, q.drive, golden_phase(i))).collect();
-                let (before, now) = played(&partials, 0.1, 0.5);
-                let deltas: Vec<f64> = scene
-                    .slopes(axis, f64::from(RATE), &before, &now)
-                    .iter()
-                    .map(|s| 2.0 * s.atan())
-                    .collect();
-                let (_, var) = moments(&deltas);
-                let shown = var.sqrt() / 2.0;
-                assert!((shown / alpha - 1.0).abs() < 0.03, "axis {axis} α {alpha}: shown {shown}");
-                let ks = ks_to_gaussian(&deltas);
+                let (before, now) = played(&partials, 0.1, 1.0);
+                // The facet tilt is the slope: the bell fitted to it has the standard deviation
+                // α_s/√2 of the tilts Ward's lobe shows as α (over the partials' whole period).
+                let slopes = scene.slopes(axis, f64::from(RATE), &before, &now);
+                let shown = ward_of_slope_roughness(fitted_gaussian_sd(&slopes) * 2f64.sqrt());
+                assert!((shown / alpha - 1.0).abs() < 0.01, "axis {axis} α {alpha}: shown {shown}");
+                let ks = ks_to_gaussian(&slopes);
                 assert!(ks < 0.03, "axis {axis} α {alpha}: KS to a Gaussian {ks}");
             }
         }

@@ -89,7 +89,8 @@ pub fn unsimulated(rig: &RigFile) -> Vec<String> {
 ///   the sheet from `[plan] laser` (else the first laser) on the first galvo pair, the
 ///   turntable on the first rotary axis;
 /// - BRDF display: the liquid ([`display::DisplayScene::small_water`], 192 × 192 float
-///   frames), the coils at the rig file's sample rates;
+///   frames), the coils at the rig file's sample rates, the screen where `[plan.screen]` puts
+///   it (the demo's without one);
 /// - bispectral: the coated spheres ([`bispectral::BispectralScene`], 160 × 100; Spectralon
 ///   with `[plan] sample = "spectralon"`), Spectralon at 550 nm through the white slot filling
 ///   half the well at the camera's pulse width;
@@ -126,6 +127,16 @@ pub fn scene_for(rig: &RigFile, seed: u64) -> (Box<dyn Scene + Send>, Sensor) {
         Method::BrdfDisplay => {
             let mut scene =
                 display::DisplayScene::small_water(display::SCREEN_PIXELS, display::SCREEN_PIXELS);
+            if let Ok(s) = lightrig_host::plan::from_rig::display_screen(rig) {
+                let side = f64::from(display::SCREEN_PIXELS);
+                scene.screen = display::ScreenView {
+                    distance_m: s.distance_m,
+                    pitch_m: s.pitch_m,
+                    incidence_rad: s.incidence_rad,
+                    tilt_rad: s.tilt_rad,
+                    centre_px: s.centre_px.unwrap_or([side / 2.0; 2]),
+                };
+            }
             for c in &rig.voice_coils {
                 if let Some(r) = scene.rates_hz.get_mut(usize::from(c.channel)) {
                     *r = f64::from(c.sample_rate_hz);
