@@ -1,7 +1,7 @@
 //! `lightrig fit display`: a BRDF display session's frames (the camera's pictures of the screen
 //! the reflected beam lands on, through the rig file's `[plan.screen]`) → from a calibration
-//! session, each step's spread of facet tilts and so each coil's response `|H(f)|` at its
-//! partials' frequencies; from a display session, Ward's lobe fitted to each target's picture
+//! session, each step's spread of facet tilts and so each coil's response `|H(f)|` over the
+//! calibration's sweep; from a display session, Ward's lobe fitted to each target's picture
 //! (`lightrig_pipelines::display::lobe`): the α it showed and how far its shape is from
 //! Ward's. The calibration keeps what each target showed for the next plan (the closed loop).
 
