@@ -22,6 +22,13 @@
 //! (each ray the beam's Gaussian spot, `beam_sigma` rad at the screen's distance, integrated
 //! over every pixel it touches), normalised so that a still beam on a pixel's centre peaks at
 //! radiance [`DisplayScene::peak`].
+//!
+//! Shared with the fit it scores (`host::fit::display`, `pipelines::display`): the screen's
+//! numbers (the rig file's `[plan.screen]`, exact), a Gaussian beam (the fit blurs its lobe by
+//! one), [`Liquid`] (so the calibration's wave number is the truth's) and the coils' sample
+//! rate. Not shared: the reflection and the ray–plane intersection (the fit maps pixels to
+//! facet tilts by half vectors), the paddle and the path (the fit measures only `|H|`), and
+//! the lobe's shape (the fit fits Ward's lobe; the scene makes what the controller played).
 
 use std::sync::{Arc, Mutex};
 
