@@ -1,6 +1,7 @@
 //! The BRDF display end to end through the command line's pieces: the quick demo (calibration,
-//! a sweep of Ward roughnesses, the closed loop) against the scene's truth, and the planner's
-//! refusal of an α the calibrated display cannot reach.
+//! a sweep of Ward roughnesses, the closed loop, on the scene with every fault on and with
+//! each alone) against the scene's truth, and the planner's refusal of an α the calibrated
+//! display cannot reach.
 
 mod kept_demo;
 
@@ -29,8 +30,25 @@ fn the_quick_display_demo_meets_its_targets_and_refuses_what_it_cannot_show() {
             assert!(e2 < e1 || e2 < 0.002, "{:?} axis {k}: {e1} then {e2}", a.target);
         }
     }
+    // The same workflow on each fault alone and on the ideal display: each within the
+    // targets too, and the report says what each did.
+    let names: Vec<&str> = r.faults.iter().map(|f| f.name.as_str()).collect();
+    assert_eq!(names, ["none", "film", "walls", "harmonics", "crosstalk"]);
+    for f in &r.faults {
+        assert!(f.response_error < 0.05 && f.first < 0.05 && f.corrected < 0.01, "{f:?}");
+    }
     let report = std::fs::read_to_string(&r.report).unwrap();
-    for heading in ["## Calibration", "## After calibration", "## After one correction", "figure 5.8"] {
+    for f in &r.faults {
+        let row = format!("| {} | {:.2} % | {:.2} % |", f.name, 100.0 * f.response_error, 100.0 * f.first);
+        assert!(report.contains(&row), "{row}");
+    }
+    for heading in [
+        "## Calibration",
+        "## After calibration",
+        "## After one correction",
+        "## What each fault does",
+        "figure 5.8",
+    ] {
         assert!(report.contains(heading), "{heading}");
     }
     // The slope histograms as pictures, linked from the report and its HTML page: one sine

@@ -127,7 +127,7 @@ fn the_immersion_and_display_examples_plan() {
     let path = example("brdf-display.toml");
     let rig = RigFile::load(&path).unwrap();
     let plan = from_rig::plan(&rig, &virtual_device_info()).unwrap();
-    assert_eq!(plan.steps.len(), 1 + 13, "the still surface and the 13 frequencies of the sweep");
+    assert_eq!(plan.steps.len(), 1 + 49, "the still surface and the 49 frequencies of the sweep");
     let sounding = |step: usize| -> Vec<(u8, Vec<u32>)> {
         plan.steps[step]
             .items()
@@ -146,6 +146,7 @@ fn the_immersion_and_display_examples_plan() {
         vec![(0, vec![90_000]), (1, vec![100_000])],
         "one sine per coil, the sweep's first"
     );
+    assert_eq!(sounding(49), vec![(0, vec![330_000]), (1, vec![340_000])], "5 Hz apart, to the last");
     assert_eq!(plan.steps[1].meta["kind"], "sine");
     assert_eq!(plan.meta["liquid"], "water");
     // Raw patterns instead: every coil gets each pattern.

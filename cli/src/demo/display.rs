@@ -20,8 +20,8 @@ use lightrig_pipelines::display::mapping::{
 };
 use lightrig_pipelines::display::slopes::{arcsine_cdf, ks_distance, ks_to_gaussian, moments, normal_cdf};
 use lightrig_protocol::sequence::Partial;
-use lightrig_sim::scenes::display::DisplayScene;
-use lightrig_sim::scenes::scene_for;
+use lightrig_sim::scenes::display::{DisplayScene, Faults};
+use lightrig_sim::scenes::display_scene;
 
 use super::{bar, DemoRig, Report, Target};
 use crate::error::{failure, io, CliError};
@@ -64,9 +64,9 @@ pub struct DisplayDemoResult {
     pub ks_one_sine: f64,
     /// `(partials, KS to a Gaussian)`.
     pub ks_gaussian: Vec<(usize, f64)>,
-    /// Ward's lobe fitted to the screen's picture of `n` partials per axis for α = 0.08:
-    /// `(n, α the fit found on x and y, shape error)`.
-    pub ward_shape: Vec<(usize, [f64; 2], f64)>,
+    /// Ward's lobe fitted to the screen's picture of `n` partials per axis for α = 0.08, on
+    /// the ideal display and with every fault on.
+    pub ward_shape: Vec<WardShape>,
     /// The rig file's bound on the total slope, rad (`[plan] max_slope_deg`).
     pub max_slope: f64,
     /// The slope histograms as pictures: `(file relative to the output directory, caption)`.
@@ -74,14 +74,45 @@ pub struct DisplayDemoResult {
     /// The highlights the camera saw after the correction, one panel per target: `(file,
     /// caption)`.
     pub lobes: (String, String),
+    /// What each fault does alone (and the ideal display, `none`), on the quick sweep.
+    pub faults: Vec<FaultEffect>,
     /// `report.md`.
     pub report: PathBuf,
+}
+
+/// Ward's lobe fitted to the picture of `partials` per axis planned for α = 0.08 through the
+/// true small-signal response.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WardShape {
+    /// Partials per axis.
+    pub partials: usize,
+    /// On the ideal display: `(α the fit found on x and y, shape error)`.
+    pub ideal: ([f64; 2], f64),
+    /// With every fault on.
+    pub faulted: ([f64; 2], f64),
+}
+
+/// What one of the scene's faults does alone to the lab's workflow.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FaultEffect {
+    /// The fault ([`Faults::NAMES`]) or `none`.
+    pub name: String,
+    /// Largest relative error of the calibrated `|H|`, both axes.
+    pub response_error: f64,
+    /// Largest relative error of the shown α after calibration.
+    pub first: f64,
+    /// After one correction.
+    pub corrected: f64,
+}
+
+/// The largest relative error of any axis of `v`.
+fn worst(v: &[Shown]) -> f64 {
+    v.iter().flat_map(|s| s.error()).map(f64::abs).fold(0.0, f64::max)
 }
 
 impl DisplayDemoResult {
     /// The accuracy targets: `(name, value, limit, met)`.
     pub fn targets(&self) -> Vec<Target> {
-        let worst = |v: &[Shown]| v.iter().flat_map(|s| s.error()).map(f64::abs).fold(0.0, f64::max);
         let (h, a1, a2) =
             (self.response_error[0].max(self.response_error[1]), worst(&self.first), worst(&self.corrected));
         let bell = self.ks_gaussian.iter().find(|(n, _)| *n >= 5).map_or(1.0, |x| x.1);
@@ -121,14 +152,20 @@ fn session(
     out: &Path,
     name: &str,
     text: String,
+    faults: Faults,
     opts: &DisplayDemoOptions,
 ) -> Result<fit::DisplaySession, CliError> {
     let dir = out.join(name);
     std::fs::create_dir_all(&dir).map_err(io(&dir))?;
     let rig = DemoRig::write(&dir, text)?;
-    let (scene, sensor) = scene_for(&rig.rig, opts.seed);
-    let b = bar(opts.progress, rig.plan.summary().triggers as u64, name);
-    rig.acquire(&dir, scene, sensor, opts.real_time, &b)?;
+    let (mut scene, sensor) = display_scene(&rig.rig, opts.seed);
+    scene.faults = faults;
+    let b = bar(
+        opts.progress,
+        rig.plan.summary().triggers as u64,
+        &format!("{name} ({})", faults.names().join(", ")),
+    );
+    rig.acquire(&dir, Box::new(scene), sensor, opts.real_time, &b)?;
     b.finish_and_clear();
     fit::read(&dir.join("session")).map_err(failure)
 }
@@ -152,27 +189,60 @@ fn played(partials: &[(f64, f64)]) -> (Vec<i16>, Vec<i16>) {
     (before, now)
 }
 
-/// Runs the demo.
-pub fn run_display(opts: &DisplayDemoOptions) -> Result<DisplayDemoResult, CliError> {
-    let out = &opts.out;
+/// One pass of the lab's workflow on the scene with `faults`, in `out`: calibration, the
+/// `sweep` solved through it, the sweep again planned from what the camera saw.
+struct Pass {
+    /// The calibration session's fit.
+    calibration: Calibration,
+    /// The calibration after both display sessions (what the camera saw, learnt twice).
+    learnt: Calibration,
+    /// Largest relative error of the measured `|H|` against what a small sine shows of the
+    /// scene's truth (its walls and film included), per axis.
+    response_error: [f64; 2],
+    first: Vec<Shown>,
+    corrected: Vec<Shown>,
+}
+
+fn pass(out: &Path, faults: Faults, sweep: &[[f64; 2]], opts: &DisplayDemoOptions) -> Result<Pass, CliError> {
     std::fs::create_dir_all(out).map_err(io(out))?;
     // 1. Calibration.
-    let cal_session = session(out, "calibration", rig_text(None), opts)?;
+    let cal_session = session(out, "calibration", rig_text(None), faults, opts)?;
     let cal = fit::calibration(&cal_session).map_err(failure)?;
     let cal_path = out.join("calibration").join(CALIBRATION_FILE);
     let json = serde_json::to_string_pretty(&cal).map_err(failure)? + "\n";
     std::fs::write(&cal_path, json).map_err(io(&cal_path))?;
-    let truth = DisplayScene::small_water(16, 16);
+    let mut truth = DisplayScene::small_water(16, 16);
+    truth.faults = faults;
     let mut response_error = [0.0f64; 2];
     for (k, a) in cal.axes.iter().enumerate() {
         for (&f, &h) in a.frequencies_hz.iter().zip(&a.response_m) {
-            let t = truth.actuators[k].response(&truth.liquid, f).norm();
+            let t = truth.effective_response(k, f);
             response_error[k] = response_error[k].max((h / t - 1.0).abs());
         }
     }
-    // 2. The sweep: isotropic over the thesis's range, anisotropic up to 3:1 both ways.
+    // 2. The sweep through the calibration.
+    let rel = format!("../calibration/{CALIBRATION_FILE}");
+    let mut learnt = cal.clone();
+    let display = session(out, "display", rig_text(Some((sweep, &rel))), faults, opts)?;
+    let first = fit::measure(&display, &mut learnt).map_err(failure)?;
+    // 3. The closed loop: plan again from the calibration that saw the sweep.
+    let learnt_path = out.join("display").join(CALIBRATION_FILE);
+    let json = serde_json::to_string_pretty(&learnt).map_err(failure)? + "\n";
+    std::fs::write(&learnt_path, json).map_err(io(&learnt_path))?;
+    let rel = format!("../display/{CALIBRATION_FILE}");
+    let corrected_session = session(out, "corrected", rig_text(Some((sweep, &rel))), faults, opts)?;
+    let corrected = fit::measure(&corrected_session, &mut learnt).map_err(failure)?;
+    Ok(Pass { calibration: cal, learnt, response_error, first, corrected })
+}
+
+/// Runs the demo.
+pub fn run_display(opts: &DisplayDemoOptions) -> Result<DisplayDemoResult, CliError> {
+    let out = &opts.out;
+    std::fs::create_dir_all(out).map_err(io(out))?;
+    // The sweep: isotropic over the thesis's range, anisotropic up to 3:1 both ways.
+    let quick_sweep = vec![[0.02, 0.02], [0.08, 0.08], [0.14, 0.14], [0.12, 0.04], [0.03, 0.09]];
     let sweep: Vec<[f64; 2]> = if opts.quick {
-        vec![[0.02, 0.02], [0.08, 0.08], [0.14, 0.14], [0.12, 0.04], [0.03, 0.09]]
+        quick_sweep.clone()
     } else {
         vec![
             [0.02, 0.02],
@@ -186,23 +256,27 @@ pub fn run_display(opts: &DisplayDemoOptions) -> Result<DisplayDemoResult, CliEr
             [0.03, 0.09],
         ]
     };
-    let rel = format!("../calibration/{CALIBRATION_FILE}");
-    let mut learnt = cal.clone();
-    let first = fit::measure(&session(out, "display", rig_text(Some((&sweep, &rel))), opts)?, &mut learnt)
-        .map_err(failure)?;
-    // 3. The closed loop: plan again from the calibration that saw the sweep.
-    let learnt_path = out.join("display").join(CALIBRATION_FILE);
-    let json = serde_json::to_string_pretty(&learnt).map_err(failure)? + "\n";
-    std::fs::write(&learnt_path, json).map_err(io(&learnt_path))?;
-    let rel = format!("../display/{CALIBRATION_FILE}");
-    let mut again = learnt.clone();
-    let corrected =
-        fit::measure(&session(out, "corrected", rig_text(Some((&sweep, &rel))), opts)?, &mut again)
-            .map_err(failure)?;
+    // The lab's display: every fault on.
+    let Pass { calibration: cal, learnt: again, response_error, first, corrected } =
+        pass(out, Faults::ALL, &sweep, opts)?;
+    // What each fault does alone, and the ideal display, on the quick sweep.
+    let mut faults = Vec::new();
+    for name in std::iter::once("none").chain(Faults::NAMES) {
+        let f = Faults::only(name).unwrap_or(Faults::NONE);
+        let p = pass(&out.join("faults").join(name), f, &quick_sweep, opts)?;
+        faults.push(FaultEffect {
+            name: name.to_string(),
+            response_error: p.response_error[0].max(p.response_error[1]),
+            first: worst(&p.first),
+            corrected: worst(&p.corrected),
+        });
+    }
     let lobes = write_lobes(&out.join("corrected").join("session"), &corrected, out)?;
     // 4. The simulated surface's slopes: one sine (Eq. 5.6), then 1, 3, 5, 7 partials.
     let side = lightrig_sim::scenes::display::SCREEN_PIXELS;
     let scene = DisplayScene::small_water(side, side);
+    let mut faulted = DisplayScene::small_water(side, side);
+    faulted.faults = Faults::ALL;
     let kh = |axis: usize, f: f64| {
         scene.liquid.wave_number(f) * scene.actuators[axis].response(&scene.liquid, f).norm()
     };
@@ -259,7 +333,23 @@ pub fn run_display(opts: &DisplayDemoOptions) -> Result<DisplayDemoResult, CliEr
         let both: Vec<(f64, f64)> = gx.iter().copied().zip(gy.iter().copied()).collect();
         let pic: Vec<f32> = scene.picture_of(&both).iter().map(|&v| v as f32).collect();
         let fit = fit_ward(&pic, side as usize, side as usize, &screen, cal.beam_px);
-        ward_shape.push((n, fit.alpha, fit.shape_error));
+        // And on the lab's display, every fault on, driven through its small-signal response.
+        let lab = |axis: usize, freqs: &[f64]| -> (Vec<i16>, Vec<i16>) {
+            let p: Vec<(f64, f64)> = freqs[..n]
+                .iter()
+                .map(|&f| (f, r / (faulted.liquid.wave_number(f) * faulted.effective_response(axis, f))))
+                .collect();
+            played(&p)
+        };
+        let ((bx, nx), (by, ny)) = (lab(0, &X_FREQUENCIES), lab(1, &Y_FREQUENCIES));
+        let both = faulted.gradients_of([&bx, &by], [&nx, &ny]);
+        let pic: Vec<f32> = faulted.picture_of(&both).iter().map(|&v| v as f32).collect();
+        let lab_fit = fit_ward(&pic, side as usize, side as usize, &screen, cal.beam_px);
+        ward_shape.push(WardShape {
+            partials: n,
+            ideal: (fit.alpha, fit.shape_error),
+            faulted: (lab_fit.alpha, lab_fit.shape_error),
+        });
         let (mean, var) = moments(&d);
         let sd = var.sqrt();
         picture(
@@ -285,6 +375,7 @@ pub fn run_display(opts: &DisplayDemoOptions) -> Result<DisplayDemoResult, CliEr
         max_slope: lightrig_host::plan::from_rig::display_max_slope(&shipped).map_err(failure)?,
         histograms,
         lobes,
+        faults,
         report: out.join("report.md"),
     };
     write_report(&result, &cal, opts)?;
@@ -326,9 +417,11 @@ fn write_report(r: &DisplayDemoResult, cal: &Calibration, opts: &DisplayDemoOpti
     rep.line("");
     rep.line(format!(
         "The shipped `docs/rigs/brdf-display.toml` on the virtual controller and the liquid scene \
-         (`sim/src/scenes/display.rs`: water 5 mm deep, paddle resonances 190 and 215 Hz){}. \
-         Sessions: `calibration/`, `display/`, `corrected/`.",
-        if opts.quick { ", quick sweep" } else { "" }
+         (`sim/src/scenes/display.rs`: water 5 mm deep in a 2 cm tank, paddle resonances 190 and \
+         215 Hz) with every fault a lab's display has on: a surfactant film, reflections from the \
+         wall and the paddles, the coils' saturation and harmonics, crosstalk between the coils{}. \
+         Sessions: `calibration/`, `display/`, `corrected/`; each fault alone in `faults/`.",
+        if opts.quick { "; quick sweep" } else { "" }
     ));
     rep.line("");
     rep.targets(["target", "value", "limit"], "≤ ", &r.targets());
@@ -370,6 +463,26 @@ fn write_report(r: &DisplayDemoResult, cal: &Calibration, opts: &DisplayDemoOpti
         }
     }
     rep.line("");
+    rep.line("## What each fault does");
+    rep.line("");
+    rep.line(
+        "The same workflow (calibration, the quick sweep, one correction) on the scene with one \
+         fault on at a time, and on the ideal display (`none`): the worst error of the calibrated \
+         |H| against what a small sine shows of the truth, and of the shown α against its target.",
+    );
+    rep.line("");
+    rep.line("| fault | calibrated |H| | shown α after calibration | after one correction |");
+    rep.line("|---|---|---|---|");
+    for f in &r.faults {
+        rep.line(format!(
+            "| {} | {:.2} % | {:.2} % | {:.2} % |",
+            f.name,
+            100.0 * f.response_error,
+            100.0 * f.first,
+            100.0 * f.corrected
+        ));
+    }
+    rep.line("");
     rep.line("## Slope statistics of the simulated surface (figure 5.8)");
     rep.line("");
     rep.line(format!("One sine at {} Hz against Eq. 5.6: KS {:.4}.", X_FREQUENCIES[4], r.ks_one_sine));
@@ -382,10 +495,16 @@ fn write_report(r: &DisplayDemoResult, cal: &Calibration, opts: &DisplayDemoOpti
          between the picture and the fitted lobe).",
     );
     rep.line("");
-    rep.line("| partials | KS to a Gaussian | Ward fit αx | Ward fit αy | lobe-shape error |");
-    rep.line("|---|---|---|---|---|");
-    for ((n, ks), (_, a, shape)) in r.ks_gaussian.iter().zip(&r.ward_shape) {
-        rep.line(format!("| {n} | {ks:.4} | {:.4} | {:.4} | {shape:.4} |", a[0], a[1]));
+    rep.line(
+        "| partials | KS to a Gaussian | Ward fit αx | Ward fit αy | lobe-shape error | with every fault: αx | αy | lobe-shape error |",
+    );
+    rep.line("|---|---|---|---|---|---|---|---|");
+    for ((n, ks), w) in r.ks_gaussian.iter().zip(&r.ward_shape) {
+        let ((a, shape), (b, lab)) = (w.ideal, w.faulted);
+        rep.line(format!(
+            "| {n} | {ks:.4} | {:.4} | {:.4} | {shape:.4} | {:.4} | {:.4} | {lab:.4} |",
+            a[0], a[1], b[0], b[1]
+        ));
     }
     rep.line("");
     let (file, caption) = &r.lobes;

@@ -88,7 +88,7 @@ pub fn unsimulated(rig: &RigFile) -> Vec<String> {
 /// - fluorescent immersion: the demo's tank and sphere ([`firs::FirsScene`], 208 × 160),
 ///   the sheet from `[plan] laser` (else the first laser) on the first galvo pair, the
 ///   turntable on the first rotary axis;
-/// - BRDF display: the liquid ([`display::DisplayScene::small_water`], 192 × 192 float
+/// - BRDF display: the liquid ([`display_scene`]: every fault on, 192 × 192 float
 ///   frames), the coils at the rig file's sample rates, the screen where `[plan.screen]` puts
 ///   it (the demo's without one);
 /// - bispectral: the coated spheres ([`bispectral::BispectralScene`], 160 × 100; Spectralon
@@ -125,26 +125,7 @@ pub fn scene_for(rig: &RigFile, seed: u64) -> (Box<dyn Scene + Send>, Sensor) {
             (Box::new(firs::FirsScene::new(spec)), sensor)
         }
         Method::BrdfDisplay => {
-            let mut scene =
-                display::DisplayScene::small_water(display::SCREEN_PIXELS, display::SCREEN_PIXELS);
-            if let Ok(s) = lightrig_host::plan::from_rig::display_screen(rig) {
-                let side = f64::from(display::SCREEN_PIXELS);
-                scene.screen = display::ScreenView {
-                    distance_m: s.distance_m,
-                    pitch_m: s.pitch_m,
-                    incidence_rad: s.incidence_rad,
-                    tilt_rad: s.tilt_rad,
-                    centre_px: s.centre_px.unwrap_or([side / 2.0; 2]),
-                };
-            }
-            for c in &rig.voice_coils {
-                if let Some(r) = scene.rates_hz.get_mut(usize::from(c.channel)) {
-                    *r = f64::from(c.sample_rate_hz);
-                }
-            }
-            // Float frames: the lobe's tails carry its variance and must not be clipped.
-            let sensor =
-                Sensor { gain: 200_000.0, depth: crate::sensor::Depth::Float, seed, ..Sensor::default() };
+            let (scene, sensor) = display_scene(rig, seed);
             (Box::new(scene), sensor)
         }
         Method::Bispectral => {
@@ -173,4 +154,30 @@ pub fn scene_for(rig: &RigFile, seed: u64) -> (Box<dyn Scene + Send>, Sensor) {
             (Box::new(card), sensor)
         }
     }
+}
+
+/// The BRDF display's scene and sensor for `rig` as [`scene_for`] makes them: the liquid of
+/// [`display::DisplayScene::small_water`] with every fault on ([`display::Faults::ALL`]), its
+/// screen the rig file's `[plan.screen]`, each coil at its `sample_rate_hz`.
+pub fn display_scene(rig: &RigFile, seed: u64) -> (display::DisplayScene, Sensor) {
+    let mut scene = display::DisplayScene::small_water(display::SCREEN_PIXELS, display::SCREEN_PIXELS);
+    scene.faults = display::Faults::ALL;
+    if let Ok(s) = lightrig_host::plan::from_rig::display_screen(rig) {
+        let side = f64::from(display::SCREEN_PIXELS);
+        scene.screen = display::ScreenView {
+            distance_m: s.distance_m,
+            pitch_m: s.pitch_m,
+            incidence_rad: s.incidence_rad,
+            tilt_rad: s.tilt_rad,
+            centre_px: s.centre_px.unwrap_or([side / 2.0; 2]),
+        };
+    }
+    for c in &rig.voice_coils {
+        if let Some(r) = scene.rates_hz.get_mut(usize::from(c.channel)) {
+            *r = f64::from(c.sample_rate_hz);
+        }
+    }
+    // Float frames: the lobe's tails carry its variance and must not be clipped.
+    let sensor = Sensor { gain: 200_000.0, depth: crate::sensor::Depth::Float, seed, ..Sensor::default() };
+    (scene, sensor)
 }
