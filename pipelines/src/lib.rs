@@ -3,6 +3,7 @@
 //!
 //! - [`vec3`]: the small vector algebra everything here uses.
 //! - [`quad`]: Gauss–Legendre quadrature.
+//! - [`linalg`]: small dense linear systems.
 //! - [`ward`]: the isotropic Ward (1992) BRDF.
 //! - [`lls`]: the linear light source reflectometry fit (Gardner et al. 2003), and
 //!   [`lls::linear_light`], a cylindrical light source's diffuse and specular response at a
@@ -18,6 +19,7 @@ pub mod disco;
 pub mod display;
 pub mod firs;
 pub mod ggx;
+pub mod linalg;
 pub mod lls;
 pub mod quad;
 pub mod vec3;

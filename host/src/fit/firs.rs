@@ -317,7 +317,7 @@ pub fn refine_saddles(
                         }
                     }
                 }
-                let Some(c) = solve(ata, atb) else { return (cx, cy) };
+                let Some(c) = lightrig_pipelines::linalg::solve(ata, atb) else { return (cx, cy) };
                 let (a, b, cc, d, e) = (c[0], c[1], c[2], c[3], c[4]);
                 let det = 4.0 * a * cc - b * b;
                 // A saddle: the Hessian's determinant is negative.
@@ -364,33 +364,6 @@ fn blur(img: &[f32], w: usize, h: usize, sigma: f64) -> Vec<f32> {
         out
     };
     pass(&pass(img, true), false)
-}
-
-/// Solves the N×N system `a·x = b` by Gaussian elimination with partial pivoting; `None` if
-/// singular.
-fn solve<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; N]> {
-    for c in 0..N {
-        let p = (c..N).max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))?;
-        if a[p][c].abs() < 1e-12 {
-            return None;
-        }
-        a.swap(c, p);
-        b.swap(c, p);
-        let (pivot, pb) = (a[c], b[c]);
-        for (row, br) in a.iter_mut().zip(b.iter_mut()).skip(c + 1) {
-            let f = row[c] / pivot[c];
-            for (v, pv) in row.iter_mut().zip(pivot.iter()).skip(c) {
-                *v -= f * pv;
-            }
-            *br -= f * pb;
-        }
-    }
-    let mut x = [0.0; N];
-    for c in (0..N).rev() {
-        let s: f64 = (c + 1..N).map(|k| a[c][k] * x[k]).sum();
-        x[c] = (b[c] - s) / a[c][c];
-    }
-    Some(x)
 }
 
 /// Mean of the colour channels, per pixel.
@@ -1051,7 +1024,8 @@ fn slice_map(c: &Calibration, codes: &[f64], what: &str) -> Result<(SliceMap, f6
             }
         }
     }
-    let column = |d: usize| solve(ata, [atb[0][d], atb[1][d], atb[2][d], atb[3][d]]);
+    let column =
+        |d: usize| lightrig_pipelines::linalg::solve(ata, [atb[0][d], atb[1][d], atb[2][d], atb[3][d]]);
     let (sx, sy, sz) = match (column(0), column(1), column(2)) {
         (Some(x), Some(y), Some(z)) => (x, y, z),
         _ => return Err(fail(format!("{what}: the rays and sheets do not determine the slice map"))),

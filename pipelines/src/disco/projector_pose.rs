@@ -142,7 +142,7 @@ fn gauss_newton(start: &Projector, hits: &[&HitPoint], mut x: [f64; 6]) -> Optio
             for (i, row) in a.iter_mut().enumerate() {
                 row[i] += lambda * jtj[i][i].max(1e-12);
             }
-            let step = solve6(a, jtr.map(|v| -v))?;
+            let step = crate::linalg::solve(a, jtr.map(|v| -v))?;
             let mut xn = x;
             for i in 0..6 {
                 xn[i] += step[i];
@@ -164,32 +164,6 @@ fn gauss_newton(start: &Projector, hits: &[&HitPoint], mut x: [f64; 6]) -> Optio
         if !improved {
             break;
         }
-    }
-    Some(x)
-}
-
-/// `a·x = b` by Gaussian elimination with partial pivoting; `None` when singular.
-fn solve6(mut a: [[f64; 6]; 6], mut b: [f64; 6]) -> Option<[f64; 6]> {
-    for col in 0..6 {
-        let piv = (col..6).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
-        if a[piv][col].abs() < 1e-300 || !a[piv][col].is_finite() {
-            return None;
-        }
-        a.swap(col, piv);
-        b.swap(col, piv);
-        for row in col + 1..6 {
-            let f = a[row][col] / a[col][col];
-            let pivot_row = a[col];
-            for (x, p) in a[row].iter_mut().zip(pivot_row).skip(col) {
-                *x -= f * p;
-            }
-            b[row] -= f * b[col];
-        }
-    }
-    let mut x = [0.0; 6];
-    for row in (0..6).rev() {
-        let s: f64 = (row + 1..6).map(|k| a[row][k] * x[k]).sum();
-        x[row] = (b[row] - s) / a[row][row];
     }
     Some(x)
 }

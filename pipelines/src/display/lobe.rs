@@ -286,7 +286,7 @@ pub fn fit_ward(pixels: &[f32], w: usize, h: usize, screen: &Screen, beam_px: [f
             for (i, row) in a.iter_mut().enumerate() {
                 row[i] += lambda * jtj[i][i].max(1e-300);
             }
-            let Some(d) = solve4(a, jtr.map(|v| -v)) else { break };
+            let Some(d) = crate::linalg::solve(a, jtr.map(|v| -v)) else { break };
             let q = [p[0] + d[0], p[1] + d[1], p[2] + d[2], p[3] + d[3]];
             let (rq, _, _, _) = solve(&q);
             let cq = cost(&rq);
@@ -314,32 +314,6 @@ pub fn fit_ward(pixels: &[f32], w: usize, h: usize, screen: &Screen, beam_px: [f
         1.0
     };
     WardFit { alpha: [p[0].exp(), p[1].exp()], centre: [p[2], p[3]], shape_error, pixels: idx.len() }
-}
-
-/// `a·x = b` for a 4 × 4 system by Gaussian elimination with partial pivoting.
-fn solve4(mut a: [[f64; 4]; 4], mut b: [f64; 4]) -> Option<[f64; 4]> {
-    for col in 0..4 {
-        let piv = (col..4).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
-        if a[piv][col].abs() < 1e-300 {
-            return None;
-        }
-        a.swap(col, piv);
-        b.swap(col, piv);
-        let pivot = a[col];
-        for row in col + 1..4 {
-            let f = a[row][col] / pivot[col];
-            for (v, p) in a[row].iter_mut().zip(pivot).skip(col) {
-                *v -= f * p;
-            }
-            b[row] -= f * b[col];
-        }
-    }
-    let mut x = [0.0; 4];
-    for row in (0..4).rev() {
-        let s: f64 = (row + 1..4).map(|k| a[row][k] * x[k]).sum();
-        x[row] = (b[row] - s) / a[row][row];
-    }
-    Some(x)
 }
 
 #[cfg(test)]
