@@ -502,6 +502,21 @@ pub struct Progress {
     pub missing_now: Option<String>,
 }
 
+impl Progress {
+    /// The time left, s, `elapsed_s` into the run's steps, and whether it is the plan's bound
+    /// rather than an estimate: the plan's time for the work left scaled by the pace so far
+    /// (the plan's times are lower bounds, every wait ending at once); before any planned work
+    /// is done, the plan's bound itself.
+    pub fn time_left_s(&self, elapsed_s: f64) -> (f64, bool) {
+        let left_s = self.planned_left_us as f64 / 1e6;
+        if self.planned_done_us > 0 && elapsed_s > 0.0 {
+            (left_s * elapsed_s / (self.planned_done_us as f64 / 1e6), false)
+        } else {
+            (left_s, true)
+        }
+    }
+}
+
 /// How long to wait for a step's next frame after its sequence ended, µs: the step's frames
 /// are complete when every trigger has one, or when none has come for this long.
 pub const FRAME_WAIT_US: u64 = 2_000_000;

@@ -119,6 +119,8 @@ struct State {
     /// (time, triggered, frames) samples for the rates.
     samples: VecDeque<(Duration, u64, u64)>,
     start_time: Duration,
+    /// When the first progress of the run's steps came.
+    steps_began: Option<Duration>,
     watched_until: Duration,
     /// Bumped on every change, for readers waiting on one.
     version: u64,
@@ -183,6 +185,7 @@ impl Live {
                 triggers: BTreeMap::new(),
                 samples: VecDeque::new(),
                 start_time: now,
+                steps_began: None,
                 watched_until: Duration::ZERO,
                 version: 0,
             }),
@@ -410,6 +413,7 @@ impl Live {
         self.update(|s| {
             let frames = p.frames + s.unstored_frames();
             s.samples.push_back((now, p.triggered, frames));
+            s.steps_began.get_or_insert(now);
             while s.samples.len() > 2
                 && s.samples.front().is_some_and(|f| now.saturating_sub(f.0) > RATE_WINDOW)
             {
@@ -581,8 +585,10 @@ impl Live {
                 }
                 _ => (None, None),
             };
-            let to_go = p.to_trigger.saturating_sub(p.triggered) as f64;
-            let eta = trigger_rate.filter(|r| *r > 0.0).map(|r| to_go / r);
+            // Paced from the first progress of the run's steps (connecting and homing are not
+            // the plan's work).
+            let began = s.steps_began.unwrap_or(now);
+            let (eta, bound) = p.time_left_s(now.saturating_sub(began).as_secs_f64());
             serde_json::json!({
                 "steps_done": p.steps_done,
                 "steps": p.steps,
@@ -594,6 +600,7 @@ impl Live {
                 "trigger_rate_hz": trigger_rate,
                 "frame_rate_hz": frame_rate,
                 "eta_s": eta,
+                "eta_is_bound": bound,
             })
         });
         let device = if answered { DeviceState::Stopped } else { s.device };
@@ -781,27 +788,39 @@ mod tests {
     #[test]
     fn rates_and_eta_come_from_the_progress_over_time() {
         let (live, ms, _) = clocked();
-        let p = |triggered, frames| Progress {
+        // The plan: 20 s of work in all, every wait ending at once.
+        let p = |triggered, frames, done_us: u64| Progress {
             steps_done: 0,
             steps: 1,
             frames,
             received: 0,
             bytes: 0,
-            planned_done_us: 0,
-            planned_left_us: 0,
+            planned_done_us: done_us,
+            planned_left_us: 20_000_000 - done_us,
             triggered,
             to_trigger: 1000,
             missing: 0,
             missing_now: None,
         };
-        live.progress(&p(0, 0));
-        assert!(live.status()["progress"]["trigger_rate_hz"].is_null());
-        ms.store(2_000, Ordering::SeqCst);
-        live.progress(&p(100, 0));
+        // Connecting and homing (1 s) are not the plan's work.
+        ms.store(1_000, Ordering::SeqCst);
+        live.progress(&p(0, 0, 0));
+        let st = live.status();
+        assert!(st["progress"]["trigger_rate_hz"].is_null());
+        // Before any work, the plan's bound, said to be one.
+        assert_eq!(
+            (st["progress"]["eta_s"].clone(), st["progress"]["eta_is_bound"].clone()),
+            (20.0.into(), true.into())
+        );
+        // 2 s later the plan's first 1 s is done: half its pace, so 38 s left, not the 19 s
+        // of the plan nor the 18 s of triggers over trigger rate.
+        ms.store(3_000, Ordering::SeqCst);
+        live.progress(&p(100, 0, 1_000_000));
         let st = live.status();
         assert_eq!(st["progress"]["trigger_rate_hz"], 50.0);
-        assert_eq!(st["progress"]["eta_s"], 18.0);
-        assert_eq!(st["progress"]["elapsed_s"], 2.0);
+        assert_eq!(st["progress"]["eta_s"], 38.0);
+        assert_eq!(st["progress"]["eta_is_bound"], false);
+        assert_eq!(st["progress"]["elapsed_s"], 3.0);
         live.ended(Ok(()));
         assert_eq!(live.state_word().0, "finished");
         assert!(live.pause().is_err());

@@ -111,7 +111,7 @@
     const pct = tot > 0 ? Math.min(100, (trig / tot) * 100) : 0;
     $('bar').style.width = pct + '%';
     set('pct', tot > 0 ? pct.toFixed(1) + ' %' : '');
-    set('eta', fmtDur(p.eta_s));
+    set('eta', (p.eta_is_bound === true && isNum(p.eta_s) ? '≥ ' : '') + fmtDur(p.eta_s));
     set('elapsed', fmtDur(p.elapsed_s));
     set('steps-done', `${txt(p.steps_done, 0)}/${txt(p.steps, '?')}`);
     set('frames-count', txt(p.frames, 0));

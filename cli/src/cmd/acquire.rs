@@ -455,11 +455,9 @@ pub fn progress_line(p: &Progress, elapsed_s: f64) -> String {
     } else {
         String::new()
     };
-    let left_s = p.planned_left_us as f64 / 1e6;
-    let eta = if p.planned_done_us > 0 && elapsed_s > 0.0 {
-        format!("ETA {:.0} s", left_s * elapsed_s / (p.planned_done_us as f64 / 1e6))
-    } else {
-        format!("ETA ≥ {left_s:.0} s (plan)")
+    let eta = match p.time_left_s(elapsed_s) {
+        (left_s, false) => format!("ETA {left_s:.0} s"),
+        (left_s, true) => format!("ETA ≥ {left_s:.0} s (plan)"),
     };
     format!(
         "[{}{}] step {}/{}  {}/{} triggers  {} frames stored{received}{missing}  {:.1} triggers/s{size}  {eta}",
