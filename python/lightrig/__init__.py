@@ -13,7 +13,7 @@ runs). See docs/python.md.
 from __future__ import annotations
 
 import os
-from typing import Any, Callable, Optional, Union
+from typing import Any, Callable, Optional, Sequence, Union
 
 from . import _lightrig
 from ._lightrig import (  # noqa: F401  (re-exported)
@@ -81,37 +81,51 @@ def write_image(path: PathLike, pixels: Any, precision: str = "half", bits: int 
     _lightrig.write_image(path, np.ascontiguousarray(pixels, dtype=np.float32), precision, bits)
 
 
+def _set(set: Optional[Sequence[str]]) -> Optional[list[str]]:
+    """``set=`` as the extension takes it: a list of ``"KEY=VALUE"`` strings (one string alone
+    is refused, not split into characters)."""
+    if set is None:
+        return None
+    if isinstance(set, (str, bytes)):
+        raise LightrigError(f"set={set!r}: give a list of KEY=VALUE strings, e.g. set=[{set!r}]")
+    return [str(s) for s in set]
+
+
 def fit_lls(session: PathLike, calibration: Optional[PathLike] = None, out: Optional[PathLike] = None,
-            progress: Progress = False) -> dict:
-    """``lightrig fit lls``: per-pixel diffuse, specular, roughness, points, normals, translucency."""
-    return _lightrig.fit_lls(session, calibration, out, _progress(progress, "lls"))
+            progress: Progress = False, set: Optional[Sequence[str]] = None) -> dict:
+    """``lightrig fit lls``: per-pixel diffuse, specular, roughness, points, normals, translucency.
+    ``set``: the session's rig file changed as ``lightrig fit --set`` does, ``["KEY=VALUE", …]``."""
+    return _lightrig.fit_lls(session, calibration, out, _progress(progress, "lls"), _set(set))
 
 
-def fit_firs_surface(session: PathLike, out: Optional[PathLike] = None, progress: Progress = False) -> dict:
+def fit_firs_surface(session: PathLike, out: Optional[PathLike] = None, progress: Progress = False,
+                     set: Optional[Sequence[str]] = None) -> dict:
     """``lightrig fit firs-surface``: the surface points of each orientation, and merged."""
-    return _lightrig.fit_firs_surface(session, out, _progress(progress, "firs-surface"))
+    return _lightrig.fit_firs_surface(session, out, _progress(progress, "firs-surface"), _set(set))
 
 
-def fit_firs_volume(session: PathLike, out: Optional[PathLike] = None, progress: Progress = False) -> dict:
+def fit_firs_volume(session: PathLike, out: Optional[PathLike] = None, progress: Progress = False,
+                    set: Optional[Sequence[str]] = None) -> dict:
     """``lightrig fit firs-volume``: the occupancy volume (z, y, x) and its isosurface."""
-    return _lightrig.fit_firs_volume(session, out, _progress(progress, "firs-volume"))
+    return _lightrig.fit_firs_volume(session, out, _progress(progress, "firs-volume"), _set(set))
 
 
-def fit_display(session: PathLike, calibration: Optional[PathLike] = None, out: Optional[PathLike] = None) -> dict:
+def fit_display(session: PathLike, calibration: Optional[PathLike] = None, out: Optional[PathLike] = None,
+                set: Optional[Sequence[str]] = None) -> dict:
     """``lightrig fit display``: a display calibration, or what a display session showed."""
-    return _lightrig.fit_display(session, calibration, out)
+    return _lightrig.fit_display(session, calibration, out, _set(set))
 
 
 def fit_brrdf(session: PathLike, spectralon: Optional[PathLike] = None, out: Optional[PathLike] = None,
-              progress: Progress = False) -> dict:
+              progress: Progress = False, set: Optional[Sequence[str]] = None) -> dict:
     """``lightrig fit brrdf``: wavelength pairs, per-sphere samples and bins, the PCA figures."""
-    return _lightrig.fit_brrdf(session, spectralon, out, _progress(progress, "brrdf"))
+    return _lightrig.fit_brrdf(session, spectralon, out, _progress(progress, "brrdf"), _set(set))
 
 
 def fit_disco(session: PathLike, mesh: Optional[PathLike] = None, out: Optional[PathLike] = None,
-              progress: Progress = False) -> dict:
+              progress: Progress = False, set: Optional[Sequence[str]] = None) -> dict:
     """``lightrig fit disco``: the throughput factor matrix F on the mesh, and the fit's figures."""
-    return _lightrig.fit_disco(session, mesh, out, _progress(progress, "disco"))
+    return _lightrig.fit_disco(session, mesh, out, _progress(progress, "disco"), _set(set))
 
 
 _FITS: dict[str, Callable[..., dict]] = {
@@ -128,7 +142,7 @@ _FITS: dict[str, Callable[..., dict]] = {
 
 def fit(pipeline: str, session: PathLike, **options: Any) -> dict:
     """``lightrig fit PIPELINE SESSION``: ``options`` are the command's (``calibration``,
-    ``spectralon``, ``mesh``, ``out``) and ``progress``."""
+    ``spectralon``, ``mesh``, ``out``, ``set``) and ``progress``."""
     try:
         f = _FITS[pipeline]
     except KeyError:

@@ -4,7 +4,8 @@
 
 use std::path::PathBuf;
 
-use lightrig_host::fit::{brrdf, disco, display, firs, lls, FitError as RustFitError};
+use lightrig_host::fit::{brrdf, disco, display, firs, lls, with_overrides, FitError as RustFitError};
+use lightrig_host::overrides::Override;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 
@@ -13,6 +14,21 @@ use crate::FitError;
 
 fn fit_err(e: RustFitError) -> PyErr {
     FitError::new_err(e.0)
+}
+
+/// `set=`: the rig-file changes `lightrig fit --set KEY=VALUE` takes, one `"KEY=VALUE"` each.
+fn overrides(set: Option<Vec<String>>) -> PyResult<Vec<Override>> {
+    set.unwrap_or_default()
+        .iter()
+        .map(|s| s.parse::<Override>().map_err(|e| FitError::new_err(format!("set: {e}"))))
+        .collect()
+}
+
+/// `fit` with `set`'s overrides applied to the session's rig file, on the calling thread (the
+/// worker's: the overrides are thread-local), its refusal of a key no fit may change a
+/// [`RustFitError`] like the fit's own.
+fn overridden<T>(set: &[Override], fit: impl FnOnce() -> Result<T, RustFitError>) -> Result<T, RustFitError> {
+    with_overrides(set, fit)?
 }
 
 /// `out`, created, or a scratch directory removed after the call.
@@ -33,20 +49,24 @@ fn out_dir(out: &Option<PathBuf>, what: &str) -> PyResult<(PathBuf, Option<Scrat
 
 /// `lightrig fit lls`: the linear-light-source maps of `session`, `(height, width, …)` arrays.
 #[pyfunction]
-#[pyo3(signature = (session, calibration=None, out=None, progress=None))]
+#[pyo3(signature = (session, calibration=None, out=None, progress=None, set=None))]
 pub fn fit_lls<'py>(
     py: Python<'py>,
     session: PathBuf,
     calibration: Option<PathBuf>,
     out: Option<PathBuf>,
     progress: Option<Py<PyAny>>,
+    set: Option<Vec<String>>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let set = overrides(set)?;
     let (dir, _scratch) = out_dir(&out, "lls")?;
     let written = out.is_some();
     let (maps, files) = interruptible(py, progress, |p| -> Result<_, RustFitError> {
-        let maps = lls::fit_session(&session, calibration.as_deref(), &dir, p)?;
-        let files = if written { lls::write_outputs(&maps, &dir)? } else { Vec::new() };
-        Ok((maps, files))
+        overridden(&set, || {
+            let maps = lls::fit_session(&session, calibration.as_deref(), &dir, p)?;
+            let files = if written { lls::write_outputs(&maps, &dir)? } else { Vec::new() };
+            Ok((maps, files))
+        })
     })?
     .map_err(fit_err)?;
     let (w, h) = (maps.width as usize, maps.height as usize);
@@ -139,19 +159,23 @@ pub fn fit_lls<'py>(
 
 /// `lightrig fit firs-surface`: the surface points of every orientation and merged.
 #[pyfunction]
-#[pyo3(signature = (session, out=None, progress=None))]
+#[pyo3(signature = (session, out=None, progress=None, set=None))]
 pub fn fit_firs_surface<'py>(
     py: Python<'py>,
     session: PathBuf,
     out: Option<PathBuf>,
     progress: Option<Py<PyAny>>,
+    set: Option<Vec<String>>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let set = overrides(set)?;
     let (dir, _scratch) = out_dir(&out, "firs")?;
     let written = out.is_some();
     let (s, files) = interruptible(py, progress, |p| -> Result<_, RustFitError> {
-        let s = firs::fit_surface(&session, &|done, total| p(done, total))?;
-        let files = if written { firs::write_outputs(&s, &dir)? } else { Vec::new() };
-        Ok((s, files))
+        overridden(&set, || {
+            let s = firs::fit_surface(&session, &|done, total| p(done, total))?;
+            let files = if written { firs::write_outputs(&s, &dir)? } else { Vec::new() };
+            Ok((s, files))
+        })
     })?
     .map_err(fit_err)?;
     let (w, h) = (s.width, s.height);
@@ -178,23 +202,27 @@ pub fn fit_firs_surface<'py>(
 /// `lightrig fit firs-volume`: the occupancy volume (`(z, y, x)`, read back from the
 /// `volume.raw` the fit streams it to) and its isosurface.
 #[pyfunction]
-#[pyo3(signature = (session, out=None, progress=None))]
+#[pyo3(signature = (session, out=None, progress=None, set=None))]
 pub fn fit_firs_volume<'py>(
     py: Python<'py>,
     session: PathBuf,
     out: Option<PathBuf>,
     progress: Option<Py<PyAny>>,
+    set: Option<Vec<String>>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let set = overrides(set)?;
     let (dir, _scratch) = out_dir(&out, "firs-volume")?;
     let written = out.is_some();
     let (v, files, occupancy) = interruptible(py, progress, |p| -> Result<_, RustFitError> {
-        let v = firs::fit_volume(&session, &dir, &|done, total| p(done, total))?;
-        let files = if written { firs::write_volume_outputs(&v, &dir)? } else { Vec::new() };
-        let bytes =
-            std::fs::read(&v.raw[0]).map_err(|e| RustFitError(format!("{}: {e}", v.raw[0].display())))?;
-        let occupancy: Vec<f32> =
-            bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
-        Ok((v, files, occupancy))
+        overridden(&set, || {
+            let v = firs::fit_volume(&session, &dir, &|done, total| p(done, total))?;
+            let files = if written { firs::write_volume_outputs(&v, &dir)? } else { Vec::new() };
+            let bytes =
+                std::fs::read(&v.raw[0]).map_err(|e| RustFitError(format!("{}: {e}", v.raw[0].display())))?;
+            let occupancy: Vec<f32> =
+                bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+            Ok((v, files, occupancy))
+        })
     })?
     .map_err(fit_err)?;
     let [nx, ny, nz] = v.grid.dims;
@@ -223,18 +251,21 @@ pub fn fit_firs_volume<'py>(
 /// `lightrig fit display`: a calibration session's calibration, or what a display session's
 /// targets showed.
 #[pyfunction]
-#[pyo3(signature = (session, calibration=None, out=None))]
+#[pyo3(signature = (session, calibration=None, out=None, set=None))]
 pub fn fit_display<'py>(
     py: Python<'py>,
     session: PathBuf,
     calibration: Option<PathBuf>,
     out: Option<PathBuf>,
+    set: Option<Vec<String>>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let set = overrides(set)?;
     let (dir, _scratch) = out_dir(&out, "display")?;
     let written = out.is_some();
-    let (fitted, files) =
-        interruptible(py, None, |_| display::fit_session(&session, calibration.as_deref(), &dir))?
-            .map_err(fit_err)?;
+    let (fitted, files) = interruptible(py, None, |_| {
+        overridden(&set, || display::fit_session(&session, calibration.as_deref(), &dir))
+    })?
+    .map_err(fit_err)?;
     let files = if written { files } else { Vec::new() };
     dict(py, |d| {
         match &fitted {
@@ -266,20 +297,24 @@ pub fn fit_display<'py>(
 /// `lightrig fit brrdf`: the wavelength pairs, each sphere's samples and binned BRRDF, and the
 /// PCA's figures.
 #[pyfunction]
-#[pyo3(signature = (session, spectralon=None, out=None, progress=None))]
+#[pyo3(signature = (session, spectralon=None, out=None, progress=None, set=None))]
 pub fn fit_brrdf<'py>(
     py: Python<'py>,
     session: PathBuf,
     spectralon: Option<PathBuf>,
     out: Option<PathBuf>,
     progress: Option<Py<PyAny>>,
+    set: Option<Vec<String>>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let set = overrides(set)?;
     let (dir, _scratch) = out_dir(&out, "brrdf")?;
     let written = out.is_some();
     let (f, files) = interruptible(py, progress, |p| -> Result<_, RustFitError> {
-        let f = brrdf::fit_session(&session, spectralon.as_deref(), p)?;
-        let files = if written { brrdf::write_outputs(&f, &dir)? } else { Vec::new() };
-        Ok((f, files))
+        overridden(&set, || {
+            let f = brrdf::fit_session(&session, spectralon.as_deref(), p)?;
+            let files = if written { brrdf::write_outputs(&f, &dir)? } else { Vec::new() };
+            Ok((f, files))
+        })
     })?
     .map_err(fit_err)?;
     let np = f.pairs.len();
@@ -326,20 +361,24 @@ pub fn fit_brrdf<'py>(
 /// `lightrig fit disco`: the throughput factor matrix `F` over the mesh's vertices and the
 /// fit's figures.
 #[pyfunction]
-#[pyo3(signature = (session, mesh=None, out=None, progress=None))]
+#[pyo3(signature = (session, mesh=None, out=None, progress=None, set=None))]
 pub fn fit_disco<'py>(
     py: Python<'py>,
     session: PathBuf,
     mesh: Option<PathBuf>,
     out: Option<PathBuf>,
     progress: Option<Py<PyAny>>,
+    set: Option<Vec<String>>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let set = overrides(set)?;
     let (dir, _scratch) = out_dir(&out, "disco")?;
     let written = out.is_some();
     let (f, files) = interruptible(py, progress, |p| -> Result<_, RustFitError> {
-        let f = disco::fit_session(&session, mesh.as_deref(), p)?;
-        let files = if written { disco::write_outputs(&f, &dir)? } else { Vec::new() };
-        Ok((f, files))
+        overridden(&set, || {
+            let f = disco::fit_session(&session, mesh.as_deref(), p)?;
+            let files = if written { disco::write_outputs(&f, &dir)? } else { Vec::new() };
+            Ok((f, files))
+        })
     })?
     .map_err(fit_err)?;
     let n = f.matrix.n;

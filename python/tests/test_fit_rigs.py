@@ -89,6 +89,28 @@ def test_display_calibration_is_the_demo_s(demos):
         assert 0.0 <= s["shape_error"] < 0.5, s
 
 
+def test_a_fit_takes_set_as_the_command_takes_it(demos):
+    """``set=`` changes the session's rig file for the fit alone, as ``lightrig fit --set`` does:
+    the screen said 60 mm away instead of 50 reads every tilt 50/60 as large."""
+    d = demos("display")
+    cal = d / "calibration" / "display-calibration.json"
+    plain = lightrig.fit_display(d / "display" / "session", calibration=cal)
+    far = lightrig.fit_display(d / "display" / "session", calibration=cal, set=["plan.screen.distance_mm=60"])
+    assert len(plain["shown"]) == len(far["shown"]) > 0
+    for a, b in zip(plain["shown"], far["shown"]):
+        for k in range(2):
+            assert abs(b["shown"][k] / a["shown"][k] / (50 / 60) - 1) < 0.05, (a, b)
+    # A key that describes how the session was taken is refused, naming it and what to do.
+    with pytest.raises(lightrig.FitError, match="acquire again") as e:
+        lightrig.fit_display(d / "display" / "session", calibration=cal, set=["plan.exposure_us=5"])
+    assert "plan.exposure_us" in str(e.value)
+    with pytest.raises(lightrig.FitError, match="expected KEY=VALUE"):
+        lightrig.fit_display(d / "display" / "session", calibration=cal, set=["plan.screen.distance_mm"])
+    # One string alone is not taken for a list of its characters.
+    with pytest.raises(lightrig.LightrigError, match="give a list"):
+        lightrig.fit_display(d / "display" / "session", calibration=cal, set="plan.screen.distance_mm=60")
+
+
 def read_ply_vertices(path):
     """The vertex count and positions of a PLY lightrig wrote (binary or ASCII)."""
     data = pathlib.Path(path).read_bytes()
