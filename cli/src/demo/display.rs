@@ -3,8 +3,10 @@
 //! sine per coil per step) fitted into the coils' responses; a display session showing a sweep
 //! of Ward roughnesses solved through them, measured by the camera; the same targets planned
 //! again from the calibration that learnt what the camera saw (the closed loop), measured again.
-//! The report compares the measured responses with the scene's true ones, each shown α with
-//! its target, and the simulated surface's slope statistics with Eq. 5.6 and a Gaussian.
+//! The scene has every fault a lab's tank and coils have (`Faults::ALL`); the same workflow
+//! then runs with each fault alone and on the ideal display. The report compares the measured
+//! responses with the scene's true ones, each shown α with its target, what each fault does,
+//! and the simulated surface's slope statistics with Eq. 5.6 and a Gaussian.
 
 use std::path::{Path, PathBuf};
 
@@ -189,8 +191,7 @@ fn played(partials: &[(f64, f64)]) -> (Vec<i16>, Vec<i16>) {
     (before, now)
 }
 
-/// One pass of the lab's workflow on the scene with `faults`, in `out`: calibration, the
-/// `sweep` solved through it, the sweep again planned from what the camera saw.
+/// What one pass of the lab's workflow found.
 struct Pass {
     /// The calibration session's fit.
     calibration: Calibration,
@@ -203,6 +204,8 @@ struct Pass {
     corrected: Vec<Shown>,
 }
 
+/// One pass of the lab's workflow on the scene with `faults`, in `out`: calibration, the
+/// `sweep` solved through it, the sweep again planned from what the camera saw.
 fn pass(out: &Path, faults: Faults, sweep: &[[f64; 2]], opts: &DisplayDemoOptions) -> Result<Pass, CliError> {
     std::fs::create_dir_all(out).map_err(io(out))?;
     // 1. Calibration.

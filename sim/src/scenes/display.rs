@@ -127,8 +127,8 @@ pub struct Faults {
     /// as an inextensible film ([`damping`]).
     pub film: bool,
     /// The far wall ([`WALL_REFLECTION`]) and the paddle ([`PADDLE_REFLECTION`]) send waves
-    /// back across the spot: a standing-wave ripple in the response, a period of about 35 Hz
-    /// in the 2 cm tank.
+    /// back across the spot: a standing-wave ripple in the response, a period of 25–40 Hz in
+    /// the 2 cm tank.
     pub walls: bool,
     /// Each coil's excursion saturates ([`SATURATION`]) and its suspension is asymmetric
     /// ([`SECOND_ORDER`]): harmonics, intermodulation and compression at large drive.
