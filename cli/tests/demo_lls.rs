@@ -279,6 +279,61 @@ fn fit_checks_agree_with_the_truth(
     assert_eq!(q.unmeasured.len(), 2, "{:?}", q.unmeasured);
     assert!(q.unmeasured[0].starts_with("height: the session has no stripe pass"), "{:?}", q.unmeasured);
     assert!(q.unmeasured[1].starts_with("translucency: "), "{:?}", q.unmeasured);
+    // Without the diagonal passes too nothing gave normals: the renderer exports carry no
+    // normal map (a flat one would read as measured), and still load whole.
+    let mut j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&manifest).unwrap()).unwrap();
+    for step in j["plan"]["steps"].as_array_mut().unwrap() {
+        let m = &mut step["extra"]["meta"];
+        if m["pass"] == "reflectance" && m["mount_deg"].as_i64().unwrap_or(0) != 0 {
+            m["pass"] = "not-acquired".into();
+        }
+    }
+    std::fs::write(&manifest, serde_json::to_string_pretty(&j).unwrap()).unwrap();
+    let flat = lightrig_host::fit::lls::fit_session(
+        &bare,
+        Some(&out.join("camera.toml")),
+        &out.join("flat-scratch"),
+        &|_, _| {},
+    )
+    .unwrap();
+    assert!(!flat.measured.normals && flat.diagonal_mounts.is_empty(), "{:?}", flat.measured);
+    let dir = out.join("flat-fit");
+    write_outputs(&flat, &dir).unwrap();
+    for absent in ["normal.png", "mitsuba/normal.exr", "gltf/normal.png"] {
+        assert!(!dir.join(absent).exists(), "{absent}");
+    }
+    let xml = std::fs::read_to_string(dir.join("mitsuba/scene.xml")).unwrap();
+    assert!(
+        !xml.contains("normalmap") && xml.contains("No normal map") && xml.contains("blendbsdf"),
+        "{xml}"
+    );
+    let gltf: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("gltf/sample.gltf")).unwrap()).unwrap();
+    let material = &gltf["materials"][0];
+    assert!(material.get("normalTexture").is_none(), "{material}");
+    // Every texture the material names is one of the three images written.
+    let images: Vec<&str> =
+        gltf["images"].as_array().unwrap().iter().map(|i| i["uri"].as_str().unwrap()).collect();
+    assert_eq!(images, ["base_color.png", "metallic_roughness.png", "specular_color.png"]);
+    for (name, index) in [
+        ("base_color.png", &material["pbrMetallicRoughness"]["baseColorTexture"]["index"]),
+        ("metallic_roughness.png", &material["pbrMetallicRoughness"]["metallicRoughnessTexture"]["index"]),
+        (
+            "specular_color.png",
+            &material["extensions"]["KHR_materials_specular"]["specularColorTexture"]["index"],
+        ),
+    ] {
+        let source = &gltf["textures"][index.as_u64().unwrap() as usize]["source"];
+        assert_eq!(images[source.as_u64().unwrap() as usize], name);
+        assert!(dir.join("gltf").join(name).exists(), "{name}");
+    }
+    // With normals measured, the same export names the normal map beside them.
+    let full: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("bare-fit/gltf/sample.gltf")).unwrap())
+            .unwrap();
+    let n = full["materials"][0]["normalTexture"]["index"].as_u64().unwrap() as usize;
+    assert_eq!(full["images"][full["textures"][n]["source"].as_u64().unwrap() as usize]["uri"], "normal.png");
 }
 
 /// The report's figures (truth | fit | error per map) and its HTML page: every map shown, and

@@ -205,8 +205,8 @@ pub fn plane_textures(m: &LlsMaps, fits: &[TraceFit]) -> Result<PlaneTextures, F
     Ok(t)
 }
 
-/// Writes `dir/scene.xml` and its textures (`diffuse.exr`, `specular.exr`, `alpha.exr`,
-/// `normal.exr`): the GGX fit on the plane, the registered camera (pinhole: `fx` sets the
+/// Writes `dir/scene.xml` and its textures (`diffuse.exr`, `specular.exr`, `alpha.exr`, and
+/// `normal.exr` where the session measured normals): the GGX fit on the plane, the registered camera (pinhole: `fx` sets the
 /// field of view, `cx`, `cy` the principal point; distortion is not rendered), `light`.
 /// Returns the files written.
 pub fn write_mitsuba(m: &LlsMaps, dir: &Path, light: &PointLight) -> Result<Vec<PathBuf>, FitError> {
@@ -230,7 +230,11 @@ pub fn write_mitsuba(m: &LlsMaps, dir: &Path, light: &PointLight) -> Result<Vec<
         1,
         t.alpha.iter().zip(&t.covered).map(|(&a, &c)| if c { a.max(1e-3) } else { 0.5 }).collect(),
     )?;
-    exr("normal.exr", 3, t.normal.iter().flat_map(|v| v.map(|x| (x + 1.0) / 2.0)).collect())?;
+    // A session that measured no normals (no stripe, no diagonal passes) gets no normal map:
+    // a flat one would read as measured.
+    if m.measured.normals {
+        exr("normal.exr", 3, t.normal.iter().flat_map(|v| v.map(|x| (x + 1.0) / 2.0)).collect())?;
+    }
     let k = &m.intrinsics;
     let (w, h) = (f64::from(m.width), f64::from(m.height));
     let fov = (2.0 * (w / (2.0 * k.fx)).atan()).to_degrees();
@@ -254,6 +258,47 @@ pub fn write_mitsuba(m: &LlsMaps, dir: &Path, light: &PointLight) -> Result<Vec<
         )
     } else {
         String::new()
+    };
+    // The blend of the diffuse and GGX lobes, in a normal map where the session measured
+    // normals.
+    let blend = r#"      <bsdf type="blendbsdf">
+        <float name="weight" value="0.5"/>
+        <bsdf type="diffuse">
+          <texture name="reflectance" type="bitmap">
+            <string name="filename" value="diffuse.exr"/>
+            <boolean name="raw" value="true"/>
+          </texture>
+        </bsdf>
+        <bsdf type="roughconductor">
+          <string name="material" value="none"/>
+          <string name="distribution" value="ggx"/>
+          <boolean name="sample_visible" value="true"/>
+          <texture name="alpha" type="bitmap">
+            <string name="filename" value="alpha.exr"/>
+            <boolean name="raw" value="true"/>
+          </texture>
+          <texture name="specular_reflectance" type="bitmap">
+            <string name="filename" value="specular.exr"/>
+            <boolean name="raw" value="true"/>
+          </texture>
+        </bsdf>
+      </bsdf>"#;
+    let bsdf = if m.measured.normals {
+        format!(
+            r#"    <bsdf type="normalmap">
+      <texture name="normalmap" type="bitmap">
+        <string name="filename" value="normal.exr"/>
+        <boolean name="raw" value="true"/>
+      </texture>
+{blend}
+    </bsdf>"#
+        )
+    } else {
+        let lines: Vec<&str> = blend.lines().map(|l| l.strip_prefix("  ").unwrap_or(l)).collect();
+        format!(
+            "    <!-- No normal map: the session measured no normals (no stripe, no diagonal passes). -->\n{}",
+            lines.join("\n")
+        )
     };
     let xml = format!(
         r#"<?xml version="1.0" encoding="utf-8"?>
@@ -285,34 +330,7 @@ pub fn write_mitsuba(m: &LlsMaps, dir: &Path, light: &PointLight) -> Result<Vec<
       <scale x="{hx}" y="{hy}" z="1"/>
       <translate x="{mx}" y="{my}" z="{z}"/>
     </transform>
-    <bsdf type="normalmap">
-      <texture name="normalmap" type="bitmap">
-        <string name="filename" value="normal.exr"/>
-        <boolean name="raw" value="true"/>
-      </texture>
-      <bsdf type="blendbsdf">
-        <float name="weight" value="0.5"/>
-        <bsdf type="diffuse">
-          <texture name="reflectance" type="bitmap">
-            <string name="filename" value="diffuse.exr"/>
-            <boolean name="raw" value="true"/>
-          </texture>
-        </bsdf>
-        <bsdf type="roughconductor">
-          <string name="material" value="none"/>
-          <string name="distribution" value="ggx"/>
-          <boolean name="sample_visible" value="true"/>
-          <texture name="alpha" type="bitmap">
-            <string name="filename" value="alpha.exr"/>
-            <boolean name="raw" value="true"/>
-          </texture>
-          <texture name="specular_reflectance" type="bitmap">
-            <string name="filename" value="specular.exr"/>
-            <boolean name="raw" value="true"/>
-          </texture>
-        </bsdf>
-      </bsdf>
-    </bsdf>
+{bsdf}
   </shape>
   <emitter type="point">
     <point name="position" x="{lx}" y="{ly}" z="{lz}"/>

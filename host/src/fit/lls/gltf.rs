@@ -63,8 +63,9 @@ pub fn quaternion(c: [V3; 3]) -> [f64; 4] {
 }
 
 /// Writes `dir/sample.gltf` with `sample.bin` and its textures (`base_color.png`,
-/// `metallic_roughness.png`, `normal.png`, `specular_color.png`): the GGX fit on the plane,
-/// the registered camera, `light`. Returns the files written.
+/// `metallic_roughness.png`, `specular_color.png`, and `normal.png` where the session measured
+/// normals): the GGX fit on the plane, the registered camera, `light`. Returns the files
+/// written.
 pub fn write_gltf(m: &LlsMaps, dir: &Path, light: &PointLight) -> Result<Vec<PathBuf>, FitError> {
     let ggx = m.ggx.as_ref().ok_or_else(|| fail("the glTF export needs the GGX fit (`--model both`)"))?;
     let t = plane_textures(m, ggx)?;
@@ -115,7 +116,11 @@ pub fn write_gltf(m: &LlsMaps, dir: &Path, light: &PointLight) -> Result<Vec<Pat
     png("base_color.png", 4, base, true)?;
     png("specular_color.png", 3, spec, true)?;
     png("metallic_roughness.png", 3, mr, false)?;
-    png("normal.png", 3, nrm, false)?;
+    // A session that measured no normals (no stripe, no diagonal passes) gets no normal map:
+    // a flat one would read as measured.
+    if m.measured.normals {
+        png("normal.png", 3, nrm, false)?;
+    }
 
     // The quad: corners at the texture's outer edges, uv (0, 0) at the image's top left, the
     // plane's smallest x and largest y.
@@ -153,9 +158,12 @@ pub fn write_gltf(m: &LlsMaps, dir: &Path, light: &PointLight) -> Result<Vec<Pat
     let cam_q = quaternion([axis(0, 1.0), axis(1, -1.0), axis(2, -1.0)]);
     let k = &m.intrinsics;
     let yfov = 2.0 * (f64::from(m.height) / (2.0 * k.fy)).atan();
-    let textures = [0, 1, 2, 3].map(|i| json!({"sampler": 0, "source": i}));
-    let images = ["base_color.png", "metallic_roughness.png", "normal.png", "specular_color.png"]
-        .map(|u| json!({"uri": u}));
+    let mut uris = vec!["base_color.png", "metallic_roughness.png", "specular_color.png"];
+    if m.measured.normals {
+        uris.push("normal.png");
+    }
+    let textures: Vec<_> = (0..uris.len()).map(|i| json!({"sampler": 0, "source": i})).collect();
+    let images: Vec<_> = uris.iter().map(|u| json!({"uri": u})).collect();
     let gltf = json!({
         "asset": {
             "version": "2.0",
@@ -196,13 +204,12 @@ pub fn write_gltf(m: &LlsMaps, dir: &Path, light: &PointLight) -> Result<Vec<Pat
                 "roughnessFactor": 1.0,
                 "metallicRoughnessTexture": {"index": 1},
             },
-            "normalTexture": {"index": 2},
             "alphaMode": "MASK",
             "alphaCutoff": 0.5,
             "extensions": {"KHR_materials_specular": {
                 "specularFactor": 1.0,
                 "specularColorFactor": [peak, peak, peak],
-                "specularColorTexture": {"index": 3},
+                "specularColorTexture": {"index": 2},
             }},
         }],
         "textures": textures,
@@ -235,6 +242,10 @@ pub fn write_gltf(m: &LlsMaps, dir: &Path, light: &PointLight) -> Result<Vec<Pat
             }
         },
     });
+    let mut gltf = gltf;
+    if m.measured.normals {
+        gltf["materials"][0]["normalTexture"] = json!({"index": 3});
+    }
     let p = dir.join("sample.gltf");
     let text = serde_json::to_string_pretty(&gltf).map_err(|e| fail(e.to_string()))?;
     std::fs::write(&p, text).map_err(|e| fail(format!("{}: {e}", p.display())))?;
