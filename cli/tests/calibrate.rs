@@ -220,11 +220,25 @@ fn errors_name_the_file_and_what_to_do() {
     let o = run(&[&good[0], &blank, &good[1], &good[2]], &[]);
     assert_eq!(o.status.code(), Some(4));
     let e = stderr(&o);
-    assert!(e.contains(&format!("{}: no chessboard of 9×6 inner corners found", s(&blank))), "{e}");
+    assert!(
+        e.contains(&format!(
+            "{}: no chessboard of 9×6 inner corners found: no corner of four squares",
+            s(&blank)
+        )),
+        "{e}"
+    );
     assert!(e.contains("--skip-missing"), "{e}");
     assert!(!out.exists());
     let o = run(&[&good[0], &blank, &good[1], &good[2]], &["--skip-missing"]);
     assert!(o.status.success(), "{}", stderr(&o));
+    // The report says why, per image.
+    let report = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        report
+            .lines()
+            .any(|l| l.contains(s(&blank)) && l.contains("skipped: no corner of four squares anywhere")),
+        "{report}"
+    );
     let c = calib_file::read(&out).unwrap();
     assert_eq!(c.skipped, vec![s(&blank).to_string()]);
     assert_eq!(c.views.len(), 3);
@@ -242,7 +256,14 @@ fn errors_name_the_file_and_what_to_do() {
         "--out",
         s(&out),
     ]);
-    assert!(stderr(&o).contains(&format!("{}: no chessboard of 8×6", s(&good[0]))), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains(&format!(
+            "{}: no chessboard of 8×6 inner corners found: a grid larger than the pattern",
+            s(&good[0])
+        )),
+        "{}",
+        stderr(&o)
+    );
 
     // Too few views.
     let o = run(&[&good[0], &good[1]], &[]);

@@ -179,9 +179,29 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     let c = scale(scan.vertices.iter().fold([0.0; 3], |s, &v| add(s, v)), 1.0 / scan.vertices.len() as f64);
     let turn = Pose { rotation: [1.5, -1.2, 0.8], translation: [0.0; 3] };
     let far = Pose { translation: add(sub(c, turn.apply(c)), [20.0, -15.0, 0.0]), ..turn }.place(&scan);
-    let far_ply = out.join("far.ply");
-    lightrig_pipelines::firs::mesh::write_ply(&far, &mut std::fs::File::create(&far_ply).unwrap()).unwrap();
-    let placed = fit_session(&session, Some(&far_ply), &none).unwrap();
+    // Written as a scanner's tool might: OBJ, in metres, with a normal per vertex and the
+    // surface in two groups. Unscaled it is refused with the unit to give; given it, fitted.
+    let mut obj = String::from("# scanner export\nmtllib scan.mtl\no pebble\n");
+    for v in &far.vertices {
+        obj += &format!("v {:.12} {:.12} {:.12}\nvn 0 0 1\n", v[0] / 1e3, v[1] / 1e3, v[2] / 1e3);
+    }
+    for (k, t) in far.triangles.iter().enumerate() {
+        if k == far.triangles.len() / 2 {
+            obj += "g lower\n";
+        }
+        obj += &format!("f {0}//{0} {1}//{1} {2}//{2}\n", t[0] + 1, t[1] + 1, t[2] + 1);
+    }
+    let far_obj = out.join("far.obj");
+    std::fs::write(&far_obj, obj).unwrap();
+    let e = fit_session(&session, Some(&far_obj), &none).unwrap_err().0;
+    assert!(e.contains("far.obj") && e.contains("across") && e.contains("--set plan.fit.mesh_unit=m"), "{e}");
+    let metres: lightrig_host::overrides::Override = "plan.fit.mesh_unit=m".parse().unwrap();
+    let placed =
+        lightrig_host::fit::with_overrides(&[metres], || fit_session(&session, Some(&far_obj), &none))
+            .unwrap()
+            .unwrap();
+    assert_eq!(placed.scan.format, lightrig_host::mesh_file::MeshFormat::Obj);
+    assert_eq!((placed.scan.unit_mm, placed.scan.check.vertices), (1000.0, far.vertices.len()));
     assert!(
         placed.registration.as_ref().is_some_and(|g| g.from_hull && g.min_iou() > 0.995),
         "{:?}",

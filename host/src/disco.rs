@@ -57,6 +57,8 @@ struct White {
 struct FitSpec {
     #[serde(default)]
     mesh: Option<String>,
+    #[serde(default)]
+    mesh_unit: Option<String>,
     image: [u32; 2],
     focal_px: f64,
     projector: Pose,
@@ -78,6 +80,9 @@ pub struct DiscoSetup {
     pub white: WhiteTarget,
     /// The object's mesh file as written in the rig file (relative to the session directory).
     pub mesh: Option<PathBuf>,
+    /// The mesh file's length unit in mm (`[plan.fit] mesh_unit`: mm, cm, m, in, um; mm if
+    /// not given).
+    pub mesh_unit_mm: f64,
     /// Relative index of refraction for the Fresnel terms (1.3, as the paper).
     pub eta: f64,
     /// Every `held_out`-th spot is left out of the fit and predicted (0: none).
@@ -135,9 +140,19 @@ impl DiscoSetup {
         if wt.albedo.is_nan() || wt.albedo <= 0.0 || wt.albedo > 1.0 {
             return Err(rig.error("plan.fit.white_target.albedo", "must be in (0, 1]"));
         }
+        let mesh_unit_mm = match spec.mesh_unit.as_deref() {
+            None => 1.0,
+            Some(u) => lightrig_pipelines::disco::scan::unit_mm(u).ok_or_else(|| {
+                rig.error(
+                    "plan.fit.mesh_unit",
+                    format!("`{u}` is not a length unit lightrig knows: give mm, cm, m, in or um"),
+                )
+            })?,
+        };
         Ok(DiscoSetup {
             cameras,
             projector,
+            mesh_unit_mm,
             white: WhiteTarget { point: wt.point_mm, normal: normalize(wt.normal), albedo: wt.albedo },
             mesh: spec.mesh.map(PathBuf::from),
             eta: spec.eta.unwrap_or(1.3),

@@ -13,6 +13,7 @@
 //! - [`acquire`]: the acquisition engine: plan steps → device → journaled, paired frames.
 //! - [`live`]: a running acquisition's state for those watching it from elsewhere.
 //! - [`steer`]: the PCA-steered bispectral plan's choice of pairs, made inside the session.
+//! - [`mesh_file`]: a lab's scanned mesh from PLY or OBJ.
 //! - [`fit`]: per-rig session readers feeding `lightrig_pipelines` (`fit::lls`, `fit::firs`).
 
 pub mod acquire;
@@ -27,6 +28,7 @@ pub mod fit;
 pub mod flash;
 pub mod frames;
 pub mod live;
+pub mod mesh_file;
 pub mod overrides;
 pub mod plan;
 pub mod response;

@@ -22,13 +22,14 @@
 use std::fmt;
 
 mod detect;
-pub use detect::find_chessboard;
+pub use detect::{find_chessboard, Miss};
 
 /// Why a calibration step failed.
 #[derive(Debug, Clone, PartialEq)]
 pub enum CalibError {
-    /// No chessboard with the requested inner-corner pattern was found in the image.
-    BoardNotFound,
+    /// No chessboard with the requested inner-corner pattern was found in the image, and what
+    /// the detector saw instead.
+    BoardNotFound(Miss),
     /// Calibration needs at least `need` views.
     TooFewViews { got: usize, need: usize },
     /// The geometry does not determine the solution (collinear points, parallel views, ...).
@@ -40,7 +41,7 @@ pub enum CalibError {
 impl fmt::Display for CalibError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            CalibError::BoardNotFound => write!(f, "chessboard not found"),
+            CalibError::BoardNotFound(miss) => write!(f, "chessboard not found: {miss}"),
             CalibError::TooFewViews { got, need } => {
                 write!(f, "too few views for calibration: {got}, need at least {need}")
             }

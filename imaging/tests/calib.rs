@@ -278,14 +278,30 @@ fn reports_boards_that_are_not_there() {
     let scene = ChessboardScene { noise: 2.0, ..ChessboardScene::new(9, 6, 1.0) };
     let pose = Pose { rvec: [0.05, -0.1, 0.02], tvec: [-4.0, -2.5, 14.0] };
     let (img, _) = rendered(&scene, &k, &pose);
-    // Only the exact pattern is accepted.
-    for pattern in [(8, 6), (9, 5), (10, 6), (5, 9)] {
-        assert_eq!(find_chessboard(&img, W, H, pattern), Err(CalibError::BoardNotFound), "{pattern:?}");
+    // Only the exact pattern is accepted, and the miss says what was seen instead.
+    let miss = |img: &[u8], pattern| match find_chessboard(img, W, H, pattern) {
+        Err(CalibError::BoardNotFound(m)) => m,
+        other => panic!("{pattern:?}: {other:?}"),
+    };
+    for (pattern, at_least) in [((8, 6), (9, 6)), ((9, 5), (9, 6)), ((5, 9), (6, 9))] {
+        match miss(&img, pattern) {
+            Miss::TooLarge { cols, rows } => {
+                assert!(cols >= at_least.0 && rows >= at_least.1, "{pattern:?}: {cols}×{rows}")
+            }
+            m => panic!("{pattern:?}: {m:?}"),
+        }
     }
-    // Part of the board outside the image.
+    assert_eq!(miss(&img, (10, 6)), Miss::Partial { cols: 9, rows: 6, corners: 54 });
+    assert!(miss(&img, (10, 6)).to_string().starts_with("the largest grid found is 9×6 inner corners"));
+    // Part of the board outside the image: a smaller grid.
     let (cut, _) = rendered(&scene, &k, &Pose { tvec: [-1.0, -2.5, 12.0], ..pose });
-    assert_eq!(find_chessboard(&cut, W, H, (9, 6)), Err(CalibError::BoardNotFound));
-    assert_eq!(find_chessboard(&vec![128u8; W * H], W, H, (9, 6)), Err(CalibError::BoardNotFound));
+    match miss(&cut, (9, 6)) {
+        Miss::Partial { cols, rows, corners } => {
+            assert!(cols * rows < 54 || corners < 54, "{cols}×{rows}, {corners}")
+        }
+        m => panic!("cut: {m:?}"),
+    }
+    assert_eq!(miss(&vec![128u8; W * H], (9, 6)), Miss::NoCorners);
     assert!(matches!(find_chessboard(&img[..100], W, H, (9, 6)), Err(CalibError::InvalidInput(_))));
     assert!(matches!(find_chessboard(&img, W, H, (1, 6)), Err(CalibError::InvalidInput(_))));
 }
@@ -526,4 +542,73 @@ fn rendered_boards_of_known_intrinsics_calibrate_to_them() {
         "{:?}",
         c.intrinsics
     );
+}
+
+/// Clutter with corners and edges of its own and no board: bold stripes at 30° (a shirt), a
+/// keyboard's grid of keys, lines of "text" and a small checker patch of 3 × 3 squares (2 × 2
+/// inner corners, as on a printed logo). No board is reported, for the pattern sizes labs use,
+/// and the miss names what was seen.
+#[test]
+fn clutter_alone_is_no_board() {
+    let mut img = vec![0u8; W * H];
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let mut rnd = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let (c, s) = (30f64.to_radians().cos(), 30f64.to_radians().sin());
+    for y in 0..H {
+        for x in 0..W {
+            let (xf, yf) = (x as f64, y as f64);
+            let v = if x < 320 && y < 240 {
+                // Stripes, 14 px dark in 28.
+                if (xf * c + yf * s).rem_euclid(28.0) < 14.0 {
+                    35.0
+                } else {
+                    200.0
+                }
+            } else if x >= 320 && y < 240 {
+                // Keys 26 px with 6 px dark gaps.
+                let (u, v) = ((xf - 320.0).rem_euclid(32.0), yf.rem_euclid(32.0));
+                if u < 26.0 && v < 26.0 {
+                    190.0
+                } else {
+                    25.0
+                }
+            } else if x < 320 {
+                // Text: dark glyph-sized bars on white, in lines.
+                let line = (yf - 240.0).rem_euclid(20.0) < 9.0;
+                let glyph =
+                    ((xf / 7.0).floor() as i64 * 31 + (yf / 20.0).floor() as i64 * 17).rem_euclid(5) < 3;
+                if line && glyph && xf.rem_euclid(7.0) < 4.0 {
+                    30.0
+                } else {
+                    230.0
+                }
+            } else {
+                // A 3 × 3 checker patch of 20 px squares on grey.
+                let (u, v) = (xf - 420.0, yf - 320.0);
+                if (0.0..60.0).contains(&u) && (0.0..60.0).contains(&v) {
+                    if ((u / 20.0).floor() as i64 + (v / 20.0).floor() as i64) % 2 == 0 {
+                        30.0
+                    } else {
+                        220.0
+                    }
+                } else {
+                    110.0
+                }
+            };
+            img[y * W + x] = (v + 4.0 * (rnd() - 0.5)).round().clamp(0.0, 255.0) as u8;
+        }
+    }
+    for pattern in [(9, 6), (8, 6), (7, 5), (6, 4)] {
+        match find_chessboard(&img, W, H, pattern) {
+            Err(CalibError::BoardNotFound(m)) => {
+                assert!(matches!(m, Miss::NoGrid { .. } | Miss::Partial { .. }), "{pattern:?}: {m:?}")
+            }
+            other => panic!("{pattern:?}: a board in clutter alone: {other:?}"),
+        }
+    }
 }

@@ -73,7 +73,7 @@ fn run_calibrate(args: &Args) -> Result<(), String> {
     }
     let board = BoardSpec { cols, rows, square, unit: args.unit.clone() };
     let files = collect_images(&args.images)?;
-    let c = calibrate_files(&files, &board, args.skip_missing, &tool())?;
+    let (c, why) = calibrate_files_saying_why(&files, &board, args.skip_missing, &tool())?;
     println!(
         "calibration of {} view(s), {}×{} inner corners, square {} {}:",
         c.views.len(),
@@ -85,8 +85,8 @@ fn run_calibrate(args: &Args) -> Result<(), String> {
     for v in &c.views {
         println!("  {:<40} rms {:.4} px", v.file, v.rms);
     }
-    for s in &c.skipped {
-        println!("  {s:<40} skipped: board not found");
+    for (s, why) in c.skipped.iter().zip(&why) {
+        println!("  {s:<40} skipped: {why}");
     }
     let k = &c.intrinsics;
     println!("overall rms {:.4} px", c.rms);
@@ -160,8 +160,9 @@ pub fn collect_images(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, String> {
     Ok(files)
 }
 
-/// An image's corners, or why the board was not found (naming the file).
-type Corners = Result<Vec<(f64, f64)>, String>;
+/// An image's corners, or why the board was not found: the whole message (naming the file)
+/// and the detector's reason alone.
+type Corners = Result<Vec<(f64, f64)>, (String, String)>;
 
 /// Reads an image and looks for the board: an unreadable image is an error, a missing board is
 /// the second value's (the caller may skip it).
@@ -170,14 +171,16 @@ fn detect(path: &Path, board: &BoardSpec) -> Result<(io::Gray8, Corners), String
     let found =
         calib::find_chessboard(&img.data, img.width as usize, img.height as usize, (board.cols, board.rows));
     let found = found.map_err(|e| match e {
-        CalibError::BoardNotFound => format!(
-            "{}: no chessboard of {}×{} inner corners found; check that --cols/--rows count inner corners \
-             (squares minus one) and that the whole board is in view and in focus",
-            path.display(),
-            board.cols,
-            board.rows
+        CalibError::BoardNotFound(miss) => (
+            format!(
+                "{}: no chessboard of {}×{} inner corners found: {miss}",
+                path.display(),
+                board.cols,
+                board.rows
+            ),
+            miss.to_string(),
         ),
-        other => format!("{}: {other}", path.display()),
+        other => (format!("{}: {other}", path.display()), other.to_string()),
     });
     Ok((img, found))
 }
@@ -190,6 +193,17 @@ pub fn calibrate_files(
     skip_missing: bool,
     tool: &str,
 ) -> Result<CalibrationFile, String> {
+    calibrate_files_saying_why(files, spec, skip_missing, tool).map(|(c, _)| c)
+}
+
+/// [`calibrate_files`], with why the board was not found in each skipped image (in the order
+/// of `skipped`; see [`calib::Miss`]).
+pub fn calibrate_files_saying_why(
+    files: &[PathBuf],
+    spec: &BoardSpec,
+    skip_missing: bool,
+    tool: &str,
+) -> Result<(CalibrationFile, Vec<String>), String> {
     if spec.cols < 2 || spec.rows < 2 || !(spec.square > 0.0 && spec.square.is_finite()) {
         return Err(format!(
             "board {}×{} with square {}: need at least 2×2 inner corners and a positive square size",
@@ -199,6 +213,7 @@ pub fn calibrate_files(
     let mut size = None;
     let mut used: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
     let mut skipped = Vec::new();
+    let mut why = Vec::new();
     for f in files {
         let (img, found) = detect(f, spec)?;
         match size {
@@ -216,11 +231,12 @@ pub fn calibrate_files(
         }
         match found {
             Ok(corners) => used.push((f.display().to_string(), corners)),
-            Err(e) if skip_missing => {
+            Err((e, reason)) if skip_missing => {
                 eprintln!("warning: {e}; skipped");
                 skipped.push(f.display().to_string());
+                why.push(reason);
             }
-            Err(e) => return Err(format!("{e} (or pass --skip-missing to leave such images out)")),
+            Err((e, _)) => return Err(format!("{e} (or pass --skip-missing to leave such images out)")),
         }
     }
     let board = spec.board();
@@ -244,7 +260,7 @@ pub fn calibrate_files(
         })
         .collect();
     let (w, h, _) = size.ok_or("no images given")?;
-    Ok(CalibrationFile {
+    let file = CalibrationFile {
         tool: tool.into(),
         image_size: (w, h),
         intrinsics: fit.intrinsics,
@@ -253,7 +269,8 @@ pub fn calibrate_files(
         views,
         skipped,
         reference: None,
-    })
+    };
+    Ok((file, why))
 }
 
 /// The board → camera pose of `spec`'s board in `image` with the calibration's intrinsics.
@@ -269,7 +286,7 @@ pub fn register(c: &CalibrationFile, image: &Path, spec: &BoardSpec) -> Result<R
             c.image_size.1
         ));
     }
-    let corners = found?;
+    let corners = found.map_err(|(e, _)| e)?;
     let board: Board = spec.board();
     let (pose, rms) = calib::pose_from_board(&c.intrinsics, &corners, &board)
         .map_err(|e| format!("{}: pose not determined: {e}", image.display()))?;

@@ -28,7 +28,8 @@ pub struct Args {
     /// `[plan.fit] spectralon`).
     #[arg(long)]
     pub spectralon: Option<PathBuf>,
-    /// `disco`: the object's scanned mesh, PLY (else the rig file's `[plan.fit] mesh`, relative
+    /// `disco`: the object's scanned mesh, PLY or OBJ, in mm (else `--set
+    /// plan.fit.mesh_unit=m`; the mesh itself else the rig file's `[plan.fit] mesh`, relative
     /// to the session directory).
     #[arg(long)]
     pub mesh: Option<PathBuf>,
@@ -223,7 +224,7 @@ fn fit_brrdf(session: &Path, spectralon: Option<&Path>, out: &Path) -> ExitCode 
     }))
 }
 
-/// `lightrig fit disco SESSION --out DIR [--mesh FILE.ply]`.
+/// `lightrig fit disco SESSION --out DIR [--mesh FILE.ply|FILE.obj]`.
 fn fit_disco(session: &Path, mesh: Option<&Path>, out: &Path) -> ExitCode {
     let bar = crate::demo::bar(true, 0, "frames");
     let b = bar.clone();

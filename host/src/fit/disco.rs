@@ -53,7 +53,8 @@ use lightrig_pipelines::disco::relight;
 use lightrig_pipelines::disco::resample::{
     background_sigma, beam_sigma, flux_scale, spot_peak, Accumulator, Incidence, ViewLimits, ViewMap,
 };
-use lightrig_pipelines::firs::mesh::{read_ply, write_ply};
+use lightrig_pipelines::disco::scan::{check as check_scan, orient, Orientation, ScanCheck};
+use lightrig_pipelines::firs::mesh::{write_ply, Mesh};
 use lightrig_pipelines::vec3::{dot, norm, normalize, sub, V3};
 use lightrig_protocol::event::TriggerEvent;
 use rayon::prelude::*;
@@ -61,6 +62,7 @@ use serde_json::{json, Value};
 
 use super::{fail, FitError};
 use crate::disco::DiscoSetup;
+use crate::mesh_file::{read_mesh, MeshFormat};
 use crate::rigfile::RigFile;
 use crate::session::{FrameRecord, SessionIndex, StepId, StepRecords};
 
@@ -145,6 +147,8 @@ pub struct DiscoFit {
     /// their fits (in `fit.json` beside the kept ones, for a look at why).
     pub local_rejected: Vec<SpotKernel>,
     pub local_params: LocalParams,
+    /// The scanned mesh as read and checked.
+    pub scan: ScanReport,
     /// The mesh's pose on the turntable from the registration frames (none: the plan took
     /// none, and the mesh is used as placed).
     pub registration: Option<RegistrationReport>,
@@ -303,18 +307,7 @@ pub fn fit_session(
         )))
         }
     };
-    let scan = {
-        let mut f = std::fs::File::open(&mesh_path).map_err(|e| {
-            fail(format!(
-                "{}: the object's mesh: {e}; give the scanned mesh with --mesh or [plan.fit] mesh",
-                mesh_path.display()
-            ))
-        })?;
-        read_ply(&mut f).map_err(|e| fail(format!("{}: {e}", mesh_path.display())))?
-    };
-    if scan.vertices.len() < 4 || scan.triangles.is_empty() {
-        return Err(fail(format!("{}: the mesh has no surface", mesh_path.display())));
-    }
+    let (scan, scan_report) = read_scan(&mesh_path, setup.mesh_unit_mm)?;
     let camera = s.pipeline_camera(None).map_err(fail)?;
     let table = rig
         .stepper_named("turntable")
@@ -792,6 +785,7 @@ pub fn fit_session(
         glint_frames,
         local_rejected,
         local_params,
+        scan: scan_report,
         registration,
         projector,
         phases,
@@ -801,6 +795,51 @@ pub fn fit_session(
         mesh,
         matrix,
     })
+}
+
+/// The scanned mesh as the fit read it: what reading and orienting changed, and the measures
+/// it was checked by ([`lightrig_pipelines::disco::scan`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScanReport {
+    pub file: PathBuf,
+    pub format: MeshFormat,
+    /// The file's unit, mm.
+    pub unit_mm: f64,
+    pub polygons_split: usize,
+    pub vertices_merged: usize,
+    pub degenerate_dropped: usize,
+    pub orientation: Orientation,
+    pub check: ScanCheck,
+}
+
+/// Reads a lab's mesh file (any PLY or OBJ, [`read_mesh`]), scales it to mm, orients it and
+/// checks it; a mesh the fit cannot use is an error naming the file, the measure and what
+/// to do.
+pub fn read_scan(path: &Path, unit_mm: f64) -> Result<(Mesh, ScanReport), FitError> {
+    let file = read_mesh(path)
+        .map_err(|e| fail(format!("{e}; give the object's scanned mesh with --mesh or [plan.fit] mesh")))?;
+    let mut mesh = file.mesh;
+    if unit_mm != 1.0 {
+        for v in &mut mesh.vertices {
+            *v = v.map(|c| c * unit_mm);
+        }
+    }
+    let orientation = orient(&mut mesh);
+    let check = check_scan(&mesh);
+    if let Some(why) = check.refusal() {
+        return Err(fail(format!("{}: the DISCO fit cannot use this mesh: {why}", path.display())));
+    }
+    let report = ScanReport {
+        file: path.to_path_buf(),
+        format: file.format,
+        unit_mm,
+        polygons_split: file.polygons_split,
+        vertices_merged: file.vertices_merged,
+        degenerate_dropped: file.degenerate_dropped,
+        orientation,
+        check,
+    };
+    Ok((mesh, report))
 }
 
 /// The registration's outcome, in the fit's summary.
@@ -1579,6 +1618,22 @@ pub fn write_local(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitError>
     Ok(files)
 }
 
+/// The scanned mesh's entry in `fit.json`.
+fn scan_json(r: &ScanReport) -> Value {
+    let c = &r.check;
+    json!({
+        "file": r.file, "format": r.format.to_string(), "unit_mm": r.unit_mm,
+        "vertices": c.vertices, "triangles": c.triangles,
+        "polygons_split": r.polygons_split, "vertices_merged": r.vertices_merged,
+        "degenerate_faces_dropped": r.degenerate_dropped,
+        "triangles_flipped": r.orientation.flipped, "pieces": r.orientation.pieces,
+        "pieces_turned_outward": r.orientation.turned_outward,
+        "boundary_edges": c.defects.boundary,
+        "diagonal_mm": c.diagonal, "area_mm2": c.area,
+        "area_spread_p95_over_p5": c.area_spread, "area_spread_limit": lightrig_pipelines::disco::scan::AREA_SPREAD_LIMIT,
+    })
+}
+
 /// `F`'s file format tag.
 pub const F_FORMAT: &str = "lightrig-disco-F 1";
 
@@ -1611,6 +1666,7 @@ pub fn write_outputs(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitErro
         "lit_columns": fit.lit_columns,
         "observed_entries": fit.observed.iter().filter(|&&o| o).count(),
         "white_balance_gain_flux_rgb": fit.flux,
+        "scan": scan_json(&fit.scan),
         "registration": fit.registration.as_ref().map(|r| json!({
             "rotation_vector_rad": r.pose.rotation, "translation_mm": r.pose.translation,
             "views_used": r.views_used, "views": r.agreement.len(), "evaluations": r.evaluations,

@@ -541,6 +541,70 @@ fn extent(grid: &Grid) -> Option<(i32, i32, i32, i32)> {
     Some(keys.fold((i, i, j, j), |(a, b, c, d), &(i, j)| (a.min(i), b.max(i), c.min(j), d.max(j))))
 }
 
+/// Why [`find_chessboard`] found no board: the furthest the detector got, so that a user knows
+/// what to change.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Miss {
+    /// No point of the image is an X-junction (the corner where four squares meet): no board
+    /// in view, or one too blurred, too dark or too small to show its corners.
+    NoCorners,
+    /// `junctions` points are X-junctions, but no grid of squares grows from any of them: the
+    /// corners are clutter's (stripes, text, a keyboard) or the board's squares are too
+    /// distorted to predict one corner from the next.
+    NoGrid { junctions: usize },
+    /// A grid of squares larger than the pattern: at least `cols × rows` inner corners.
+    TooLarge { cols: usize, rows: usize },
+    /// The largest grid found spans `cols × rows` corners, `corners` of them found: smaller
+    /// than the pattern (part of the board hidden or out of the image, or its far side too
+    /// steep or blurred) or with corners missing.
+    Partial { cols: usize, rows: usize, corners: usize },
+}
+
+impl std::fmt::Display for Miss {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match *self {
+            Miss::NoCorners => write!(
+                f,
+                "no corner of four squares anywhere in the image (is the board in view, in focus and lit?)"
+            ),
+            Miss::NoGrid { junctions } => write!(
+                f,
+                "{junctions} corner-like points but no grid of squares among them (clutter, or a board too blurred or distorted to follow)"
+            ),
+            Miss::TooLarge { cols, rows } => write!(
+                f,
+                "a grid larger than the pattern, at least {cols}×{rows} inner corners (do --cols/--rows count inner corners, squares minus one?)"
+            ),
+            Miss::Partial { cols, rows, corners } if corners == cols * rows => write!(
+                f,
+                "the largest grid found is {cols}×{rows} inner corners (part of the board hidden or outside the image, or the pattern given larger than the board)"
+            ),
+            Miss::Partial { cols, rows, corners } => write!(
+                f,
+                "the largest grid found spans {cols}×{rows} inner corners with {} of them missing (part of the board hidden, glare, or its far side too steep or blurred)",
+                cols * rows - corners
+            ),
+        }
+    }
+}
+
+impl Miss {
+    /// The larger of two misses: the one that got further.
+    fn further(self, other: Miss) -> Miss {
+        let rank = |m: &Miss| match *m {
+            Miss::NoCorners => (0, 0),
+            Miss::NoGrid { junctions } => (1, junctions),
+            Miss::Partial { corners, .. } => (2, corners),
+            Miss::TooLarge { cols, rows } => (3, cols * rows),
+        };
+        if rank(&other) > rank(&self) {
+            other
+        } else {
+            self
+        }
+    }
+}
+
 /// Finds the `cols × rows` inner corners of a chessboard in an 8-bit grey image (`w·h` bytes,
 /// row-major) with sub-pixel accuracy.
 ///
@@ -553,7 +617,7 @@ fn extent(grid: &Grid) -> Option<(i32, i32, i32, i32)> {
 /// top-left.
 ///
 /// Fails with [`CalibError::BoardNotFound`] unless exactly that pattern is found (a larger or
-/// partly hidden board is not accepted).
+/// partly hidden board is not accepted), saying how far it got ([`Miss`]).
 pub fn find_chessboard(
     gray: &[u8],
     w: usize,
@@ -573,6 +637,7 @@ pub fn find_chessboard(
     let raw = Img { w, h, px: gray.iter().map(|&v| v as f64).collect() };
     let smooth = raw.blur(1.0);
     let grad = Gradient::of(&raw);
+    let mut miss = Miss::NoCorners;
     // Candidates at a fine scale first (small squares), then a coarse one (blurred or large ones).
     for sigma in [1.5, 3.0] {
         let cand = saddle_candidates(&raw.blur(sigma), 1500);
@@ -589,6 +654,7 @@ pub fn find_chessboard(
                 continue;
             }
             tried += 1;
+            miss = miss.further(Miss::NoGrid { junctions: tried });
             // A small window first (small squares); a blurred corner needs a larger one, or the
             // weak gradients at its centre let the estimate slide along an edge.
             let Some(start) = [3, 5, 8].into_iter().find_map(|win| refine_corner(&grad, sp, win, 3.0)) else {
@@ -624,6 +690,16 @@ pub fn find_chessboard(
                     return Ok(final_refinement(&smooth, &grad, &corners, cols, rows));
                 }
                 if grid.len() >= 4 {
+                    if let Some((i0, i1, j0, j1)) = extent(&grid) {
+                        let (a, b) = ((i1 - i0 + 1) as usize, (j1 - j0 + 1) as usize);
+                        // Named the pattern's way round.
+                        let (gc, gr) = if (a >= b) == (cols >= rows) { (a, b) } else { (b, a) };
+                        miss = miss.further(if gc > cols || gr > rows {
+                            Miss::TooLarge { cols: gc.max(cols), rows: gr.max(rows) }
+                        } else {
+                            Miss::Partial { cols: gc, rows: gr, corners: grid.len() }
+                        });
+                    }
                     // A real grid that is not the pattern: its corners need not seed again.
                     for n in grid.values() {
                         for (i, _) in scene.buckets.within(&scene.pts, n.p, 3.0) {
@@ -635,7 +711,7 @@ pub fn find_chessboard(
             }
         }
     }
-    Err(CalibError::BoardNotFound)
+    Err(CalibError::BoardNotFound(miss))
 }
 
 /// Refines every corner once more with a window scaled to its distance from its nearest grid

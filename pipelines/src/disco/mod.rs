@@ -37,3 +37,4 @@ pub mod projector_pose;
 pub mod register;
 pub mod relight;
 pub mod resample;
+pub mod scan;
