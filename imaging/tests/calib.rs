@@ -371,6 +371,38 @@ fn calibrates_opencv_sample_chessboards() {
     assert!((ci.intrinsics.fx / 535.6929 - 1.0).abs() < 0.005, "inner fx {}", ci.intrinsics.fx);
 }
 
+/// The same stereo pair's other camera (`right01.jpg` … `right14.jpg`, no `right10`), where
+/// OpenCV 5.0's `findChessboardCorners` finds all 13. `right13` is the hard one: the board turned
+/// some 30° in the image plane and in perspective, in front of a shirt with bold dark stripes,
+/// a keyboard and a whiteboard's writing; its outer squares are cut short against the board's
+/// frame, where the end of a cut square passes as a 55th corner (a grid one column too wide:
+/// the detector takes the pattern's window of it, see `STRAY_CORNERS`). Every board is found,
+/// and its corners are the board's: each view reprojects within 0.3 px after calibration, as
+/// the others do.
+#[test]
+fn finds_every_board_of_opencvs_right_camera() {
+    let files: Vec<_> = [1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14]
+        .iter()
+        .map(|n| std::path::PathBuf::from(format!("{OPENCV_DATA}/right{n:02}.jpg")))
+        .collect();
+    let board = Board::chessboard(9, 6, 1.0);
+    let views: Vec<Vec<(f64, f64)>> = files
+        .iter()
+        .map(|f| {
+            let img = lightrig_imaging::io::read_gray8(f).unwrap_or_else(|e| {
+                panic!("{e}; install the Debian package opencv-doc (apt-get install -y opencv-doc)")
+            });
+            find_chessboard(&img.data, 640, 480, (9, 6)).unwrap_or_else(|e| panic!("{}: {e}", f.display()))
+        })
+        .collect();
+    let c = calibrate(&board, &views).unwrap();
+    for (f, (v, pose)) in files.iter().zip(views.iter().zip(&c.views)) {
+        let rms = reprojection_rms(&c.intrinsics, pose, &board, v);
+        assert!(rms < 0.3, "{}: reprojects at {rms} px", f.display());
+    }
+    assert!(c.rms < 0.25, "rms {}", c.rms);
+}
+
 /// Boards tilted 45° and 60° about either image axis, 14 and 22 squares away (squares of ~44
 /// and ~28 px, foreshortened to half at 60°), under even light, uneven light (the right side
 /// four times as bright as the left, or seven times at low contrast), a soft lens (blur σ 1.5

@@ -381,7 +381,8 @@ impl Scene<'_> {
     }
 
     /// Grows a grid from candidate `seed` with basis `(ei, ej)`. Stops (returning what it has)
-    /// when the grid can no longer fit a `cols × rows` pattern either way round.
+    /// when the grid spans two rows or columns more than a `cols × rows` pattern either way
+    /// round could.
     fn grow(&self, seed: [f64; 2], ei: [f64; 2], ej: [f64; 2], cols: usize, rows: usize) -> Grid {
         let mut grid: Grid = HashMap::new();
         let Some(pol0) = self.verify(seed, ei, ej, MIN_CONTRAST) else { return grid };
@@ -452,8 +453,10 @@ impl Scene<'_> {
                         used.insert(c);
                     }
                     (imin, imax, jmin, jmax) = (imin.min(t.0), imax.max(t.0), jmin.min(t.1), jmax.max(t.1));
+                    // One row or column beyond the pattern is grown, so that a stray corner
+                    // (see [`STRAY_CORNERS`]) can be told from a larger board.
                     let (ni, nj) = (imax - imin + 1, jmax - jmin + 1);
-                    if ni.max(nj) > large || ni.min(nj) > small {
+                    if ni.max(nj) > large + 1 || ni.min(nj) > small + 1 {
                         return grid;
                     }
                     queue.push_back(t);
@@ -532,6 +535,41 @@ impl Scene<'_> {
             grid.insert(t, Node { p, ei, ej });
         }
     }
+}
+
+/// Corners a grown grid may have outside the pattern and still be taken as the pattern: where
+/// a board's outer squares are cut short against its frame, the end of a cut square on the
+/// frame's edge can pass as one more corner (OpenCV's `right13.jpg`). A board larger than the
+/// pattern shows a whole row or column more.
+const STRAY_CORNERS: usize = 2;
+
+/// The `cols × rows` window (either way round) of `grid` holding most of its corners, and how
+/// many corners lie outside it; a grid no larger than the pattern is its own window.
+fn pattern_window(grid: &Grid, cols: usize, rows: usize) -> (Grid, usize) {
+    let Some((i0, i1, j0, j1)) = extent(grid) else { return (grid.clone(), 0) };
+    let (ni, nj) = (i1 - i0 + 1, j1 - j0 + 1);
+    let mut best: Option<(usize, (i32, i32, i32, i32))> = None;
+    for (a, b) in [(cols as i32, rows as i32), (rows as i32, cols as i32)] {
+        let (a, b) = (a.min(ni), b.min(nj));
+        for wi in i0..=i1 - a + 1 {
+            for wj in j0..=j1 - b + 1 {
+                let n = grid
+                    .keys()
+                    .filter(|k| (wi..wi + a).contains(&k.0) && (wj..wj + b).contains(&k.1))
+                    .count();
+                if best.is_none_or(|(m, _)| n > m) {
+                    best = Some((n, (wi, wi + a, wj, wj + b)));
+                }
+            }
+        }
+    }
+    let Some((n, (a0, a1, b0, b1))) = best else { return (grid.clone(), 0) };
+    let window: Grid = grid
+        .iter()
+        .filter(|(k, _)| (a0..a1).contains(&k.0) && (b0..b1).contains(&k.1))
+        .map(|(k, v)| (*k, *v))
+        .collect();
+    (window, grid.len() - n)
 }
 
 /// The grid's index ranges `(imin, imax, jmin, jmax)`.
@@ -684,10 +722,16 @@ pub fn find_chessboard(
             }
             pairs.sort_by(|a, b| a.0.total_cmp(&b.0));
             for (_, d1, d2) in pairs {
-                let mut grid = scene.grow(start, d1, d2, cols, rows);
-                scene.fill_holes(&mut grid, cols, rows);
-                if let Some(corners) = order_grid(&grid, &smooth, cols, rows) {
-                    return Ok(final_refinement(&smooth, &grad, &corners, cols, rows));
+                let grown = scene.grow(start, d1, d2, cols, rows);
+                let (mut grid, outside) = pattern_window(&grown, cols, rows);
+                if outside <= STRAY_CORNERS.min(cols.min(rows) / 3) {
+                    scene.fill_holes(&mut grid, cols, rows);
+                    if let Some(corners) = order_grid(&grid, &smooth, cols, rows) {
+                        return Ok(final_refinement(&smooth, &grad, &corners, cols, rows));
+                    }
+                } else {
+                    // A board larger than the pattern: named by all it showed.
+                    grid = grown;
                 }
                 if grid.len() >= 4 {
                     if let Some((i0, i1, j0, j1)) = extent(&grid) {
