@@ -9,7 +9,7 @@
 //! exactly through the projected corners and each X-junction is point-symmetric to first order,
 //! so a corner detector's error is its own, not the renderer's.
 
-use crate::calib::{pixel_ray, Intrinsics, Pose};
+use crate::calib::{pixel_ray, rodrigues, rodrigues_inv, Intrinsics, Pose};
 
 /// What to render: a chessboard of `cols × rows` inner corners with [`crate::calib::Board::chessboard`]'s
 /// geometry (corner `(c, r)` at `(c·square, r·square, 0)`), its squares spanning
@@ -72,6 +72,22 @@ impl ChessboardScene {
         };
         Pose { rvec, tvec: [-rc[0], -rc[1], dist - rc[2]] }
     }
+
+    /// [`Self::tilted_pose`], then turned `turn_deg` about the optical axis (the board turned in
+    /// the image plane) and moved `shift` world units across it.
+    pub fn turned_pose(&self, tilt_deg: f64, axis: usize, dist: f64, turn_deg: f64, shift: [f64; 2]) -> Pose {
+        let tilted = self.tilted_pose(tilt_deg, axis, dist);
+        let rz = rodrigues([0.0, 0.0, turn_deg.to_radians()]);
+        let r = rodrigues(tilted.rvec);
+        let mut m = [[0.0; 3]; 3];
+        for i in 0..3 {
+            for j in 0..3 {
+                m[i][j] = (0..3).map(|k| rz[i][k] * r[k][j]).sum();
+            }
+        }
+        let t = [0, 1, 2].map(|i| (0..3).map(|j| rz[i][j] * tilted.tvec[j]).sum::<f64>());
+        Pose { rvec: rodrigues_inv(&m), tvec: [t[0] + shift[0], t[1] + shift[1], t[2]] }
+    }
 }
 
 /// Renders `scene` as seen by a camera with intrinsics `k` at board → camera pose `pose`, as an
@@ -83,6 +99,35 @@ pub fn render_chessboard(
     pose: &Pose,
     w: usize,
     h: usize,
+) -> Vec<u8> {
+    render(scene, k, pose, w, h, &|_| scene.background)
+}
+
+/// [`render_chessboard`] in front of `background` (`w·h` grey levels, row-major; see
+/// [`office_clutter`]) instead of the scene's constant one: the card hides it, its outline is
+/// blurred into it as the board's own edges are, and the uneven light falls on both.
+///
+/// # Panics
+/// If `background` is not `w·h` long.
+pub fn render_chessboard_over(
+    scene: &ChessboardScene,
+    k: &Intrinsics,
+    pose: &Pose,
+    w: usize,
+    h: usize,
+    background: &[f64],
+) -> Vec<u8> {
+    assert_eq!(background.len(), w * h, "background is not {w}×{h}");
+    render(scene, k, pose, w, h, &|i| background[i])
+}
+
+fn render(
+    scene: &ChessboardScene,
+    k: &Intrinsics,
+    pose: &Pose,
+    w: usize,
+    h: usize,
+    background: &dyn Fn(usize) -> f64,
 ) -> Vec<u8> {
     // Board coordinates (in squares) of every pixel centre, with a one-pixel border for the
     // finite-difference gradients.
@@ -110,8 +155,10 @@ pub fn render_chessboard(
         for x in 0..w {
             let at = |dx: usize, dy: usize| board[(y + dy) * gw + (x + dx)];
             let (c, l, r, t, b) = (at(1, 1), at(0, 1), at(2, 1), at(1, 0), at(1, 2));
+            let bg = background(y * w + x);
+            let lit = 1.0 + scene.shading * (2.0 * x as f64 / (w.max(2) - 1) as f64 - 1.0);
             let value = if [c, l, r, t, b].iter().flatten().any(|v| v.is_nan()) {
-                scene.background
+                bg * lit
             } else {
                 // |∇b| per axis: board squares per pixel, to turn board distances into pixels.
                 let g = [0, 1].map(|i| ((r[i] - l[i]) / 2.0).hypot((b[i] - t[i]) / 2.0));
@@ -132,14 +179,131 @@ pub fn render_chessboard(
                     * step(1, y0 - 1.0)
                     * (1.0 - step(1, y1 + 1.0));
                 let card = inside * squares + (1.0 - inside) * scene.light;
-                let lit = 1.0 + scene.shading * (2.0 * x as f64 / (w.max(2) - 1) as f64 - 1.0);
-                (on_card * card + (1.0 - on_card) * scene.background) * lit
+                (on_card * card + (1.0 - on_card) * bg) * lit
             };
             let noisy = if scene.noise > 0.0 { value + scene.noise * rng.gauss() } else { value };
             out.push(noisy.round().clamp(0.0, 255.0) as u8);
         }
     }
     out
+}
+
+/// A cluttered office behind the board, as in the photographs labs calibrate from (OpenCV's
+/// samples among them): a shirt with bold dark stripes (14 px in 28, at 20–40°) over most of
+/// the frame, a keyboard's keys (26 px, 6 px dark gaps) across the bottom left, lines of
+/// "writing" (glyph-sized bars) at the top right, and a small 3 × 3 checker patch (2 × 2 inner
+/// corners, a printed logo) at the bottom right. Edges are anti-aliased over a pixel. `seed`
+/// moves the stripes' angle and phase and the patch. Grey levels 0–255, `w·h`, row-major.
+pub fn office_clutter(w: usize, h: usize, seed: u64) -> Vec<f64> {
+    let mut rng = Rng(seed);
+    let angle = (20.0 + 20.0 * rng.uniform()).to_radians();
+    let phase = 28.0 * rng.uniform();
+    let patch = [w as f64 * (0.6 + 0.2 * rng.uniform()), h as f64 * (0.62 + 0.15 * rng.uniform())];
+    let (ca, sa) = (angle.cos(), angle.sin());
+    // 1 inside a band of `width` starting at 0 of a pattern repeating every `period`,
+    // anti-aliased over a pixel.
+    let band = |u: f64, period: f64, width: f64| {
+        let v = u.rem_euclid(period);
+        let cover = |v: f64| (v + 0.5).min(width + 0.5 - v).clamp(0.0, 1.0);
+        cover(v).max(cover(v - period))
+    };
+    let (wf, hf) = (w as f64, h as f64);
+    let mut out = Vec::with_capacity(w * h);
+    for y in 0..h {
+        for x in 0..w {
+            let (xf, yf) = (x as f64 + 0.5, y as f64 + 0.5);
+            let v = if xf < 0.45 * wf && yf > 0.7 * hf {
+                // Keys: light squares, dark gaps.
+                let key = band(xf, 32.0, 26.0) * band(yf, 32.0, 26.0);
+                25.0 + 165.0 * key
+            } else if xf > 0.6 * wf && yf < 0.35 * hf {
+                // Writing on a whiteboard: bars 4 px wide in 7, lines 9 px tall in 20, some
+                // glyphs left out.
+                let glyph =
+                    ((xf / 7.0).floor() as i64 * 31 + (yf / 20.0).floor() as i64 * 17).rem_euclid(5) < 3;
+                let ink = if glyph { band(xf, 7.0, 4.0) * band(yf, 20.0, 9.0) } else { 0.0 };
+                230.0 - 200.0 * ink
+            } else if (0.0..60.0).contains(&(xf - patch[0])) && (0.0..60.0).contains(&(yf - patch[1])) {
+                let (u, v) = (xf - patch[0], yf - patch[1]);
+                let dark = ((u / 20.0).floor() as i64 + (v / 20.0).floor() as i64) % 2 == 0;
+                if dark {
+                    30.0
+                } else {
+                    220.0
+                }
+            } else {
+                // The shirt: dark stripes on light cloth.
+                let stripe = band(xf * ca + yf * sa + phase, 28.0, 14.0);
+                200.0 - 165.0 * stripe
+            };
+            out.push(v);
+        }
+    }
+    out
+}
+
+/// One board of [`photograph_like_boards`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct PhotoBoard {
+    /// `t{tilt}_a{axis}_r{turn}_d{dist}`.
+    pub name: String,
+    pub tilt_deg: f64,
+    /// 8-bit grey, `w × h`.
+    pub image: Vec<u8>,
+    /// The 9 × 6 inner corners, row-major, in pixels.
+    pub truth: Vec<(f64, f64)>,
+}
+
+/// Forty 9 × 6 boards as a lab photographs them: in front of [`office_clutter`], which touches
+/// the board on every side; turned 0, 15, 30 and 45° in the image plane on top of a tilt of 0,
+/// 35 or 50° about either board axis; 11 or 16 squares away and off the optical axis, through
+/// a wide lens (fx 430 px on 640 × 480, k1 −0.32, k2 0.12); under light three times brighter on
+/// one side, blurred (σ 1 px), noisy (σ 2 grey levels) and saved as JPEG at quality 75; the
+/// nearer boards with their outer squares cut to 0.4 of a square, as OpenCV's sample board's
+/// are. For the calibration tests and the comparison with OpenCV
+/// (`imaging/examples/chessboard_grid.rs`).
+pub fn photograph_like_boards() -> Vec<PhotoBoard> {
+    let (w, h) = (640, 480);
+    let k = Intrinsics { k1: -0.32, k2: 0.12, ..Intrinsics::pinhole(430.0, 430.0, 322.0, 236.0) };
+    let base = ChessboardScene { noise: 2.0, blur: 1.0, shading: 0.5, ..ChessboardScene::new(9, 6, 1.0) };
+    let board = crate::calib::Board::chessboard(9, 6, 1.0);
+    let mut out = Vec::new();
+    for (t, (tilt, axis)) in [(0.0, 0), (35.0, 0), (35.0, 1), (50.0, 0), (50.0, 1)].into_iter().enumerate() {
+        for (r, turn) in [0.0f64, 15.0, 30.0, 45.0].into_iter().enumerate() {
+            for (d, dist) in [11.0, 16.0].into_iter().enumerate() {
+                let pose = base.turned_pose(tilt, axis, dist, turn, [[1.2, -0.8], [-1.0, 0.9]][d]);
+                let truth = board
+                    .points
+                    .iter()
+                    .filter_map(|b| crate::calib::project(&k, &pose, [b[0], b[1], 0.0]))
+                    .collect();
+                let seed = (t * 8 + r * 2 + d) as u64 + 1;
+                let scene = ChessboardScene { seed, border: [0.4, 1.0][d], ..base.clone() };
+                let clutter = office_clutter(w, h, seed);
+                let image =
+                    jpeg_round_trip(&render_chessboard_over(&scene, &k, &pose, w, h, &clutter), w, h, 75);
+                let name = format!("t{tilt}_a{axis}_r{turn}_d{dist}");
+                out.push(PhotoBoard { name, tilt_deg: tilt, image, truth });
+            }
+        }
+    }
+    out
+}
+
+/// `gray` (`w × h`, 8-bit) through a baseline JPEG of `quality` (1–100) and back: the 8 × 8
+/// block artefacts and ringing a camera's or a phone's JPEG puts around every edge.
+///
+/// # Panics
+/// If `gray` is not `w·h` long.
+pub fn jpeg_round_trip(gray: &[u8], w: usize, h: usize, quality: u8) -> Vec<u8> {
+    let mut buf = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut buf, quality)
+        .encode(gray, w as u32, h as u32, image::ExtendedColorType::L8)
+        .expect("an in-memory JPEG of a w × h grey image");
+    image::load_from_memory_with_format(&buf, image::ImageFormat::Jpeg)
+        .expect("the JPEG just written")
+        .to_luma8()
+        .into_raw()
 }
 
 /// The error function, Abramowitz & Stegun 7.1.26 (absolute error below 1.5·10⁻⁷).
