@@ -68,6 +68,26 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
         r.relit_global_error,
         r.relit_plain_error
     );
+    // The relit truth, fit and error side by side at twice the camera's 288 × 186, with the
+    // error's colour bar beneath; the corner pixel is off the object: grey in the error panel.
+    let fig = lightrig_imaging::io::read(out.join("fit/relit-figure.png")).unwrap();
+    assert_eq!((fig.width, fig.height), (3 * 2 * 288 + 2 * 2, 2 * 186 + 3 * 2));
+    let px = |x: u32, y: u32| {
+        let i = ((y * fig.width + x) * u32::from(fig.channels)) as usize;
+        [fig.data[i], fig.data[i + 1], fig.data[i + 2]]
+    };
+    let grey = lightrig_imaging::figure::MASKED;
+    assert!(
+        px(2 * (2 * 288 + 2) + 1, 1).iter().zip(grey).all(|(a, b)| (a - b).abs() < 0.01),
+        "{:?}",
+        px(1158, 1)
+    );
+    // The middle of the error panel's bar is viridis at one half.
+    let bar = px(2 * (2 * 288 + 2) + 288, 2 * 186 + 4);
+    let half = lightrig_imaging::figure::viridis(0.5);
+    assert!(bar.iter().zip(half).all(|(a, b)| (a - b).abs() < 0.01), "{bar:?} {half:?}");
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(report.contains("![relit truth, fit, relative error](fit/relit-figure.png)"));
     // The detail texture (section 6.3) against the skin: T(x)/Π T(v_i)^b_i, everywhere observed
     // within one medium and on the lines; most of the lines' depth recovered (the camera's
     // 0.44 mm pixels blur the 0.8 mm lines).
@@ -159,9 +179,7 @@ fn the_quick_disco_demo_measures_f_against_the_truth() {
     let e = fit_session(&out, None, &none).unwrap_err().0;
     assert!(e.contains("manifest") || e.contains("session"), "not a session: {e}");
     // Another object's mesh (the pebble a third larger): no pose matches its silhouettes.
-    let scan =
-        lightrig_pipelines::firs::mesh::read_ply(&mut std::fs::File::open(out.join("object.ply")).unwrap())
-            .unwrap();
+    let scan = lightrig_host::mesh_file::read_mesh(&out.join("object.ply")).unwrap().mesh;
     let big = lightrig_pipelines::firs::mesh::Mesh {
         vertices: scan.vertices.iter().map(|v| v.map(|x| 1.3 * x)).collect(),
         triangles: scan.triangles.clone(),

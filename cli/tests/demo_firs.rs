@@ -5,7 +5,7 @@
 mod kept_demo;
 
 use lightrig_cli::demo::firs::{firs_accuracy, run_firs, FirsAccuracy, FirsDemoObject, FirsDemoOptions};
-use lightrig_pipelines::firs::mesh::read_ply;
+use lightrig_host::mesh_file::read_mesh;
 use lightrig_sim::camera::{RigState, VirtualCamera};
 use lightrig_sim::scenes::firs::{FirsObject, FirsScene, FirsSceneSpec};
 use lightrig_sim::sensor::Sensor;
@@ -44,10 +44,31 @@ fn quick_demo(object: FirsDemoObject, seed: u64) -> (FirsAccuracy, std::path::Pa
     for f in ["rig.toml", "truth/scene.json", "session/journal.jsonl", "fit/summary.json"] {
         assert!(dir.join(f).exists(), "{f} missing");
     }
+    // The depth figure: true depth, fitted depth and error at the camera's 208 × 160 (zoom 1),
+    // each with its colour bar; the image's corner misses the object (grey in the truth panel),
+    // the centre of the error panel holds a point within the figure's range (not grey, not the
+    // top of the scale).
+    let fig = lightrig_imaging::io::read(dir.join("fit/depth-figure.png")).unwrap();
+    assert_eq!((fig.width, fig.height), (3 * 208 + 2, 160 + 3));
+    let px = |x: u32, y: u32| {
+        let i = ((y * fig.width + x) * u32::from(fig.channels)) as usize;
+        [fig.data[i], fig.data[i + 1], fig.data[i + 2]]
+    };
+    let near = |a: [f32; 3], b: [f32; 3]| a.iter().zip(b).all(|(a, b)| (a - b).abs() < 0.01);
+    assert!(near(px(0, 0), lightrig_imaging::figure::MASKED), "{:?}", px(0, 0));
+    let centre = px(2 * 209 + 104, 80);
+    assert!(
+        !near(centre, lightrig_imaging::figure::MASKED)
+            && !near(centre, lightrig_imaging::figure::viridis(1.0)),
+        "{centre:?}"
+    );
+    assert!(
+        text.contains(&format!("![true depth, fitted depth, error]({}/fit/depth-figure.png)", object.name()))
+    );
     // The PLY files hold the points: the merged set has every recovered point.
-    let merged = read_ply(&mut std::fs::File::open(dir.join("fit/merged.ply")).unwrap()).unwrap();
+    let merged = read_mesh(&dir.join("fit/merged.ply")).unwrap().mesh;
     assert_eq!(merged.vertices.len(), acc.merged.0);
-    let mesh = read_ply(&mut std::fs::File::open(dir.join("fit/orientation_00.ply")).unwrap()).unwrap();
+    let mesh = read_mesh(&dir.join("fit/orientation_00.ply")).unwrap().mesh;
     assert!(mesh.triangles.len() > merged.vertices.len(), "{} triangles", mesh.triangles.len());
     (acc, out)
 }
@@ -128,7 +149,7 @@ fn firs_volume_mode_within_a_voxel_and_a_percent() {
     let dims: Vec<u64> = json["dims"].as_array().unwrap().iter().map(|d| d.as_u64().unwrap()).collect();
     let raw = std::fs::metadata(fit.join("volume.raw")).unwrap().len();
     assert_eq!(raw, dims.iter().product::<u64>() * 4);
-    let mesh = read_ply(&mut std::fs::File::open(fit.join("volume.ply")).unwrap()).unwrap();
+    let mesh = read_mesh(&fit.join("volume.ply")).unwrap().mesh;
     assert!(lightrig_pipelines::firs::mesh::edge_defects(&mesh).is_closed());
     // Streamed in a few slices: the fill, small-region and resampling stages each held a
     // handful of the 147 slices (bounds independent of the sweep's length; the pipelines'

@@ -248,6 +248,47 @@ fn local_distances(texel: f64, radius: f64) -> Vec<f64> {
     kernel::grid_distances(n, texel, [0.3, -0.2]).into_iter().filter(|&d| d <= radius).collect()
 }
 
+/// The relative error map's range: 0 (dark) to 20 % (yellow).
+pub const RELIT_ERROR_RANGE: f32 = 0.2;
+
+/// Writes the relit truth, the fit and their relative error side by side (`fit/relit-figure.png`):
+/// the two pictures at the fit's exposure, the error `|fit − truth| / truth` of each pixel's
+/// luminance from 0 to [`RELIT_ERROR_RANGE`] with its colour bar, grey off the object (and where
+/// the truth is too dark to compare, below 1 % of the exposure's white).
+pub fn write_relit_figure(
+    truth: &[f32],
+    model: &[f32],
+    cam: &lightrig_pipelines::disco::optics::Pinhole,
+    path: &std::path::Path,
+) -> Result<PathBuf, CliError> {
+    use lightrig_imaging::figure::{row, Panel};
+    let (w, h) = (cam.width, cam.height);
+    let gain = fit::exposure_of(model);
+    let luminance = |p: &[f32]| 0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2];
+    let on = |p: &[f32]| luminance(p) * gain > 0.01;
+    let pictures = |img: &[f32]| -> Vec<Option<[f32; 3]>> {
+        img.chunks_exact(3)
+            .zip(truth.chunks_exact(3))
+            .map(|(p, t)| on(t).then(|| [p[0], p[1], p[2]]))
+            .collect()
+    };
+    let error: Vec<Option<f32>> = model
+        .chunks_exact(3)
+        .zip(truth.chunks_exact(3))
+        .map(|(p, t)| on(t).then(|| (luminance(p) - luminance(t)).abs() / luminance(t)))
+        .collect();
+    let figure = row(
+        &[
+            Panel::colour(w, h, &pictures(truth), gain),
+            Panel::colour(w, h, &pictures(model), gain),
+            Panel::scalar(w, h, &error, (0.0, RELIT_ERROR_RANGE)),
+        ],
+        2,
+    );
+    lightrig_imaging::io::write_png(path, &figure, lightrig_imaging::io::BitDepth::Eight).map_err(failure)?;
+    Ok(path.to_path_buf())
+}
+
 /// What the demo measured.
 #[derive(Debug)]
 pub struct DiscoDemoResult {
@@ -538,6 +579,7 @@ pub fn run_disco(opts: &DiscoDemoOptions) -> Result<DiscoDemoResult, CliError> {
         fit::write_relit(&truth, &fitted.camera, fit::exposure_of(&mine), &out.join("fit"), "relit-truth")
             .map_err(failure)?,
     );
+    files.push(write_relit_figure(&truth, &mine, &fitted.camera, &out.join("fit/relit-figure.png"))?);
     let (se, st) = mine
         .iter()
         .zip(&truth)
@@ -730,6 +772,13 @@ fn write_report(
         100.0 * r.relit_error,
         100.0 * r.relit_plain_error,
         100.0 * r.relit_global_error
+    ));
+    rep.line("");
+    rep.line(format!(
+        "![relit truth, fit, relative error](fit/relit-figure.png)\n\nLeft to right: the truth, the fit \
+         (with the local kernels and the detail texture) at the same exposure, and |fit − truth| / truth of each \
+         pixel's luminance from 0 (dark) to {:.0} % (yellow); grey off the object.",
+        100.0 * RELIT_ERROR_RANGE
     ));
     let d = &r.detail;
     rep.line("");

@@ -505,6 +505,62 @@ fn run_volume(opts: &FirsDemoOptions, r: &mut Report) -> Result<FirsVolumeAccura
     Ok(acc)
 }
 
+/// The depth figure's error range: 0 (dark) to 20 µm (yellow).
+pub const DEPTH_ERROR_RANGE_MM: f64 = 0.02;
+
+/// Depth along pixel `(x, y)`'s ray in the liquid, from where it enters, of `p`.
+fn ray_depth(spec: &FirsSceneSpec, x: f64, y: f64, p: [f64; 3]) -> Option<f64> {
+    let (o, d) = spec.liquid_ray(x, y)?;
+    Some(dot(sub(p, o), d))
+}
+
+/// The true surface's depth range at 0° over the pixels, mm (the figure's depth scale).
+fn figure_depth_range(spec: &FirsSceneSpec, fit: &FirsSurface) -> (f64, f64) {
+    let (w, h) = (fit.width, fit.height);
+    (0..w * h)
+        .filter_map(|i| {
+            let (x, y) = ((i % w) as f64, (i / w) as f64);
+            ray_depth(spec, x, y, spec.object_hit(x, y, 0.0)?)
+        })
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), d| (lo.min(d), hi.max(d)))
+}
+
+/// Writes the first orientation's true depth, fitted depth and error side by side, each
+/// through the colour map with its bar (the two depths on one scale), masked where there is
+/// nothing to show.
+pub fn write_depth_figure(spec: &FirsSceneSpec, fit: &FirsSurface, path: &Path) -> Result<(), CliError> {
+    use lightrig_imaging::figure::{row, Panel};
+    let Some(o) = fit.scans.first() else { return Ok(()) };
+    let (w, h) = (fit.width, fit.height);
+    let at = |i: usize| ((i % w) as f64, (i / w) as f64);
+    let truth: Vec<Option<f32>> = (0..w * h)
+        .map(|i| {
+            let (x, y) = at(i);
+            ray_depth(spec, x, y, spec.object_hit(x, y, o.angle_deg)?).map(|d| d as f32)
+        })
+        .collect();
+    let fitted: Vec<Option<f32>> = (0..w * h)
+        .map(|i| {
+            let (x, y) = at(i);
+            ray_depth(spec, x, y, o.points[i]?).map(|d| d as f32)
+        })
+        .collect();
+    let error: Vec<Option<f32>> =
+        o.points.iter().map(|p| p.map(|p| spec.distance(p, o.angle_deg) as f32)).collect();
+    let (lo, hi) = figure_depth_range(spec, fit);
+    let range = (lo as f32, hi.max(lo + 1e-3) as f32);
+    let zoom = (240 / w as u32).max(1);
+    let figure = row(
+        &[
+            Panel::scalar(w as u32, h as u32, &truth, range),
+            Panel::scalar(w as u32, h as u32, &fitted, range),
+            Panel::scalar(w as u32, h as u32, &error, (0.0, DEPTH_ERROR_RANGE_MM as f32)),
+        ],
+        zoom,
+    );
+    lightrig_imaging::io::write_png(path, &figure, lightrig_imaging::io::BitDepth::Eight).map_err(failure)
+}
+
 /// Writes the rig file and the truth, and acquires on the virtual rig, exactly as `lightrig
 /// acquire` does; returns the session directory and the frame count.
 fn acquire(
@@ -587,7 +643,22 @@ fn run_one(opts: &FirsDemoOptions, object: FirsDemoObject, r: &mut Report) -> Re
         acc.merged.1 * 1e3,
         acc.merged.2 * 1e3
     ));
+    let figure = fit_dir.join("depth-figure.png");
+    write_depth_figure(&spec, &fit, &figure)?;
+    let (lo, hi) = figure_depth_range(&spec, &fit);
+    r.line(format_args!(
+        "![true depth, fitted depth, error]({}/fit/depth-figure.png)\n\nAt 0°, left to right: the depth along each \
+         pixel's ray to the true surface and to the fitted point ({:.1}–{:.1} mm, the same scale), and the fitted \
+         point's distance from the true surface from 0 (dark) to {:.0} µm (yellow); grey where the fit has no point \
+         (or, in the first, where the ray misses the object).\n",
+        object.name(),
+        lo,
+        hi,
+        DEPTH_ERROR_RANGE_MM * 1e3
+    ));
     r.targets(["target", "value", "limit"], "", &acc.targets());
+    let mut files = files;
+    files.push(figure);
     r.outputs(&files);
     r.line("");
     Ok(acc)

@@ -1,9 +1,10 @@
-//! Triangle meshes: PLY out and in, marching cubes on a scalar grid, the volume a closed mesh
+//! Triangle meshes: PLY out (read back, with any other tool's PLY or OBJ, by
+//! `lightrig_host::mesh_file`), marching cubes on a scalar grid, the volume a closed mesh
 //! encloses, and the symmetric distance between two surfaces.
 
 use std::collections::HashMap;
 use std::fmt;
-use std::io::{self, Read, Write};
+use std::io::{self, Write};
 use std::sync::OnceLock;
 
 use rayon::prelude::*;
@@ -43,71 +44,6 @@ pub fn write_ply(mesh: &Mesh, out: &mut impl Write) -> io::Result<()> {
         }
     }
     out.write_all(&buf)
-}
-
-/// Reads the PLY that [`write_ply`] writes (binary little-endian, `float` x y z vertices,
-/// triangles as a `uchar`-counted `int` list; comments allowed). Anything else is
-/// `InvalidData`: this is a reader for our own files, not a general PLY parser.
-pub fn read_ply(input: &mut impl Read) -> io::Result<Mesh> {
-    let bad = |what: &str| io::Error::new(io::ErrorKind::InvalidData, format!("PLY: {what}"));
-    let mut all = Vec::new();
-    input.read_to_end(&mut all)?;
-    let end = all.windows(11).position(|w| w == b"end_header\n").ok_or_else(|| bad("no end_header"))? + 11;
-    let header = std::str::from_utf8(&all[..end]).map_err(|_| bad("header is not UTF-8"))?;
-    let lines: Vec<&str> =
-        header.lines().map(str::trim).filter(|l| !l.is_empty() && !l.starts_with("comment")).collect();
-    let count = |line: &str, name: &str| -> io::Result<usize> {
-        let rest = line.strip_prefix(name).ok_or_else(|| bad(&format!("expected `{name}`, got `{line}`")))?;
-        rest.trim().parse().map_err(|_| bad(&format!("bad count in `{line}`")))
-    };
-    let expect = [
-        "ply",
-        "format binary_little_endian 1.0",
-        "",
-        "property float x",
-        "property float y",
-        "property float z",
-        "",
-        "property list uchar int vertex_indices",
-        "end_header",
-    ];
-    if lines.len() != expect.len() {
-        return Err(bad("unexpected header layout"));
-    }
-    for (l, e) in lines.iter().zip(expect) {
-        if !e.is_empty() && *l != e {
-            return Err(bad(&format!("expected `{e}`, got `{l}`")));
-        }
-    }
-    let nv = count(lines[2], "element vertex")?;
-    let nf = count(lines[6], "element face")?;
-    let body = &all[end..];
-    let need = nv.checked_mul(12).and_then(|v| nf.checked_mul(13).and_then(|f| v.checked_add(f)));
-    if need != Some(body.len()) {
-        return Err(bad("body size does not match the counts"));
-    }
-    let f32_at = |o: usize| f32::from_le_bytes([body[o], body[o + 1], body[o + 2], body[o + 3]]);
-    let vertices = (0..nv)
-        .map(|k| [f32_at(12 * k) as f64, f32_at(12 * k + 4) as f64, f32_at(12 * k + 8) as f64])
-        .collect();
-    let mut triangles = Vec::with_capacity(nf);
-    for k in 0..nf {
-        let o = 12 * nv + 13 * k;
-        if body[o] != 3 {
-            return Err(bad("face is not a triangle"));
-        }
-        let mut t = [0u32; 3];
-        for (c, tc) in t.iter_mut().enumerate() {
-            let p = o + 1 + 4 * c;
-            let i = i32::from_le_bytes([body[p], body[p + 1], body[p + 2], body[p + 3]]);
-            *tc = u32::try_from(i)
-                .ok()
-                .filter(|&i| (i as usize) < nv)
-                .ok_or_else(|| bad("index out of range"))?;
-        }
-        triangles.push(t);
-    }
-    Ok(Mesh { vertices, triangles })
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1246,21 +1182,6 @@ mod tests {
         w[n * 16 + 33 * 16 + 6] = f32::NEG_INFINITY;
         let m = marching_cubes(&w, &g, 0.0, Solid::Below).unwrap();
         assert!(m.vertices.iter().flatten().all(|c| c.is_finite()));
-    }
-
-    #[test]
-    fn ply_round_trip() {
-        let (v, g) = sample(16, [-8.0; 3], sphere_sdf(5.0));
-        let m = marching_cubes(&v, &g, 0.0, Solid::Below).unwrap();
-        let mut buf = Vec::new();
-        write_ply(&m, &mut buf).unwrap();
-        let back = read_ply(&mut buf.as_slice()).unwrap();
-        assert_eq!(back.triangles, m.triangles);
-        let err = back.vertices.iter().zip(&m.vertices).map(|(a, b)| norm(sub(*a, *b))).fold(0.0, f64::max);
-        assert!(err < 1e-5, "{err}");
-        buf.truncate(buf.len() - 1);
-        assert!(read_ply(&mut buf.as_slice()).is_err());
-        assert!(read_ply(&mut &b"ply\nformat ascii 1.0\nend_header\n"[..]).is_err());
     }
 
     #[test]
