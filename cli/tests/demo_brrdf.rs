@@ -107,6 +107,25 @@ fn the_quick_brrdf_demo_scales_bins_and_reconstructs_against_the_truth() {
     }
     let report = std::fs::read_to_string(&r.report).unwrap();
     assert!(report.contains("## Per sphere") && report.contains("excitation 380 nm left out"));
+    // Each sphere's truth, fit and error at the camera's 160 × 100 (zoom 3) with their colour
+    // bars, masked alike off the sphere's samples.
+    for name in ["top", "bottom"] {
+        assert!(report.contains(&format!("![truth, fit, relative error](fit/compare-{name}.png)")), "{name}");
+        let fig = lightrig_imaging::io::read(out.join(format!("fit/compare-{name}.png"))).unwrap();
+        assert_eq!((fig.width, fig.height), (3 * 3 * 160 + 2 * 3, 3 * 100 + 3 * 3), "{name}");
+        let masked = |x: u32, y: u32| {
+            let i = ((y * fig.width + x) * u32::from(fig.channels)) as usize;
+            (0..3).all(|c| (fig.data[i + c] - lightrig_imaging::figure::MASKED[c]).abs() < 0.01)
+        };
+        let shown = |panel: u32| {
+            (0..100)
+                .flat_map(|y| (0..160).map(move |x| (x, y)))
+                .filter(|&(x, y)| !masked(3 * (panel * 161 + x), 3 * y))
+                .count()
+        };
+        let (t, e) = (shown(0), shown(2));
+        assert!(t > 500 && t == e, "{name}: {t} truth pixels, {e} error pixels");
+    }
     for f in ["brrdf-top.json", "brrdf-top.f32", "brrdf-bottom.json", "pca-bottom.json", "scaling.json"] {
         assert!(out.join("fit").join(f).exists(), "{f}");
     }

@@ -429,6 +429,7 @@ pub fn fit_disco<'py>(
         d.set_item("detail_observed", mask(&f.detail.observed)?)?;
         d.set_item("atlas", object(py, &disco::atlas_json(&f))?)?;
         d.set_item("spots", object(py, &disco::spots_json(&f))?)?;
+        d.set_item("scan", object(py, &disco::scan_json(&f.scan))?)?;
         d.set_item("local_hidden", f.local_hidden)?;
         d.set_item("local_failed", f.local_failed)?;
         d.set_item("files", paths(&files))

@@ -30,7 +30,7 @@ def test_disco_f_is_the_demo_s(demos, tmp_path):
     np.testing.assert_allclose(F, F.transpose(1, 0, 2), rtol=0, atol=0)
     bits = np.unpackbits(np.fromfile(d / "fit" / "F-observed.bits", dtype=np.uint8), bitorder="little")[: len(k)]
     assert (m["observed"][k, r] == bits.astype(bool)).all()
-    assert sorted(pathlib.Path(f).name for f in m["files"]) == sorted(p.name for p in (d / "fit").iterdir() if not p.name.startswith("relit-truth"))
+    assert sorted(pathlib.Path(f).name for f in m["files"]) == sorted(p.name for p in (d / "fit").iterdir() if not p.name.startswith(("relit-truth", "relit-figure")))
     assert 0.5 < m["beam_sigma_mm"] < 1.5 and m["used"] + m["missed"] + m["held_out_frames"] == m["frames"]
     # The local term: each texture as its EXR (read by the OpenEXR package), the atlas and the
     # spots as atlas.json and fit.json say.
@@ -49,6 +49,11 @@ def test_disco_f_is_the_demo_s(demos, tmp_path):
     assert (m["kernel_observed"] == (rates[..., 2] == 1)).all() and not (m["kernel_observed"] & ~covered).any()
     fit_json = json.loads((d / "fit" / "fit.json").read_text())
     assert m["spots"] == fit_json["local"]["spots"]
+    # The scanned mesh as read and checked: the demo's own binary PLY, the pebble's icosphere.
+    assert {k: v for k, v in m["scan"].items() if k != "file"} == {k: v for k, v in fit_json["scan"].items() if k != "file"}
+    assert pathlib.Path(m["scan"]["file"]).resolve() == (d / "object.ply").resolve()
+    assert m["scan"]["format"] == "PLY (binary, little-endian)" and m["scan"]["vertices"] == n
+    assert m["scan"]["boundary_edges"] == 0 and m["scan"]["area_spread_p95_over_p5"] < m["scan"]["area_spread_limit"]
     assert sum(s["kept"] for s in m["spots"]) == m["local_spots"] == fit_json["local"]["spots_fitted"]
     assert int(m["kernel_observed"].sum()) == fit_json["local"]["observed_texels"]
     assert int(m["detail_observed"].sum()) == fit_json["detail"]["observed_texels"]

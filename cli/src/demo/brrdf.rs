@@ -266,6 +266,15 @@ pub fn run_brrdf(opts: &BrrdfDemoOptions) -> Result<BrrdfDemoResult, CliError> {
         let entries = [diag.len(), rerad.len()];
         truth.push(TruthError { diagonal: median(diag), reradiation: median(rerad), entries });
     }
+    let mut files = files;
+    let mut figures = Vec::new();
+    for (k, sphere) in fitted.spheres.iter().enumerate() {
+        let path = out.join(format!("fit/compare-{}.png", sphere.name));
+        if let Some(caption) = write_sphere_figure(&scene, &fitted, k, (w, h), &path)? {
+            figures.push((format!("fit/compare-{}.png", sphere.name), caption));
+            files.push(path);
+        }
+    }
     let result = BrrdfDemoResult {
         fit: fitted,
         truth,
@@ -274,11 +283,95 @@ pub fn run_brrdf(opts: &BrrdfDemoOptions) -> Result<BrrdfDemoResult, CliError> {
         exposure_s: (exposure_s, dense_s),
         report: out.join("report.md"),
     };
-    write_report(&result, &files, opts)?;
+    write_report(&result, &files, &figures, opts)?;
     Ok(result)
 }
 
-fn write_report(r: &BrrdfDemoResult, files: &[PathBuf], opts: &BrrdfDemoOptions) -> Result<(), CliError> {
+/// The truth, the fit and their relative error side by side for sphere `k` at the light angle
+/// that shows most of its body (the most samples outside the highlight), in the diagonal band
+/// nearest 550 nm (`path`); the caption, or `None` where the sphere has no sample there.
+fn write_sphere_figure(
+    scene: &BispectralScene,
+    fitted: &BrrdfFit,
+    k: usize,
+    (w, h): (u32, u32),
+    path: &std::path::Path,
+) -> Result<Option<String>, CliError> {
+    use lightrig_imaging::figure::{row, Panel};
+    let Some(j) = (0..fitted.pairs.len())
+        .filter(|&j| fitted.pairs[j].0 == fitted.pairs[j].1)
+        .min_by_key(|&j| (i64::from(fitted.pairs[j].0) - 550).abs())
+    else {
+        return Ok(None);
+    };
+    let sphere = &fitted.spheres[k];
+    let material = &scene.materials[k];
+    let n = (w * h) as usize;
+    let (mut truth, mut fit, mut error) = (vec![None; n], vec![None; n], vec![None; n]);
+    // The light angle that shows most of the body (least of the highlight).
+    let body = |g: usize| {
+        sphere
+            .samples
+            .iter()
+            .filter(|s| s.geometry == g && !s.reconstructed && s.half_deg > fitted.spec.specular_deg)
+            .count()
+    };
+    let mut geometries: Vec<usize> =
+        sphere.samples.iter().filter(|s| !s.reconstructed).map(|s| s.geometry).collect();
+    geometries.sort_unstable();
+    geometries.dedup();
+    let first = geometries.into_iter().max_by_key(|&g| (body(g), std::cmp::Reverse(g)));
+    for s in sphere.samples.iter().filter(|s| Some(s.geometry) == first && !s.reconstructed) {
+        let Some(t) = truth_of(scene, fitted, material, s) else { continue };
+        let i = (s.y * w + s.x) as usize;
+        if i >= n || t[j] <= 0.0 {
+            continue;
+        }
+        truth[i] = Some(t[j] as f32);
+        fit[i] = Some(s.values[j] as f32);
+        error[i] = Some(((s.values[j] - t[j]) / t[j]).abs() as f32);
+    }
+    // The scale from the truth's 2nd to its 98th percentile: the highlight saturates it rather
+    // than darken the rest.
+    let mut shown: Vec<f64> = truth.iter().flatten().map(|&v| f64::from(v)).collect();
+    if shown.is_empty() {
+        return Ok(None);
+    }
+    shown.sort_by(f64::total_cmp);
+    let at = |q: f64| shown[((shown.len() - 1) as f64 * q).round() as usize];
+    let (low, peak) = (at(0.02), at(0.98).max(at(0.02) * 1.001 + 1e-9));
+    let light = sphere.samples.iter().find(|s| Some(s.geometry) == first).map_or(0.0, |s| s.light_deg);
+    let figure = row(
+        &[
+            Panel::scalar(w, h, &truth, (low as f32, peak as f32)),
+            Panel::scalar(w, h, &fit, (low as f32, peak as f32)),
+            Panel::scalar(w, h, &error, (0.0, SPHERE_ERROR_RANGE as f32)),
+        ],
+        SPHERE_FIGURE_ZOOM,
+    );
+    lightrig_imaging::io::write_png(path, &figure, lightrig_imaging::io::BitDepth::Eight).map_err(failure)?;
+    Ok(Some(format!(
+        "The {} sphere, light at {light}°, band {} nm → {} nm: left to right the truth and the scaled fit ({low:.3} to {peak:.3} sr⁻¹, \
+         the truth's 2nd to 98th percentile, on the same scale) and |fit − truth| / truth from 0 (dark) to {:.0} % (yellow); grey where the sphere has no sample.",
+        sphere.name,
+        fitted.pairs[j].0,
+        fitted.pairs[j].1,
+        100.0 * SPHERE_ERROR_RANGE
+    )))
+}
+
+/// The sphere figures' relative error range: 0 to 10 %.
+pub const SPHERE_ERROR_RANGE: f64 = 0.1;
+
+/// The sphere figures' enlargement: a sphere is some 30 px across in the frame.
+pub const SPHERE_FIGURE_ZOOM: u32 = 3;
+
+fn write_report(
+    r: &BrrdfDemoResult,
+    files: &[PathBuf],
+    figures: &[(String, String)],
+    opts: &BrrdfDemoOptions,
+) -> Result<(), CliError> {
     let mut rep = Report::default();
     rep.line("# Bispectral BRRDF on the virtual rig");
     rep.line("");
@@ -295,6 +388,9 @@ fn write_report(r: &BrrdfDemoResult, files: &[PathBuf], opts: &BrrdfDemoOptions)
     rep.line("");
     rep.targets(["target", "value", "limit"], "", &r.targets());
     rep.line("");
+    for (file, caption) in figures {
+        rep.line(format!("![truth, fit, relative error]({file})\n\n{caption}\n"));
+    }
     let choice = lightrig_host::steer::Choice::load(&opts.out.join("spheres/session")).ok().flatten();
     rep.line(format!(
         "PCA-steered: every pair at light angles {}, the chosen pairs ({}) at the others; optical exposure \

@@ -1618,8 +1618,9 @@ pub fn write_local(fit: &DiscoFit, out: &Path) -> Result<Vec<PathBuf>, FitError>
     Ok(files)
 }
 
-/// The scanned mesh's entry in `fit.json`.
-fn scan_json(r: &ScanReport) -> Value {
+/// The scanned mesh's entry in `fit.json` (`scan`): the file, its format and unit, what
+/// reading and orienting changed, and the measures it was checked by.
+pub fn scan_json(r: &ScanReport) -> Value {
     let c = &r.check;
     json!({
         "file": r.file, "format": r.format.to_string(), "unit_mm": r.unit_mm,
