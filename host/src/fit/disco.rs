@@ -53,7 +53,7 @@ use lightrig_pipelines::disco::relight;
 use lightrig_pipelines::disco::resample::{
     background_sigma, beam_sigma, flux_scale, spot_peak, Accumulator, Incidence, ViewLimits, ViewMap,
 };
-use lightrig_pipelines::disco::scan::{check as check_scan, orient, Orientation, ScanCheck};
+use lightrig_pipelines::disco::scan::{check as check_scan, drop_unused, orient, Orientation, ScanCheck};
 use lightrig_pipelines::firs::mesh::{write_ply, Mesh};
 use lightrig_pipelines::vec3::{dot, norm, normalize, sub, V3};
 use lightrig_protocol::event::TriggerEvent;
@@ -808,6 +808,8 @@ pub struct ScanReport {
     pub polygons_split: usize,
     pub vertices_merged: usize,
     pub degenerate_dropped: usize,
+    /// Vertices no triangle used, dropped.
+    pub unused_dropped: usize,
     pub orientation: Orientation,
     pub check: ScanCheck,
 }
@@ -824,6 +826,7 @@ pub fn read_scan(path: &Path, unit_mm: f64) -> Result<(Mesh, ScanReport), FitErr
             *v = v.map(|c| c * unit_mm);
         }
     }
+    let unused_dropped = drop_unused(&mut mesh);
     let orientation = orient(&mut mesh);
     let check = check_scan(&mesh);
     if let Some(why) = check.refusal() {
@@ -836,6 +839,7 @@ pub fn read_scan(path: &Path, unit_mm: f64) -> Result<(Mesh, ScanReport), FitErr
         polygons_split: file.polygons_split,
         vertices_merged: file.vertices_merged,
         degenerate_dropped: file.degenerate_dropped,
+        unused_dropped,
         orientation,
         check,
     };
@@ -1626,7 +1630,7 @@ pub fn scan_json(r: &ScanReport) -> Value {
         "file": r.file, "format": r.format.to_string(), "unit_mm": r.unit_mm,
         "vertices": c.vertices, "triangles": c.triangles,
         "polygons_split": r.polygons_split, "vertices_merged": r.vertices_merged,
-        "degenerate_faces_dropped": r.degenerate_dropped,
+        "degenerate_faces_dropped": r.degenerate_dropped, "unused_vertices_dropped": r.unused_dropped,
         "triangles_flipped": r.orientation.flipped, "pieces": r.orientation.pieces,
         "pieces_turned_outward": r.orientation.turned_outward,
         "boundary_edges": c.defects.boundary,

@@ -6,8 +6,9 @@
 //! an open surface, only the registration's first guess gets rougher.
 //!
 //! Orientation is repaired (faces flipped to agree with their neighbours, then each connected
-//! piece turned outward by the sign of the volume it encloses); the rest is measured, and a
-//! mesh that fails is refused with the measure and what to do, never silently used.
+//! piece turned outward by the sign of the volume it encloses) and vertices no triangle uses
+//! are dropped; the rest is measured, and a mesh that fails is refused with the measure and
+//! what to do, never silently used.
 
 use std::collections::HashMap;
 
@@ -101,6 +102,31 @@ pub fn orient(mesh: &mut Mesh) -> Orientation {
         }
     }
     out
+}
+
+/// Drops the vertices no triangle uses (a scanner's stray points, what a hole's repair left
+/// behind: they have no normal and no one-ring), renumbering the triangles; returns how many.
+pub fn drop_unused(mesh: &mut Mesh) -> usize {
+    let mut used = vec![false; mesh.vertices.len()];
+    for t in &mesh.triangles {
+        for &i in t {
+            used[i as usize] = true;
+        }
+    }
+    let mut new_index = vec![u32::MAX; mesh.vertices.len()];
+    let mut kept = Vec::with_capacity(mesh.vertices.len());
+    for (i, v) in mesh.vertices.iter().enumerate() {
+        if used[i] {
+            new_index[i] = kept.len() as u32;
+            kept.push(*v);
+        }
+    }
+    let dropped = mesh.vertices.len() - kept.len();
+    mesh.vertices = kept;
+    for t in &mut mesh.triangles {
+        *t = t.map(|i| new_index[i as usize]);
+    }
+    dropped
 }
 
 /// A scanned mesh measured against what the fit needs.
@@ -323,6 +349,21 @@ mod tests {
         orient(&mut m);
         let r = check(&m).refusal().unwrap();
         assert!(r.starts_with("1 edges are shared by more than two triangles"), "{r}");
+    }
+
+    #[test]
+    fn unused_vertices_are_dropped_and_the_triangles_renumbered() {
+        let good = scaled(&icosphere(1), 20.0);
+        let mut m = good.clone();
+        // Strays before, between and after the surface's vertices.
+        m.vertices.insert(0, [99.0, 0.0, 0.0]);
+        m.vertices.insert(6, [98.0, 0.0, 0.0]);
+        m.vertices.push([97.0, 0.0, 0.0]);
+        for t in &mut m.triangles {
+            *t = t.map(|i| if i >= 5 { i + 2 } else { i + 1 });
+        }
+        assert_eq!(drop_unused(&mut m), 3);
+        assert_eq!(m, good);
     }
 
     #[test]
